@@ -1,0 +1,1 @@
+"""The shared core every swimm service imports: settings, keys, messages, Zenoh sessions."""

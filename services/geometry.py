@@ -1,0 +1,55 @@
+"""The task's relative quantities d, theta and psi, defined once for every service.
+
+The sim labels datasets with them, the learner's task rewards with them and
+the evaluator measures with them, so they live in the shared core.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from services.telemetry import Telemetry
+
+#: Horizontal field of view of the IMX322 camera (SPEC: 2*atan(4.98 / (2*2.97))).
+CAMERA_FOCAL_MM = 2.97
+CAMERA_SENSOR_MM = (4.98, 3.74)
+HFOV_DEG = math.degrees(2 * math.atan(CAMERA_SENSOR_MM[0] / (2 * CAMERA_FOCAL_MM)))
+VFOV_DEG = math.degrees(2 * math.atan(CAMERA_SENSOR_MM[1] / (2 * CAMERA_FOCAL_MM)))
+#: alpha: half the horizontal field of view, the largest azimuth that keeps the target in view.
+ALPHA_DEG = HFOV_DEG / 2
+
+OPT_D = 6.0
+MAX_D = 4.0
+
+
+@dataclass(frozen=True)
+class RelativeGeometry:
+    d: float  # horizontal distance rover -> target, m
+    theta: float  # unsigned azimuth error, degrees in [0, 180]
+    azimuth: float  # signed azimuth, degrees in (-180, 180], positive = target to the rover's left
+    psi: float  # target yaw relative to the rover, degrees in (-180, 180]
+
+
+def yaw_of(forward: tuple[float, float, float]) -> float:
+    """Heading in degrees of a forward vector projected on the horizontal plane."""
+    return math.degrees(math.atan2(forward[1], forward[0]))
+
+
+def wrap_deg(angle: float) -> float:
+    """Wrap an angle in degrees to (-180, 180]."""
+    wrapped = math.fmod(angle + 180.0, 360.0)
+    if wrapped <= 0:
+        wrapped += 360.0
+    return wrapped - 180.0
+
+
+def relative_geometry(t: Telemetry) -> RelativeGeometry:
+    hx = t.target_pos[0] - t.rover_pos[0]
+    hy = t.target_pos[1] - t.rover_pos[1]
+    d = math.hypot(hx, hy)
+    rover_yaw = yaw_of(t.rover_forward)
+    bearing = math.degrees(math.atan2(hy, hx)) if d > 0 else rover_yaw
+    azimuth = wrap_deg(bearing - rover_yaw)
+    psi = wrap_deg(yaw_of(t.target_forward) - rover_yaw)
+    return RelativeGeometry(d=d, theta=abs(azimuth), azimuth=azimuth, psi=psi)

@@ -1,0 +1,275 @@
+"""Versioned msgpack messages of the step pipeline and their validation.
+
+Every message is a msgpack map carrying the protocol version ``v``, the
+episode number ``ep``, the step sequence number ``seq`` and the send time
+``t`` (seconds, ``time.time()``). Decoding validates shape and ranges and
+raises :class:`BadMessage` with a reason a human can act on; services turn
+that into a refusal and an error counter, never a crash.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from services.telemetry import Telemetry
+
+PROTOCOL_VERSION = 1
+#: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
+MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
+ACTION_SIZE = 4  # (sway, heave, surge, yaw)
+DIRECT_ROUTE = "direct"  # observation goes straight to the learner, no encoder
+
+
+class BadMessage(ValueError):
+    """A message that cannot be accepted; ``str(exc)`` is the reason sent back."""
+
+
+class DiveMode(str, Enum):
+    MANUAL = "manual"
+    STABILISE = "stabilise"
+    DEPTH_HOLD = "depth_hold"
+
+
+def _pack(body: dict[str, Any]) -> bytes:
+    return msgpack.packb(body, use_bin_type=True)
+
+
+def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """Decode a payload into a map, checking size, format and protocol version."""
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise BadMessage(f"payload of {len(payload)} bytes exceeds the {MAX_PAYLOAD_BYTES}-byte limit")
+    try:
+        body = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
+    except Exception as exc:  # msgpack raises several unrelated types
+        raise BadMessage(f"malformed msgpack: {exc}") from None
+    if not isinstance(body, dict):
+        raise BadMessage("message must be a msgpack map")
+    version = body.get("v")
+    if version != PROTOCOL_VERSION:
+        raise BadMessage(f"unknown protocol version {version!r}; this service speaks {PROTOCOL_VERSION}")
+    return body
+
+
+def _int(body: dict[str, Any], name: str) -> int:
+    value = body.get(name)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise BadMessage(f"field {name!r} must be a non-negative integer, got {value!r}")
+    return value
+
+
+def _str(body: dict[str, Any], name: str, default: str | None = None) -> str:
+    value = body.get(name, default)
+    if not isinstance(value, str):
+        raise BadMessage(f"field {name!r} must be a string, got {value!r}")
+    return value
+
+
+def _float_list(body: dict[str, Any], name: str, size: int | None) -> tuple[float, ...]:
+    value = body.get(name)
+    if not isinstance(value, (list, tuple)) or (size is not None and len(value) != size):
+        want = f"{size} numbers" if size is not None else "a list of numbers"
+        raise BadMessage(f"field {name!r} must be {want}, got {value!r}")
+    try:
+        numbers = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        raise BadMessage(f"field {name!r} holds a non-number") from None
+    if not all(math.isfinite(x) for x in numbers):
+        raise BadMessage(f"field {name!r} holds NaN or infinity")
+    return numbers
+
+
+@dataclass(frozen=True)
+class ActionMsg:
+    """Learner -> sim: apply ``action`` as step ``seq`` of episode ``ep``.
+
+    ``route`` names the encoder that must encode the resulting observation
+    (or ``direct``); the learner chooses it so the party that notices a dead
+    encoder (by timing out) is the one that re-routes.
+    """
+
+    ep: int
+    seq: int
+    action: tuple[float, float, float, float]
+    dive_mode: DiveMode = DiveMode.DEPTH_HOLD
+    route: str = DIRECT_ROUTE
+    sent_at: float = field(default_factory=time.time)
+
+    def encode(self) -> bytes:
+        return _pack(
+            {
+                "v": PROTOCOL_VERSION,
+                "ep": self.ep,
+                "seq": self.seq,
+                "t": self.sent_at,
+                "action": list(self.action),
+                "dive_mode": self.dive_mode.value,
+                "route": self.route,
+            }
+        )
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "ActionMsg":
+        body = unpack(payload)
+        action = _float_list(body, "action", ACTION_SIZE)
+        if any(abs(a) > 1.0 for a in action):
+            raise BadMessage(f"action components must lie in [-1, 1], got {list(action)}")
+        try:
+            dive_mode = DiveMode(_str(body, "dive_mode", DiveMode.DEPTH_HOLD.value))
+        except ValueError:
+            raise BadMessage(f"unknown dive_mode {body.get('dive_mode')!r}") from None
+        return cls(
+            ep=_int(body, "ep"),
+            seq=_int(body, "seq"),
+            action=action,  # type: ignore[arg-type]
+            dive_mode=dive_mode,
+            route=_str(body, "route", DIRECT_ROUTE),
+            sent_at=float(body.get("t", 0.0)),
+        )
+
+
+def image_to_fields(image: np.ndarray) -> dict[str, Any]:
+    return {"image": image.tobytes(), "shape": list(image.shape), "dtype": "uint8"}
+
+
+def image_from_fields(body: dict[str, Any], expected_shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """Rebuild an HxWx3 uint8 image, refusing wrong dtype, shape or byte count."""
+    if body.get("dtype", "uint8") != "uint8":
+        raise BadMessage(f"image dtype must be uint8, got {body.get('dtype')!r}")
+    shape = body.get("shape")
+    if (
+        not isinstance(shape, (list, tuple))
+        or len(shape) != 3
+        or shape[2] != 3
+        or not all(isinstance(s, int) and s > 0 for s in shape)
+    ):
+        raise BadMessage(f"image shape must be [H, W, 3], got {shape!r}")
+    if expected_shape is not None and tuple(shape) != tuple(expected_shape):
+        raise BadMessage(f"image shape {list(shape)} differs from the expected {list(expected_shape)}")
+    data = body.get("image")
+    if not isinstance(data, (bytes, bytearray)) or len(data) != shape[0] * shape[1] * 3:
+        raise BadMessage(f"image bytes do not match shape {list(shape)}")
+    return np.frombuffer(data, dtype=np.uint8).reshape(shape)
+
+
+@dataclass(frozen=True)
+class ObservationMsg:
+    """Sim -> encoder or learner: the world after step ``seq`` of episode ``ep``."""
+
+    env: str
+    ep: int
+    seq: int
+    telemetry: Telemetry
+    image: np.ndarray  # HxWx3 uint8
+    sent_at: float = field(default_factory=time.time)
+
+    def encode(self) -> bytes:
+        body = {
+            "v": PROTOCOL_VERSION,
+            "env": self.env,
+            "ep": self.ep,
+            "seq": self.seq,
+            "t": self.sent_at,
+            "telemetry": self.telemetry.to_dict(),
+        }
+        body.update(image_to_fields(self.image))
+        return _pack(body)
+
+    @classmethod
+    def decode(cls, payload: bytes, expected_shape: tuple[int, ...] | None = None) -> "ObservationMsg":
+        body = unpack(payload)
+        return cls(
+            env=_str(body, "env"),
+            ep=_int(body, "ep"),
+            seq=_int(body, "seq"),
+            telemetry=_telemetry(body),
+            image=image_from_fields(body, expected_shape),
+            sent_at=float(body.get("t", 0.0)),
+        )
+
+
+def _telemetry(body: dict[str, Any]) -> Telemetry:
+    raw = body.get("telemetry")
+    if not isinstance(raw, dict):
+        raise BadMessage("field 'telemetry' must be a map")
+    try:
+        return Telemetry.from_dict(raw)
+    except (ValueError, TypeError) as exc:
+        raise BadMessage(str(exc)) from None
+
+
+@dataclass(frozen=True)
+class LatentMsg:
+    """Encoder -> learner: the latent of one observation, telemetry passed through."""
+
+    env: str
+    ep: int
+    seq: int
+    telemetry: Telemetry
+    mu: tuple[float, ...]
+    logvar: tuple[float, ...]
+    encoder: str
+    sent_at: float = field(default_factory=time.time)
+
+    def encode(self) -> bytes:
+        return _pack(
+            {
+                "v": PROTOCOL_VERSION,
+                "env": self.env,
+                "ep": self.ep,
+                "seq": self.seq,
+                "t": self.sent_at,
+                "telemetry": self.telemetry.to_dict(),
+                "mu": list(self.mu),
+                "logvar": list(self.logvar),
+                "encoder": self.encoder,
+            }
+        )
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "LatentMsg":
+        body = unpack(payload)
+        mu = _float_list(body, "mu", None)
+        return cls(
+            env=_str(body, "env"),
+            ep=_int(body, "ep"),
+            seq=_int(body, "seq"),
+            telemetry=_telemetry(body),
+            mu=mu,
+            logvar=_float_list(body, "logvar", len(mu)),
+            encoder=_str(body, "encoder"),
+            sent_at=float(body.get("t", 0.0)),
+        )
+
+
+@dataclass(frozen=True)
+class ErrorMsg:
+    """Any service -> sender: why a message was refused (``seq``/``ep`` when known)."""
+
+    reason: str
+    ep: int = 0
+    seq: int = 0
+    sent_at: float = field(default_factory=time.time)
+
+    def encode(self) -> bytes:
+        return _pack({"v": PROTOCOL_VERSION, "ep": self.ep, "seq": self.seq, "t": self.sent_at, "error": self.reason})
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "ErrorMsg":
+        body = unpack(payload)
+        return cls(reason=_str(body, "error"), ep=int(body.get("ep", 0)), seq=int(body.get("seq", 0)))
+
+
+def encode_request(op: str, **args: Any) -> bytes:
+    """A control request (claim, release, reset, info, seed) sent to ``<ns>/<channel>/<env>/ctl``."""
+    return _pack({"v": PROTOCOL_VERSION, "t": time.time(), "op": op, **args})
+
+
+def encode_reply(ok: bool, **fields_: Any) -> bytes:
+    return _pack({"v": PROTOCOL_VERSION, "t": time.time(), "ok": ok, **fields_})

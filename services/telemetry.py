@@ -1,0 +1,56 @@
+"""Ground-truth state of one environment at one step.
+
+The sim fills a :class:`Telemetry` every step; the learner's task derives
+reward and termination from it and the evaluator its metrics. It is plain
+data (tuples of floats) so that it crosses msgpack unchanged and compares
+bit-for-bit between in-process and distributed runs.
+
+Frames: MuJoCo world frame, z up, metres, radians for angular rates.
+Quaternions are (w, x, y, z) as MuJoCo stores them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class Telemetry:
+    rover_pos: Vec3
+    rover_quat: Quat
+    rover_forward: Vec3
+    rover_lin_vel: Vec3  # world frame, m/s
+    rover_ang_vel: Vec3  # world frame, rad/s
+    target_pos: Vec3
+    target_quat: Quat
+    target_forward: Vec3
+    target_lin_vel: Vec3
+    target_in_frustum: bool  # target's bounding volume wholly inside the camera frustum
+    collided: bool  # rover and target bodies in contact this step
+    sim_time: float  # seconds since reset
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "Telemetry":
+        """Rebuild from a decoded message; raises ValueError on a missing or malformed field."""
+        values: dict[str, Any] = {}
+        for f in fields(cls):
+            if f.name not in data:
+                raise ValueError(f"telemetry lacks field {f.name!r}")
+            raw = data[f.name]
+            if f.type in ("bool",):
+                values[f.name] = bool(raw)
+            elif f.type == "float":
+                values[f.name] = float(raw)
+            else:
+                size = 4 if f.type == "Quat" else 3
+                if not isinstance(raw, (list, tuple)) or len(raw) != size:
+                    raise ValueError(f"telemetry field {f.name!r} must have {size} numbers")
+                values[f.name] = tuple(float(x) for x in raw)
+        return cls(**values)
