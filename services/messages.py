@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 import msgpack
@@ -31,7 +31,7 @@ class BadMessage(ValueError):
     """A message that cannot be accepted; ``str(exc)`` is the reason sent back."""
 
 
-class DiveMode(str, Enum):
+class DiveMode(StrEnum):
     MANUAL = "manual"
     STABILISE = "stabilise"
     DEPTH_HOLD = "depth_hold"
@@ -99,6 +99,7 @@ class ActionMsg:
     action: tuple[float, float, float, float]
     dive_mode: DiveMode = DiveMode.DEPTH_HOLD
     route: str = DIRECT_ROUTE
+    sender: str = ""  # the claimant's id; the sim refuses actions from anyone but the holder
     sent_at: float = field(default_factory=time.time)
 
     def encode(self) -> bytes:
@@ -111,11 +112,12 @@ class ActionMsg:
                 "action": list(self.action),
                 "dive_mode": self.dive_mode.value,
                 "route": self.route,
+                "sender": self.sender,
             }
         )
 
     @classmethod
-    def decode(cls, payload: bytes) -> "ActionMsg":
+    def decode(cls, payload: bytes) -> ActionMsg:
         body = unpack(payload)
         action = _float_list(body, "action", ACTION_SIZE)
         if any(abs(a) > 1.0 for a in action):
@@ -130,6 +132,7 @@ class ActionMsg:
             action=action,  # type: ignore[arg-type]
             dive_mode=dive_mode,
             route=_str(body, "route", DIRECT_ROUTE),
+            sender=_str(body, "sender", ""),
             sent_at=float(body.get("t", 0.0)),
         )
 
@@ -182,7 +185,7 @@ class ObservationMsg:
         return _pack(body)
 
     @classmethod
-    def decode(cls, payload: bytes, expected_shape: tuple[int, ...] | None = None) -> "ObservationMsg":
+    def decode(cls, payload: bytes, expected_shape: tuple[int, ...] | None = None) -> ObservationMsg:
         body = unpack(payload)
         return cls(
             env=_str(body, "env"),
@@ -233,7 +236,7 @@ class LatentMsg:
         )
 
     @classmethod
-    def decode(cls, payload: bytes) -> "LatentMsg":
+    def decode(cls, payload: bytes) -> LatentMsg:
         body = unpack(payload)
         mu = _float_list(body, "mu", None)
         return cls(
@@ -261,7 +264,7 @@ class ErrorMsg:
         return _pack({"v": PROTOCOL_VERSION, "ep": self.ep, "seq": self.seq, "t": self.sent_at, "error": self.reason})
 
     @classmethod
-    def decode(cls, payload: bytes) -> "ErrorMsg":
+    def decode(cls, payload: bytes) -> ErrorMsg:
         body = unpack(payload)
         return cls(reason=_str(body, "error"), ep=int(body.get("ep", 0)), seq=int(body.get("seq", 0)))
 

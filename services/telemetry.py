@@ -37,7 +37,7 @@ class Telemetry:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "Telemetry":
+    def from_dict(cls, data: dict[str, Any]) -> Telemetry:
         """Rebuild from a decoded message; raises ValueError on a missing or malformed field."""
         values: dict[str, Any] = {}
         for f in fields(cls):

@@ -1,0 +1,82 @@
+"""Liveliness: every service announces itself, and others watch who is alive.
+
+A token lives as long as its session, so a crashed process disappears from
+``<ns>/@live/<role>/*`` without saying goodbye; that is how claims lapse and
+how encoder load moves away from a dead encoder.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import zenoh
+
+from services.keys import Keys
+
+log = logging.getLogger(__name__)
+
+
+def announce(session: zenoh.Session, keys: Keys, role: str, ident: str) -> zenoh.LivelinessToken:
+    """Declare this service's token; keep the returned object referenced or it is undeclared."""
+    return session.liveliness().declare_token(keys.live(role, ident))
+
+
+class Roster:
+    """The live members of one role, kept current by a liveliness subscriber.
+
+    ``on_change(joined, left)`` runs on a Zenoh thread after each change, so
+    it must be quick.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        role: str,
+        on_change: Callable[[set[str], set[str]], None] | None = None,
+    ) -> None:
+        self._members: set[str] = set()
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._on_change = on_change
+        self.role = role
+        self._subscriber = session.liveliness().declare_subscriber(keys.live_role(role), self._on_sample, history=True)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        ident = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                joined, left = ({ident} - self._members), set()
+                self._members.add(ident)
+            else:
+                joined, left = set(), ({ident} & self._members)
+                self._members.discard(ident)
+            self._changed.notify_all()
+        if joined or left:
+            log.info("%s roster: joined %s left %s", self.role, sorted(joined), sorted(left))
+            if self._on_change:
+                self._on_change(joined, left)
+
+    def members(self) -> set[str]:
+        with self._lock:
+            return set(self._members)
+
+    def wait_for(self, count: int = 1, timeout_s: float = 30.0) -> set[str]:
+        """Block until at least ``count`` members are live; raise TimeoutError naming the role otherwise."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while len(self._members) < count:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(
+                        f"no live {self.role} after {timeout_s:.0f} s (need {count}, see {len(self._members)}); "
+                        f"is `swimm {self.role}` running and connected to the same router and namespace?"
+                    )
+                self._changed.wait(remaining)
+            return set(self._members)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()

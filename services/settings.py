@@ -1,0 +1,168 @@
+"""Settings: one dataclass per command, filled from defaults < YAML file < environment < CLI flags.
+
+Each service declares its settings as plain dataclasses; this module turns
+any such dataclass into command-line flags and environment variables, so
+the dataclass is the single source of truth for names, types and defaults.
+
+Naming: field ``max_wait_ms`` is flag ``--max-wait-ms`` and variable
+``SWIMM_MAX_WAIT_MS``. A nested dataclass field ``noise`` contributes
+``--noise-fog`` / ``SWIMM_NOISE_FOG``, unless the field is marked
+``metadata={"flatten": True}`` (used for the Zenoh settings every command
+shares), in which case its fields keep their own names (``--connect``).
+A YAML file (``--config FILE``) holds the same names as nested maps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import types
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+T = TypeVar("T")
+ENV_PREFIX = "SWIMM_"
+
+
+@dataclasses.dataclass
+class ZenohSettings:
+    """How a service joins the Zenoh network; shared by every command."""
+
+    mode: str = "client"  # client | peer | router
+    connect: list[str] = dataclasses.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = dataclasses.field(default_factory=list)
+    zenoh_config: str | None = None  # a Zenoh JSON5 config file; the fields above override it
+    namespace: str = "swimm/default"
+    startup_timeout_s: float = 60.0  # how long to wait for the router or peers at start
+
+
+@dataclasses.dataclass(frozen=True)
+class _Leaf:
+    path: tuple[str, ...]  # attribute path from the root dataclass
+    name: str  # flag/variable stem, e.g. "noise_fog"
+    kind: Any  # resolved type hint
+    default: Any
+
+
+def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "") -> list[_Leaf]:
+    hints = typing.get_type_hints(cls)
+    instance_defaults = cls()
+    leaves: list[_Leaf] = []
+    for f in dataclasses.fields(cls):
+        kind = hints[f.name]
+        name = f"{stem}{f.name}"
+        if dataclasses.is_dataclass(kind):
+            sub_stem = stem if f.metadata.get("flatten") else f"{name}_"
+            leaves.extend(_leaves(kind, (*path, f.name), sub_stem))
+        else:
+            leaves.append(_Leaf((*path, f.name), name, kind, getattr(instance_defaults, f.name)))
+    return leaves
+
+
+def _base_type(kind: Any) -> tuple[Any, bool]:
+    """(underlying type, optional?) for hints such as ``str | None``."""
+    origin = typing.get_origin(kind)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        return args[0], True
+    return kind, False
+
+
+def _parse_text(kind: Any, text: str) -> Any:
+    """Convert an environment variable's text to the field's type."""
+    base, optional = _base_type(kind)
+    if optional and text.strip().lower() in ("", "none", "null"):
+        return None
+    origin = typing.get_origin(base)
+    if origin in (list, tuple):
+        (item,) = typing.get_args(base)[:1] or (str,)
+        items = [_parse_text(item, part.strip()) for part in text.split(",") if part.strip()]
+        return items if origin is list else tuple(items)
+    if base is bool:
+        if text.strip().lower() in ("1", "true", "yes", "on"):
+            return True
+        if text.strip().lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"{text!r} is not a boolean (use true/false)")
+    return base(text)
+
+
+def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
+    """Add one flag per leaf field of ``cls``; unset flags stay None so lower layers show through."""
+    group = parser.add_argument_group(cls.__name__)
+    for leaf in _leaves(cls):
+        flag = "--" + leaf.name.replace("_", "-")
+        base, _ = _base_type(leaf.kind)
+        help_text = f"(default: {leaf.default!r}; env {ENV_PREFIX}{leaf.name.upper()})"
+        if base is bool:
+            group.add_argument(
+                flag, dest=leaf.name, action=argparse.BooleanOptionalAction, default=None, help=help_text
+            )
+        elif typing.get_origin(base) in (list, tuple):
+            (item,) = typing.get_args(base)[:1] or (str,)
+            group.add_argument(flag, dest=leaf.name, nargs="*", type=item, default=None, help=help_text)
+        else:
+            group.add_argument(flag, dest=leaf.name, type=base, default=None, help=help_text)
+
+
+def _set(target: Any, path: tuple[str, ...], value: Any) -> None:
+    for attr in path[:-1]:
+        target = getattr(target, attr)
+    setattr(target, path[-1], value)
+
+
+def _from_file(tree: dict[str, Any], leaf: _Leaf, cls: type) -> tuple[bool, Any]:
+    """Find a leaf in a YAML tree either by its nested path or by its flat name."""
+    if leaf.name in tree:
+        return True, tree[leaf.name]
+    node: Any = tree
+    for attr in leaf.path:
+        if not isinstance(node, dict) or attr not in node:
+            return False, None
+        node = node[attr]
+    return True, node
+
+
+def load(
+    cls: type[T],
+    args: argparse.Namespace | None = None,
+    config_file: str | Path | None = None,
+    environ: typing.Mapping[str, str] | None = None,
+) -> T:
+    """Build ``cls`` from defaults, then the YAML file, then ``SWIMM_*`` variables, then CLI flags."""
+    environ = os.environ if environ is None else environ
+    tree: dict[str, Any] = {}
+    if config_file:
+        loaded = yaml.safe_load(Path(config_file).read_text()) or {}
+        if not isinstance(loaded, dict):
+            raise ValueError(f"settings file {config_file} must hold a YAML mapping")
+        tree = loaded
+    settings = cls()
+    for leaf in _leaves(cls):
+        value: Any = dataclasses.MISSING
+        found, from_file = _from_file(tree, leaf, cls)
+        if found:
+            value = from_file
+        env_name = ENV_PREFIX + leaf.name.upper()
+        if env_name in environ:
+            try:
+                value = _parse_text(leaf.kind, environ[env_name])
+            except ValueError as exc:
+                raise ValueError(f"environment variable {env_name}: {exc}") from None
+        if args is not None and getattr(args, leaf.name, None) is not None:
+            value = getattr(args, leaf.name)
+        if value is not dataclasses.MISSING:
+            base, _ = _base_type(leaf.kind)
+            if typing.get_origin(base) is tuple and isinstance(value, list):
+                value = tuple(value)
+            _set(settings, leaf.path, value)
+    return settings
+
+
+def to_dict(settings: Any) -> dict[str, Any]:
+    """A YAML-friendly view of settings, for run folders."""
+    return dataclasses.asdict(settings)

@@ -1,0 +1,122 @@
+"""One served environment: a World plus who holds it and the (episode, seq) it is at.
+
+This is the lock-step contract, free of Zenoh so it can be tested directly:
+
+* an env is driven only by the claimant that holds it;
+* ``reset`` starts episode ``ep`` at seq 0; repeating the same reset replays
+  the cached observation instead of drawing a new episode;
+* action ``seq`` must be the next one (current + 1) and steps the world once;
+  the current ``seq`` again is a retry and is answered from the cache
+  without stepping; anything else is refused with the reason.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+from services.messages import DIRECT_ROUTE, ActionMsg, ObservationMsg
+from sim_service.world import World
+
+log = logging.getLogger(__name__)
+
+
+class Refusal(Exception):
+    """A request this env will not carry out; ``str(exc)`` is sent back to the sender."""
+
+
+@dataclass
+class Outcome:
+    payload: bytes  # the encoded observation to publish
+    replayed: bool  # True when answered from the cache without stepping
+
+
+class LockstepEnv:
+    def __init__(self, channel: str, env: str, world: World) -> None:
+        self.channel = channel
+        self.env = env
+        self.world = world
+        self.holder: str | None = None
+        self.ep = 0
+        self.seq = 0
+        self.seed: int | None = None
+        self._last_payload: bytes | None = None
+        self.route = DIRECT_ROUTE  # where this env's observations go (set by reset and each action)
+        self.action = (0.0, 0.0, 0.0, 0.0)  # held between steps in real-time mode
+        self.pending: ActionMsg | None = None  # real-time mode: the latest action, applied at the next tick
+
+    @property
+    def name(self) -> str:
+        return f"{self.channel}/{self.env}"
+
+    def claim(self, holder: str) -> None:
+        if self.holder not in (None, holder):
+            raise Refusal(f"env {self.name} is held by {self.holder}")
+        if self.holder != holder:
+            log.info("env %s claimed by %s", self.name, holder)
+        self.holder = holder
+
+    def release(self, holder: str) -> None:
+        if self.holder != holder:
+            raise Refusal(f"env {self.name} is not held by {holder} (holder: {self.holder})")
+        self.holder = None
+        log.info("env %s released by %s", self.name, holder)
+
+    def lapse(self, gone: set[str]) -> None:
+        """Free the env when its holder's liveliness token went away."""
+        if self.holder in gone:
+            log.warning("env %s: holder %s is gone; claim lapsed", self.name, self.holder)
+            self.holder = None
+
+    def _check_holder(self, sender: str) -> None:
+        if self.holder is None:
+            raise Refusal(f"env {self.name} is not claimed; claim it before driving it")
+        if sender != self.holder:
+            raise Refusal(f"env {self.name} is held by {self.holder}, not {sender or 'an anonymous sender'}")
+
+    def reset(self, sender: str, ep: int, seed: int, route: str = DIRECT_ROUTE) -> Outcome:
+        self._check_holder(sender)
+        self.route = route
+        if ep == self.ep and self.seq == 0 and self._last_payload is not None and seed == self.seed:
+            return Outcome(self._last_payload, replayed=True)
+        if ep <= self.ep and self._last_payload is not None:
+            raise Refusal(f"env {self.name}: episode {ep} is not after the current episode {self.ep}")
+        telemetry, image = self.world.reset(seed)
+        self.ep, self.seq, self.seed = ep, 0, seed
+        self.action = (0.0, 0.0, 0.0, 0.0)
+        return self._emit(telemetry, image)
+
+    def act(self, msg: ActionMsg) -> Outcome:
+        self._check_holder(msg.sender)
+        self.route = msg.route
+        if msg.ep != self.ep or self._last_payload is None:
+            raise Refusal(f"env {self.name}: action for episode {msg.ep}, but the current episode is {self.ep}")
+        if msg.seq == self.seq:
+            return Outcome(self._last_payload, replayed=True)
+        if msg.seq != self.seq + 1:
+            raise Refusal(f"env {self.name}: action seq {msg.seq} out of order (expected {self.seq + 1})")
+        telemetry, image = self.world.step(msg.action, msg.dive_mode)
+        self.seq = msg.seq
+        return self._emit(telemetry, image)
+
+    def step_realtime(self) -> Outcome | None:
+        """Real-time mode: advance once with the latest action (held when none came)."""
+        if self._last_payload is None:
+            return None
+        if self.pending is not None:
+            self._check_holder(self.pending.sender)
+            self.action, self.route, self.pending = self.pending.action, self.pending.route, None
+        telemetry, image = self.world.step(self.action)
+        self.seq += 1
+        return self._emit(telemetry, image)
+
+    def _emit(self, telemetry, image) -> Outcome:
+        msg = ObservationMsg(
+            env=self.env, ep=self.ep, seq=self.seq, telemetry=telemetry, image=image, sent_at=time.time()
+        )
+        self._last_payload = msg.encode()
+        return Outcome(self._last_payload, replayed=False)
+
+    def info(self) -> dict:
+        return {"channel": self.channel, "env": self.env, "holder": self.holder, "ep": self.ep, "seq": self.seq}

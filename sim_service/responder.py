@@ -1,0 +1,239 @@
+"""`swimm sim`: serves LockstepEnvs on the train and eval channels over Zenoh.
+
+Zenoh callbacks only decode-free enqueue; one worker thread owns every World
+(MuJoCo and its GL context stay on one thread) and answers requests in
+arrival order, so each env sees its messages in order and a run is
+reproducible whatever the network does.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+
+import zenoh
+
+from services import control
+from services.keys import Keys
+from services.lifecycle import serve_until_signalled
+from services.messages import ActionMsg, BadMessage, ErrorMsg, unpack
+from services.metrics import Metrics, MetricsPublisher
+from services.presence import Roster, announce
+from services.session import open_session
+from services.settings import ZenohSettings
+from sim_service.lockstep import LockstepEnv, Outcome, Refusal
+from sim_service.settings import WorldSettings
+from sim_service.world import World
+
+log = logging.getLogger(__name__)
+CLAIMANT_ROLES = ("learner", "eval")
+
+
+@dataclass
+class SimSettings:
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
+    world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
+    train_envs: int = 1
+    eval_envs: int = 1
+    realtime: bool = False  # physics keeps running at physics_dt; the last action is held
+    ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
+
+
+@dataclass
+class _Request:
+    kind: str  # "action" | "ctl" | "lapse"
+    env: LockstepEnv | None
+    payload: bytes = b""
+    query: zenoh.Query | None = None
+    gone: set[str] = field(default_factory=set)
+    received_at: float = field(default_factory=time.perf_counter)
+
+
+class SimResponder:
+    def __init__(self, settings: SimSettings) -> None:
+        self.settings = settings
+        self.keys = Keys(settings.zenoh.namespace)
+        self.ident = settings.ident or f"sim-{os.getpid()}"
+        self.metrics = Metrics()
+        self._inbox: queue.Queue[_Request | None] = queue.Queue()
+        self._stop = threading.Event()
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._envs: list[LockstepEnv] = []
+        self._ready = threading.Event()
+        self._worker = threading.Thread(target=self._work, name="sim-worker", daemon=True)
+
+    # --- set-up -------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._worker.start()  # creates the Worlds (and their GL contexts) on its own thread
+        if not self._ready.wait(timeout=120):
+            raise RuntimeError("the sim worker did not build its worlds within 120 s")
+        self.session = open_session(self.settings.zenoh, role="sim")
+        self._declared = []
+        for env in self._envs:
+            self._declared.append(
+                self.session.declare_subscriber(
+                    self.keys.action(env.channel, env.env), lambda s, e=env: self._enqueue("action", e, s.payload)
+                )
+            )
+            self._declared.append(
+                self.session.declare_queryable(
+                    self.keys.ctl(env.channel, env.env),
+                    lambda q, e=env: self._inbox.put(_Request("ctl", e, query=q)),
+                )
+            )
+        self._rosters = [Roster(self.session, self.keys, role, self._on_roster_change) for role in CLAIMANT_ROLES]
+        self._token = announce(self.session, self.keys, "sim", self.ident)
+        self._metrics_publisher = MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics)
+        log.info(
+            "sim %s serving %d train and %d eval envs under %s (%s)",
+            self.ident,
+            self.settings.train_envs,
+            self.settings.eval_envs,
+            self.keys.namespace,
+            "real-time" if self.settings.realtime else "lock-step",
+        )
+
+    def _enqueue(self, kind: str, env: LockstepEnv, payload: zenoh.ZBytes) -> None:
+        self._inbox.put(_Request(kind, env, payload=payload.to_bytes()))
+
+    def _on_roster_change(self, joined: set[str], left: set[str]) -> None:
+        if left:
+            self._inbox.put(_Request("lapse", None, gone=left))
+
+    # --- the worker -----------------------------------------------------------------------------
+    def _build_envs(self) -> None:
+        for channel, count in (("train", self.settings.train_envs), ("eval", self.settings.eval_envs)):
+            for index in range(count):
+                self._envs.append(LockstepEnv(channel, str(index), World(self.settings.world)))
+
+    def _work(self) -> None:
+        self._build_envs()
+        self._ready.set()
+        period = self.settings.world.physics_dt
+        next_tick = time.perf_counter()
+        while True:
+            timeout = max(0.0, next_tick - time.perf_counter()) if self.settings.realtime else 0.5
+            try:
+                request = self._inbox.get(timeout=timeout)
+            except queue.Empty:
+                request = None
+                if self._stop.is_set():
+                    break
+            if request is None and self._stop.is_set() and self._inbox.empty():
+                break
+            if request is not None:
+                self._handle(request)
+            if self.settings.realtime and time.perf_counter() >= next_tick:
+                next_tick += period
+                self._tick_realtime()
+        for env in self._envs:
+            env.world.close()
+
+    def _handle(self, request: _Request) -> None:
+        try:
+            if request.kind == "action":
+                self._handle_action(request)
+            elif request.kind == "ctl":
+                self._handle_ctl(request)
+            elif request.kind == "lapse":
+                for env in self._envs:
+                    env.lapse(request.gone)
+        except Exception:  # a bug in one request must not take the sim down
+            self.metrics.count("errors_internal")
+            log.exception("internal error while handling a %s request", request.kind)
+
+    def _handle_action(self, request: _Request) -> None:
+        env = request.env
+        assert env is not None
+        try:
+            msg = ActionMsg.decode(request.payload)
+        except BadMessage as exc:
+            self._refuse(env, str(exc), 0, 0)
+            return
+        if self.settings.realtime:
+            env.pending = msg  # applied at the next tick
+            return
+        try:
+            outcome = env.act(msg)
+        except Refusal as exc:
+            self._refuse(env, str(exc), msg.ep, msg.seq)
+            return
+        self._publish(env, env.route, outcome, request.received_at)
+
+    def _tick_realtime(self) -> None:
+        for env in self._envs:
+            try:
+                outcome = env.step_realtime()
+            except Refusal as exc:
+                self._refuse(env, str(exc), env.ep, env.seq)
+                continue
+            if outcome is not None:
+                self._publish(env, env.route, outcome, time.perf_counter())
+
+    def _handle_ctl(self, request: _Request) -> None:
+        env, query = request.env, request.query
+        assert env is not None and query is not None
+        try:
+            body = unpack(query.payload.to_bytes()) if query.payload is not None else {}
+            op = body.get("op")
+            holder = str(body.get("holder", ""))
+            if op == "info":
+                control.reply(query, True, sim=self.ident, **env.info(), image_size=self.settings.world.image_size)
+            elif op == "claim":
+                env.claim(holder)
+                control.reply(query, True, **env.info())
+            elif op == "release":
+                env.release(holder)
+                control.reply(query, True, **env.info())
+            elif op == "reset":
+                ep, seed = body.get("ep"), body.get("seed")
+                route = str(body.get("route", "direct"))
+                if not isinstance(ep, int) or not isinstance(seed, int):
+                    raise BadMessage("reset needs integer 'ep' and 'seed'")
+                outcome = env.reset(holder, ep, seed, route)
+                self._publish(env, route, outcome, request.received_at)
+                control.reply(query, True, **env.info(), replayed=outcome.replayed)
+            else:
+                raise BadMessage(f"unknown control op {op!r} (known: info, claim, release, reset)")
+            self.metrics.count(f"ctl_{op}")
+        except (BadMessage, Refusal) as exc:
+            self.metrics.count("errors_refused")
+            log.warning("refused control request on %s: %s", env.name, exc)
+            control.reply(query, False, error=str(exc))
+
+    def _publish(self, env: LockstepEnv, route: str, outcome: Outcome, received_at: float) -> None:
+        key = self.keys.obs(env.channel, env.env, route)
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            self._publishers[key] = publisher
+        publisher.put(outcome.payload)
+        self.metrics.count("replays" if outcome.replayed else "steps")
+        self.metrics.observe_ms("step", (time.perf_counter() - received_at) * 1e3)
+
+    def _refuse(self, env: LockstepEnv, reason: str, ep: int, seq: int) -> None:
+        self.metrics.count("errors_refused")
+        log.warning("refused action on %s: %s", env.name, reason)
+        self.session.put(self.keys.err(env.channel, env.env), ErrorMsg(reason, ep, seq).encode())
+
+    # --- shutdown -------------------------------------------------------------------------------
+    def stop(self) -> None:
+        """Drain queued requests, then undeclare everything and close the session."""
+        self._stop.set()
+        self._inbox.put(None)
+        self._worker.join(timeout=30)
+        self._metrics_publisher.close()
+        for roster in self._rosters:
+            roster.close()
+        for entity in [*self._declared, *self._publishers.values(), self._token]:
+            entity.undeclare()
+        self.session.close()
+        log.info("sim %s stopped: %s", self.ident, self.metrics.snapshot())
+
+
+def run(settings: SimSettings) -> None:
+    serve_until_signalled(SimResponder(settings))
