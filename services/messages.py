@@ -253,20 +253,36 @@ class LatentMsg:
 
 @dataclass(frozen=True)
 class ErrorMsg:
-    """Any service -> sender: why a message was refused (``seq``/``ep`` when known)."""
+    """Any service -> sender: why a message was refused.
+
+    ``sender`` is the refused message's sender when it could be read, so a
+    client ignores refusals meant for somebody else on the same env.
+    """
 
     reason: str
     ep: int = 0
     seq: int = 0
+    sender: str = ""
     sent_at: float = field(default_factory=time.time)
 
     def encode(self) -> bytes:
-        return _pack({"v": PROTOCOL_VERSION, "ep": self.ep, "seq": self.seq, "t": self.sent_at, "error": self.reason})
+        return _pack(
+            {
+                "v": PROTOCOL_VERSION,
+                "ep": self.ep,
+                "seq": self.seq,
+                "t": self.sent_at,
+                "error": self.reason,
+                "sender": self.sender,
+            }
+        )
 
     @classmethod
     def decode(cls, payload: bytes) -> ErrorMsg:
         body = unpack(payload)
-        return cls(reason=_str(body, "error"), ep=int(body.get("ep", 0)), seq=int(body.get("seq", 0)))
+        return cls(
+            reason=_str(body, "error"), ep=_int(body, "ep"), seq=_int(body, "seq"), sender=_str(body, "sender", "")
+        )
 
 
 def encode_request(op: str, **args: Any) -> bytes:

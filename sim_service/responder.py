@@ -152,7 +152,7 @@ class SimResponder:
         try:
             msg = ActionMsg.decode(request.payload)
         except BadMessage as exc:
-            self._refuse(env, str(exc), 0, 0)
+            self._refuse(env, str(exc))
             return
         if self.settings.realtime:
             env.pending = msg  # applied at the next tick
@@ -160,7 +160,7 @@ class SimResponder:
         try:
             outcome = env.act(msg)
         except Refusal as exc:
-            self._refuse(env, str(exc), msg.ep, msg.seq)
+            self._refuse(env, str(exc), msg.ep, msg.seq, msg.sender)
             return
         self._publish(env, env.route, outcome, request.received_at)
 
@@ -169,7 +169,7 @@ class SimResponder:
             try:
                 outcome = env.step_realtime()
             except Refusal as exc:
-                self._refuse(env, str(exc), env.ep, env.seq)
+                self._refuse(env, str(exc), env.ep, env.seq, env.holder or "")
                 continue
             if outcome is not None:
                 self._publish(env, env.route, outcome, time.perf_counter())
@@ -215,10 +215,10 @@ class SimResponder:
         self.metrics.count("replays" if outcome.replayed else "steps")
         self.metrics.observe_ms("step", (time.perf_counter() - received_at) * 1e3)
 
-    def _refuse(self, env: LockstepEnv, reason: str, ep: int, seq: int) -> None:
+    def _refuse(self, env: LockstepEnv, reason: str, ep: int = 0, seq: int = 0, sender: str = "") -> None:
         self.metrics.count("errors_refused")
         log.warning("refused action on %s: %s", env.name, reason)
-        self.session.put(self.keys.err(env.channel, env.env), ErrorMsg(reason, ep, seq).encode())
+        self.session.put(self.keys.err(env.channel, env.env), ErrorMsg(reason, ep, seq, sender).encode())
 
     # --- shutdown -------------------------------------------------------------------------------
     def stop(self) -> None:

@@ -1,0 +1,236 @@
+"""The learner's end of one remote environment: claim, reset, step, with retries.
+
+A :class:`RemoteEnvLink` sends an action (or a reset) and waits for the
+matching reply, identified by (episode, seq). On a timeout it re-sends the
+same (episode, seq): the sim answers a repeat from its cache without
+stepping, and replies that arrive twice are dropped here. So no step is
+lost or applied twice, whatever the network or an encoder does.
+
+In ``cmvae`` mode the reply is the encoder's latent, and the link chooses
+which encoder encodes each frame by rendezvous hashing of the env id over
+the live encoders; a retry recomputes the choice, which is how load moves
+off a dead encoder.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import queue
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+
+import numpy as np
+import zenoh
+
+from services import control
+from services.keys import Keys
+from services.messages import (
+    DIRECT_ROUTE,
+    ActionMsg,
+    BadMessage,
+    DiveMode,
+    ErrorMsg,
+    LatentMsg,
+    ObservationMsg,
+)
+from services.presence import Roster
+from services.telemetry import Telemetry
+
+log = logging.getLogger(__name__)
+
+
+class StepTimeout(TimeoutError):
+    """No reply after every retry; the message names the service that is missing."""
+
+
+class StepRefused(RuntimeError):
+    """The sim refused a step or reset; the message carries its reason."""
+
+
+@dataclass(frozen=True)
+class Reply:
+    ep: int
+    seq: int
+    telemetry: Telemetry
+    image: np.ndarray | None  # direct mode
+    mu: np.ndarray | None  # cmvae mode
+    logvar: np.ndarray | None
+
+
+def rendezvous_choice(env_key: str, members: set[str]) -> str:
+    """The member with the highest hash for this env: stable, and only the dead member's envs move."""
+    return max(members, key=lambda m: hashlib.blake2b(f"{env_key}|{m}".encode(), digest_size=8).digest())
+
+
+def new_holder_id(role: str) -> str:
+    return f"{role}-{uuid.uuid4().hex[:10]}"
+
+
+class RemoteEnvLink:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: Keys,
+        channel: str,
+        env: str,
+        holder: str,
+        encoded: bool,
+        encoders: Roster | None = None,
+        step_timeout_s: float = 2.0,
+        max_retries: int = 10,
+    ) -> None:
+        self.session, self.keys = session, keys
+        self.channel, self.env, self.holder = channel, env, holder
+        self.encoded = encoded
+        self.encoders = encoders
+        self.step_timeout_s = step_timeout_s
+        self.max_retries = max_retries
+        self.ep = 0
+        self.seq = 0
+        self.duplicates_dropped = 0
+        self.retries = 0
+        self._replies: queue.Queue[Reply | ErrorMsg] = queue.Queue()
+        self._pending: tuple[str, object] | None = None  # what to re-send on a timeout
+        reply_key = keys.latent(channel, env) if encoded else keys.obs(channel, env, DIRECT_ROUTE)
+        self._subscriber = session.declare_subscriber(reply_key, self._on_reply)
+        self._err_subscriber = session.declare_subscriber(keys.err(channel, env), self._on_error)
+        self._publisher = session.declare_publisher(
+            keys.action(channel, env), congestion_control=zenoh.CongestionControl.BLOCK
+        )
+        self._lock = threading.Lock()
+
+    @property
+    def name(self) -> str:
+        return f"{self.channel}/{self.env}"
+
+    # --- Zenoh callbacks: decode and queue only --------------------------------------------------
+    def _on_reply(self, sample: zenoh.Sample) -> None:
+        try:
+            if self.encoded:
+                msg = LatentMsg.decode(sample.payload.to_bytes())
+                reply = Reply(
+                    msg.ep,
+                    msg.seq,
+                    msg.telemetry,
+                    None,
+                    np.asarray(msg.mu, np.float32),
+                    np.asarray(msg.logvar, np.float32),
+                )
+            else:
+                obs = ObservationMsg.decode(sample.payload.to_bytes())
+                reply = Reply(obs.ep, obs.seq, obs.telemetry, obs.image, None, None)
+        except BadMessage as exc:
+            log.warning("%s: dropped an unreadable reply: %s", self.name, exc)
+            return
+        self._replies.put(reply)
+
+    def _on_error(self, sample: zenoh.Sample) -> None:
+        try:
+            self._replies.put(ErrorMsg.decode(sample.payload.to_bytes()))
+        except BadMessage as exc:
+            log.warning("%s: unreadable error message: %s", self.name, exc)
+
+    # --- control ---------------------------------------------------------------------------------
+    def claim(self, timeout_s: float = 5.0) -> dict:
+        return control.request(
+            self.session, self.keys.ctl(self.channel, self.env), "claim", timeout_s, holder=self.holder
+        )
+
+    def release(self) -> None:
+        try:
+            control.request(self.session, self.keys.ctl(self.channel, self.env), "release", 2.0, holder=self.holder)
+        except control.ControlError as exc:
+            log.warning("%s: release failed: %s", self.name, exc)
+
+    def _route(self) -> str:
+        if not self.encoded:
+            return DIRECT_ROUTE
+        assert self.encoders is not None
+        members = self.encoders.members()
+        if not members:
+            members = self.encoders.wait_for(1, timeout_s=self.step_timeout_s * self.max_retries)
+        return rendezvous_choice(f"{self.channel}/{self.env}", members)
+
+    # --- stepping ----------------------------------------------------------------------------------
+    def send_reset(self, ep: int, seed: int) -> None:
+        self.ep, self.seq = ep, 0
+        self._pending = ("reset", seed)
+        self._send()
+
+    def send_action(self, action: tuple[float, float, float, float], dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
+        self.seq += 1
+        self._pending = ("action", (action, dive_mode))
+        self._send()
+
+    def _send(self) -> None:
+        assert self._pending is not None
+        kind, args = self._pending
+        route = self._route()
+        if kind == "reset":
+            control.request(
+                self.session,
+                self.keys.ctl(self.channel, self.env),
+                "reset",
+                self.step_timeout_s,
+                holder=self.holder,
+                ep=self.ep,
+                seed=args,
+                route=route,
+            )
+        else:
+            action, dive_mode = args
+            msg = ActionMsg(
+                ep=self.ep, seq=self.seq, action=action, dive_mode=dive_mode, route=route, sender=self.holder
+            )
+            self._publisher.put(msg.encode())
+
+    def wait(self) -> Reply:
+        """The reply to the last send; re-sends the same (ep, seq) on each timeout."""
+        for attempt in range(self.max_retries + 1):
+            deadline = time.monotonic() + self.step_timeout_s
+            while (remaining := deadline - time.monotonic()) > 0:
+                try:
+                    item = self._replies.get(timeout=remaining)
+                except queue.Empty:
+                    break
+                if isinstance(item, ErrorMsg):
+                    if item.sender == self.holder and (item.ep, item.seq) == (self.ep, self.seq):
+                        raise StepRefused(f"{self.name}: {item.reason}")
+                    continue
+                if (item.ep, item.seq) == (self.ep, self.seq):
+                    return item
+                self.duplicates_dropped += 1  # a late or repeated reply to an earlier step
+            self.retries += 1
+            log.warning(
+                "%s: no reply to ep %d seq %d within %.1f s (try %d); re-sending",
+                self.name,
+                self.ep,
+                self.seq,
+                self.step_timeout_s,
+                attempt + 1,
+            )
+            try:
+                self._send()
+            except control.ControlError as exc:
+                log.warning("%s: re-send failed: %s", self.name, exc)
+        raise StepTimeout(self._missing_service_message())
+
+    def _missing_service_message(self) -> str:
+        where = f"{self.name} episode {self.ep} seq {self.seq}"
+        waited = f"{self.max_retries + 1} tries of {self.step_timeout_s:.1f} s"
+        if self.encoded and self.encoders is not None:
+            live = sorted(self.encoders.members())
+            return (
+                f"no latent for {where} after {waited}; live encoders: {live or 'none'}. "
+                "Are `swimm sim` and `swimm encoder` running and connected to the same router and namespace?"
+            )
+        return f"no observation for {where} after {waited}. Is `swimm sim` running and connected?"
+
+    def close(self) -> None:
+        self.release()
+        self._subscriber.undeclare()
+        self._err_subscriber.undeclare()
+        self._publisher.undeclare()

@@ -1,0 +1,88 @@
+"""The `swimm` command line: one entry point, a sub-command per service or job.
+
+Each sub-command names its settings dataclass and its run function by
+import path, so ``swimm sim`` never imports torch and ``swimm --help``
+imports neither torch nor MuJoCo.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+from services import settings as settings_mod
+from services.logs import setup_logging
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Command:
+    settings: str  # "module:Class" of the settings dataclass
+    run: str  # "module:function" taking the settings
+    help: str
+
+
+COMMANDS: dict[str, Command] = {
+    "router": Command("services.router:RouterSettings", "services.router:run", "run a Zenoh router"),
+    "sim": Command("sim_service.responder:SimSettings", "sim_service.responder:run", "serve the MuJoCo world"),
+    "encoder": Command(
+        "encoder_service.service:EncoderSettings", "encoder_service.service:run", "serve the CMVAE: obs -> latent"
+    ),
+    "learn": Command("learner_service.command:LearnCommandSettings", "learner_service.command:run", "train a learner"),
+    "eval": Command("eval_service.command:EvalCommandSettings", "eval_service.command:run", "evaluate checkpoints"),
+    "dataset": Command("sim_service.dataset:DatasetSettings", "sim_service.dataset:run", "write a CMVAE dataset"),
+    "train-encoder": Command(
+        "encoder_service.train:TrainEncoderSettings", "encoder_service.train:run", "train the CMVAE"
+    ),
+    "eval-encoder": Command(
+        "encoder_service.evaluate:EvalEncoderSettings", "encoder_service.evaluate:run", "evaluate a CMVAE"
+    ),
+    "up": Command("services.up:UpSettings", "services.up:run", "launch router, sim, encoder, learner locally"),
+    "bench": Command("bench.command:BenchSettings", "bench.command:run", "run a benchmark: sim | encoder | train"),
+}
+
+
+def _resolve(path: str) -> Any:
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="swimm", description="Camera-only active target tracking over Zenoh.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, spec in COMMANDS.items():
+        command_parser = sub.add_parser(name, help=spec.help, description=spec.help)
+        command_parser.add_argument("--config", help="YAML settings file (flags and SWIMM_* variables override it)")
+        command_parser.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env SWIMM_LOG_LEVEL)")
+        if name == command:  # only the chosen command's settings are imported
+            settings_mod.add_arguments(command_parser, _resolve(spec.settings))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    command = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(command if command in COMMANDS else None)
+    args = parser.parse_args(argv)
+    spec = COMMANDS[args.command]
+    setup_logging(args.command, args.log_level)
+    try:
+        settings = settings_mod.load(_resolve(spec.settings), args, args.config)
+        result = _resolve(spec.run)(settings)
+    except KeyboardInterrupt:
+        return 130
+    except Exception as exc:  # the CLI's last line of defence: a clear message, not a traceback
+        if logging.getLogger().isEnabledFor(logging.DEBUG):
+            raise
+        log.error("%s failed: %s", args.command, exc)
+        return 1
+    return int(result) if isinstance(result, int) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

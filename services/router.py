@@ -1,0 +1,45 @@
+"""`swimm router`: a Zenoh router in a Python process, so no extra binary is needed."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+
+from services.lifecycle import serve_until_signalled
+from services.session import open_session
+from services.settings import ZenohSettings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RouterSettings:
+    listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
+    zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
+
+
+class Router:
+    def __init__(self, settings: RouterSettings) -> None:
+        self.settings = settings
+        self._ready = threading.Event()
+
+    def start(self) -> None:
+        zenoh_settings = ZenohSettings(
+            mode="router",
+            connect=self.settings.connect,
+            listen=self.settings.listen,
+            zenoh_config=self.settings.zenoh_config,
+            startup_timeout_s=10.0,
+        )
+        self.session = open_session(zenoh_settings, role="router")
+        log.info("router %s listening on %s", self.session.zid(), self.settings.listen)
+
+    def stop(self) -> None:
+        self.session.close()
+        log.info("router stopped")
+
+
+def run(settings: RouterSettings) -> None:
+    serve_until_signalled(Router(settings))
