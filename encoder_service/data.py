@@ -1,0 +1,193 @@
+"""Reading a CMVAE dataset from disk (the format `swimm dataset` writes; see notes/interfaces).
+
+The full training set is 2.7e5 frames (3.3 GB), so shards are memory-mapped
+and only the rows of the current batch are read. Splits and shuffles are pure
+functions of a seed (and the epoch), so a resumed run sees the same order.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numpy as np
+
+from encoder_service.model import IMAGE_SHAPE, LABEL_NAMES
+
+log = logging.getLogger(__name__)
+
+DATASET_FORMAT = "swimm-cmvae-dataset"
+DATASET_VERSION = 1
+T = TypeVar("T")
+
+
+class DatasetFormatError(ValueError):
+    """The folder is not a dataset this code can read; the message names the problem."""
+
+
+@dataclass(frozen=True)
+class Batch:
+    images: np.ndarray  # uint8 (B, 64, 64, 3) RGB
+    labels: np.ndarray  # float32 (B, 3): d m, theta deg (signed azimuth), psi deg
+    indices: np.ndarray  # int64 (B,): dataset rows, to pair a frame with its twin in another dataset
+
+
+class CMVAEDataset:
+    """A validated dataset folder with its shards memory-mapped; rows are read on demand."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        self.meta = _read_meta(self.root)
+        self._images: list[np.ndarray] = []
+        self._labels: list[np.ndarray] = []
+        for shard in self.meta["shards"]:
+            images, labels = _open_shard(self.root, shard)
+            self._images.append(images)
+            self._labels.append(labels)
+        sizes = [len(images) for images in self._images]
+        if sum(sizes) != self.meta["count"]:
+            raise DatasetFormatError(f"{self.root}: meta.json says count={self.meta['count']} "
+                                     f"but the shards hold {sum(sizes)} rows")
+        #: first global row of each shard, plus the end
+        self._starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    @property
+    def seed(self) -> int:
+        return int(self.meta["seed"])
+
+    def read(self, indices: np.ndarray) -> Batch:
+        """Rows ``indices`` (any order) as one in-memory batch, in that order.
+
+        Rows are fetched shard by shard in ascending order, which turns a random
+        batch into a few forward reads of the memory map.
+        """
+        indices = np.asarray(indices, dtype=np.int64)
+        if indices.size and (indices.min() < 0 or indices.max() >= len(self)):
+            raise IndexError(f"row indices must lie in [0, {len(self)}), got {indices.min()}..{indices.max()}")
+        images = np.empty((len(indices), *IMAGE_SHAPE), dtype=np.uint8)
+        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        order = np.argsort(indices, kind="stable")
+        shard_of = np.searchsorted(self._starts, indices[order], side="right") - 1
+        for shard in np.unique(shard_of):
+            positions = order[shard_of == shard]
+            rows = indices[positions] - self._starts[shard]
+            images[positions] = self._images[shard][rows]
+            labels[positions] = self._labels[shard][rows]
+        return Batch(images=images, labels=labels, indices=indices)
+
+
+def _read_meta(root: Path) -> dict[str, Any]:
+    path = root / "meta.json"
+    if not path.is_file():
+        raise DatasetFormatError(f"{root} is not a CMVAE dataset: {path} is missing (make one with `swimm dataset`)")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DatasetFormatError(f"{path} is not valid JSON: {exc}") from None
+    expected = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "image_shape": list(IMAGE_SHAPE),
+                "label_names": list(LABEL_NAMES)}
+    for key, value in expected.items():
+        if meta.get(key) != value:
+            raise DatasetFormatError(f"{path}: {key} is {meta.get(key)!r}, expected {value!r}")
+    for key in ("count", "seed"):
+        if not isinstance(meta.get(key), int):
+            raise DatasetFormatError(f"{path}: {key} must be an integer, got {meta.get(key)!r}")
+    if not isinstance(meta.get("shards"), list) or not meta["shards"]:
+        raise DatasetFormatError(f"{path}: shards must be a non-empty list of shard names")
+    return meta
+
+
+def _open_shard(root: Path, shard: str) -> tuple[np.ndarray, np.ndarray]:
+    arrays = []
+    for part, dtype, shape in (("images", np.uint8, IMAGE_SHAPE), ("labels", np.float32, (len(LABEL_NAMES),))):
+        path = root / f"{shard}.{part}.npy"
+        if not path.is_file():
+            raise DatasetFormatError(f"shard file {path} is missing")
+        array = np.load(path, mmap_mode="r")
+        if array.dtype != dtype or array.ndim != 1 + len(shape) or tuple(array.shape[1:]) != shape:
+            raise DatasetFormatError(f"{path}: expected {np.dtype(dtype).name} (n, {', '.join(map(str, shape))}), "
+                                     f"got {array.dtype} {array.shape}")
+        arrays.append(array)
+    images, labels = arrays
+    if len(images) != len(labels):
+        raise DatasetFormatError(f"{root / shard}: {len(images)} images but {len(labels)} labels")
+    return images, labels
+
+
+def split_indices(count: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic (train, validation) row indices, each sorted; validation gets round(count * fraction) rows."""
+    if not 0.0 <= val_fraction < 1.0:
+        raise ValueError(f"val_fraction must lie in [0, 1), got {val_fraction}")
+    n_val = int(round(count * val_fraction))
+    if val_fraction > 0 and not 0 < n_val < count:
+        raise ValueError(f"cannot hold out {val_fraction:.0%} of {count} rows and keep both parts non-empty")
+    permutation = np.random.default_rng(seed).permutation(count)
+    return np.sort(permutation[n_val:]), np.sort(permutation[:n_val])
+
+
+def iter_batches(dataset: CMVAEDataset, indices: np.ndarray, batch_size: int,
+                 shuffle_seed: int | tuple[int, ...] | None = None, max_batches: int = 0) -> Iterator[Batch]:
+    """Batches over ``indices``; shuffled by ``shuffle_seed`` (e.g. (seed, epoch)) when given; the last may be short.
+
+    ``max_batches`` > 0 stops early (quick runs); 0 means all.
+    """
+    if shuffle_seed is not None:
+        indices = np.random.default_rng(shuffle_seed).permutation(indices)
+    stops = range(0, len(indices), batch_size)
+    if max_batches > 0:
+        stops = stops[:max_batches]
+    for start in stops:
+        yield dataset.read(indices[start : start + batch_size])
+
+
+def count_batches(n_rows: int, batch_size: int, max_batches: int = 0) -> int:
+    full = -(-n_rows // batch_size)
+    return min(full, max_batches) if max_batches > 0 else full
+
+
+def prefetch(items: Iterable[T], depth: int = 2) -> Iterator[T]:
+    """Produce ``items`` on a background thread, ``depth`` ahead, so disk reads overlap compute.
+
+    NumPy copies from a memory map release the GIL, so one thread is enough to
+    hide the read latency behind a training step. Errors in the producer are
+    re-raised in the consumer.
+    """
+    buffer: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if stop.is_set():
+                    return
+                buffer.put(("item", item))
+            buffer.put(("end", None))
+        except BaseException as exc:  # handed to the consumer, not lost on this thread
+            buffer.put(("error", exc))
+
+    worker = threading.Thread(target=produce, name="batch-prefetch", daemon=True)
+    worker.start()
+    try:
+        while True:
+            kind, payload = buffer.get()
+            if kind == "end":
+                return
+            if kind == "error":
+                raise payload
+            yield payload
+    finally:
+        stop.set()
+        while worker.is_alive():  # unblock a producer waiting on a full queue
+            try:
+                buffer.get_nowait()
+            except queue.Empty:
+                worker.join(timeout=0.01)

@@ -1,0 +1,266 @@
+"""The cross-modal VAE (CMVAE): one image encoder, an image decoder and three state decoders.
+
+The encoder compresses a 64x64 RGB frame into a small latent z; the image
+decoder keeps z faithful to the picture, and the state decoders tie the first
+three latent dimensions to the physical quantities the policy cares about
+(z[0] -> d, z[1] -> theta, z[2] -> psi). That tie is what lets a policy read
+distance and bearing straight off z. Shapes and sizes follow SPEC.md
+("CMVAE"); the checkpoint format lives here too, because a checkpoint is only
+meaningful together with the architecture that reads it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from services.geometry import ALPHA_DEG
+
+IMAGE_SHAPE = (64, 64, 3)
+LABEL_NAMES = ("d", "theta", "psi")
+#: Physical range of each label (d metres, theta and psi degrees); each maps linearly onto [-1, 1].
+LABEL_RANGES = np.array([[2.0, 10.0], [-ALPHA_DEG, ALPHA_DEG], [-180.0, 180.0]], dtype=np.float64)
+
+CHECKPOINT_FORMAT = "swimm-cmvae"
+CHECKPOINT_VERSION = 1
+
+
+# ---------------------------------------------------------------- labels and pixels
+
+
+def normalise_labels(labels: np.ndarray) -> np.ndarray:
+    """Physical (d m, theta deg, psi deg) rows -> [-1, 1] per column, float32."""
+    lo, hi = LABEL_RANGES[:, 0], LABEL_RANGES[:, 1]
+    return (2.0 * (np.asarray(labels, dtype=np.float64) - lo) / (hi - lo) - 1.0).astype(np.float32)
+
+
+def denormalise_labels(normalised: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`normalise_labels`: [-1, 1] columns -> physical units, float32."""
+    lo, hi = LABEL_RANGES[:, 0], LABEL_RANGES[:, 1]
+    return ((np.asarray(normalised, dtype=np.float64) + 1.0) * 0.5 * (hi - lo) + lo).astype(np.float32)
+
+
+def label_errors(predicted: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """Absolute errors per label in physical units; psi's error wraps to [0, 180] since yaw is circular."""
+    errors = np.abs(np.asarray(predicted, dtype=np.float64) - np.asarray(true, dtype=np.float64))
+    errors[:, 2] = np.abs((errors[:, 2] + 180.0) % 360.0 - 180.0)
+    return errors
+
+
+def images_to_tensor(images: np.ndarray | torch.Tensor, device: torch.device | str = "cpu") -> torch.Tensor:
+    """uint8 NHWC frames -> float NCHW in [-1, 1], channels_last.
+
+    The uint8 array crosses to the device before the float conversion (4x less
+    to copy), and permuting a contiguous NHWC tensor to NCHW already *is* the
+    channels_last layout, so no copy happens for the memory format.
+    """
+    batch = torch.from_numpy(np.ascontiguousarray(images)) if isinstance(images, np.ndarray) else images
+    batch = batch.to(device, non_blocking=True).permute(0, 3, 1, 2)
+    return (batch.float() / 127.5 - 1.0).contiguous(memory_format=torch.channels_last)
+
+
+def tensor_to_images(images: torch.Tensor) -> np.ndarray:
+    """Decoder output (NCHW in [-1, 1]) -> uint8 NHWC, for figures and pixel errors."""
+    pixels = ((images.detach().float().clamp(-1.0, 1.0) + 1.0) * 127.5).round()
+    return pixels.permute(0, 2, 3, 1).to("cpu", torch.uint8).numpy()
+
+
+# ---------------------------------------------------------------- modules
+
+
+class ResidualBlock(nn.Module):
+    """Dronet's pre-activation block: two 3x3 convs (the first halves the size) plus a 1x1 stride-2 shortcut."""
+
+    def __init__(self, in_channels: int, out_channels: int) -> None:
+        super().__init__()
+        self.branch = nn.Sequential(
+            nn.BatchNorm2d(in_channels),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(in_channels, out_channels, 3, stride=2, padding=1),
+            nn.BatchNorm2d(out_channels),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(out_channels, out_channels, 3, padding=1),
+        )
+        self.shortcut = nn.Conv2d(in_channels, out_channels, 1, stride=2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.branch(x) + self.shortcut(x)
+
+
+class ImageEncoder(nn.Module):
+    """q(z | image): 64x64x3 -> (mu, logvar), each (N, n_z)."""
+
+    def __init__(self, n_z: int) -> None:
+        super().__init__()
+        self.features = nn.Sequential(
+            nn.Conv2d(3, 32, 5, stride=2, padding=2),  # 64 -> 32
+            nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16
+            ResidualBlock(32, 32),  # 16 -> 8
+            ResidualBlock(32, 64),  # 8 -> 4
+            ResidualBlock(64, 128),  # 4 -> 2
+            nn.Flatten(),
+            nn.ReLU(inplace=True),  # the blocks end pre-activation
+        )
+        self.head = nn.Sequential(
+            nn.Linear(128 * 2 * 2, 64),
+            nn.ReLU(inplace=True),
+            nn.Linear(64, 32),
+            nn.ReLU(inplace=True),
+            nn.Linear(32, 2 * n_z),
+        )
+        self.n_z = n_z
+
+    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        stats = self.head(self.features(images))
+        return stats[:, : self.n_z], stats[:, self.n_z :]
+
+
+class ImageDecoder(nn.Module):
+    """p(image | z): dense 1024 -> 1x1x1024 -> six stride-2 transposed convs -> 64x64x3 in [-1, 1]."""
+
+    CHANNELS = (1024, 256, 128, 64, 32, 16, 3)
+
+    def __init__(self, n_z: int) -> None:
+        super().__init__()
+        self.dense = nn.Sequential(nn.Linear(n_z, self.CHANNELS[0]), nn.ReLU(inplace=True))
+        layers: list[nn.Module] = []
+        pairs = list(zip(self.CHANNELS[:-1], self.CHANNELS[1:], strict=True))
+        for index, (c_in, c_out) in enumerate(pairs):
+            layers.append(nn.ConvTranspose2d(c_in, c_out, 4, stride=2, padding=1))  # doubles the size
+            if index < len(pairs) - 1:
+                layers += [nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+        layers.append(nn.Tanh())
+        self.deconv = nn.Sequential(*layers)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.deconv(self.dense(z).view(-1, self.CHANNELS[0], 1, 1))
+
+
+class StateDecoder(nn.Module):
+    """p(s_i | z[i]): one latent scalar -> one normalised label, through a 64-32 MLP."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(1, 64), nn.ReLU(inplace=True), nn.Linear(64, 32), nn.ReLU(inplace=True),
+                                 nn.Linear(32, 1))
+
+    def forward(self, z_i: torch.Tensor) -> torch.Tensor:
+        return self.mlp(z_i)
+
+
+@dataclass
+class CMVAEOutput:
+    mu: torch.Tensor  # (N, n_z)
+    logvar: torch.Tensor  # (N, n_z)
+    z: torch.Tensor  # (N, n_z): a sample in training, mu in eval
+    image: torch.Tensor  # (N, 3, 64, 64) in [-1, 1]
+    state: torch.Tensor  # (N, 3) normalised (d, theta, psi)
+
+
+class CMVAE(nn.Module):
+    """Image encoder, image decoder and the three state decoders, trained jointly."""
+
+    def __init__(self, n_z: int = 10) -> None:
+        super().__init__()
+        if n_z < len(LABEL_NAMES):
+            raise ValueError(f"n_z must be at least {len(LABEL_NAMES)} (one latent per label), got {n_z}")
+        self.n_z = n_z
+        self.encoder = ImageEncoder(n_z)
+        self.image_decoder = ImageDecoder(n_z)
+        self.state_decoders = nn.ModuleList(StateDecoder() for _ in LABEL_NAMES)
+
+    def encode(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.encoder(images)
+
+    def decode_image(self, z: torch.Tensor) -> torch.Tensor:
+        return self.image_decoder(z)
+
+    def decode_state(self, z: torch.Tensor) -> torch.Tensor:
+        """Normalised (d, theta, psi) from z[0], z[1], z[2]."""
+        return torch.cat([decoder(z[:, i : i + 1]) for i, decoder in enumerate(self.state_decoders)], dim=1)
+
+    def forward(self, images: torch.Tensor, sample: bool | None = None) -> CMVAEOutput:
+        """Encode, draw z (reparameterised; only while training unless ``sample`` says otherwise), decode both ways."""
+        mu, logvar = self.encode(images)
+        sample = self.training if sample is None else sample
+        z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
+        return CMVAEOutput(mu=mu, logvar=logvar, z=z, image=self.decode_image(z), state=self.decode_state(z))
+
+
+# ---------------------------------------------------------------- loss
+
+
+@dataclass
+class LossParts:
+    total: torch.Tensor
+    image: torch.Tensor
+    state: torch.Tensor
+    kl: torch.Tensor
+
+    def as_floats(self) -> dict[str, float]:
+        return {name: float(getattr(self, name).detach()) for name in ("total", "image", "state", "kl")}
+
+
+def cmvae_loss(outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor, beta: float) -> LossParts:
+    """Image MSE (pixels in [-1, 1]) + state MSE (normalised labels) + beta * KL.
+
+    Both MSEs are means over their elements; the KL is summed over latent
+    dimensions and averaged over the batch, the reference's scaling, under
+    which its beta = 8 is a strong pull towards the prior that only the
+    latents the decoders need resist.
+    """
+    image = F.mse_loss(outputs.image, images)
+    state = F.mse_loss(outputs.state, labels)
+    kl = (-0.5 * (1.0 + outputs.logvar - outputs.mu.pow(2) - outputs.logvar.exp()).sum(dim=1)).mean()
+    return LossParts(total=image + state + beta * kl, image=image, state=state, kl=kl)
+
+
+# ---------------------------------------------------------------- checkpoints
+
+
+def make_checkpoint(model: CMVAE, beta: float, epoch: int, val_loss: float, metrics: dict[str, float],
+                    **extra: Any) -> dict[str, Any]:
+    """The checkpoint dict: plain types and CPU tensors only, so ``torch.load(weights_only=True)`` reads it.
+
+    ``epoch`` counts completed epochs (1 after the first); ``extra`` carries
+    what only a resumable checkpoint needs (optimiser state, RNG state).
+    """
+    state_dict = {name: tensor.detach().cpu() for name, tensor in model.state_dict().items()}
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "config": {"n_z": model.n_z, "beta": float(beta)},
+        "state_dict": state_dict,
+        "epoch": int(epoch),
+        "val_loss": float(val_loss),
+        "metrics": {key: float(value) for key, value in metrics.items()},
+        **extra,
+    }
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load and check a checkpoint dict (safe unpickling); a clear error says what is wrong with it."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"CMVAE checkpoint {path} does not exist (make one with `swimm train-encoder`)")
+    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
+    if checkpoint.get("version") != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: checkpoint version {checkpoint.get('version')!r}, expected {CHECKPOINT_VERSION}")
+    return checkpoint
+
+
+def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CMVAE, dict[str, Any]]:
+    """A CMVAE in eval mode, channels_last, on ``device``, with the checkpoint dict it came from."""
+    checkpoint = read_checkpoint(path)
+    model = CMVAE(n_z=int(checkpoint["config"]["n_z"]))
+    model.load_state_dict(checkpoint["state_dict"])
+    model.to(device=device, memory_format=torch.channels_last).eval()
+    return model, checkpoint

@@ -1,0 +1,248 @@
+"""`swimm train-encoder`: fit the CMVAE on a dataset folder, with early stopping and resumable checkpoints.
+
+The recipe is the reference's (SPEC "CMVAE"): Adam at 1e-4, batch 32, beta 8,
+up to 100 epochs, stopping once the validation loss has failed to improve by
+1% for 5 epochs. ``best.pt`` is the lowest validation loss seen; ``last.pt``
+adds the optimiser and the early-stopping state so ``--resume`` picks up
+exactly where a run stopped (the shuffle order is a function of (seed, epoch)).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from encoder_service.data import CMVAEDataset, count_batches, iter_batches, prefetch, split_indices
+from encoder_service.model import (
+    CMVAE,
+    LABEL_NAMES,
+    cmvae_loss,
+    denormalise_labels,
+    images_to_tensor,
+    label_errors,
+    make_checkpoint,
+    normalise_labels,
+    read_checkpoint,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainEncoderSettings:
+    dataset: str = ""  # a folder written by `swimm dataset`
+    out: str = "runs/cmvae"
+    epochs: int = 100
+    batch_size: int = 32
+    lr: float = 1e-4
+    beta: float = 8.0
+    n_z: int = 10
+    patience: int = 5  # epochs without a min_rel_gain improvement before stopping
+    min_rel_gain: float = 0.01
+    val_fraction: float = 0.1
+    seed: int = 0
+    resume: bool = False  # continue from <out>/last.pt
+    device: str = "auto"  # auto | cpu | cuda | cuda:N
+    max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
+    tensorboard: bool = True
+
+
+@dataclass
+class EarlyStopping:
+    """Stop after ``patience`` epochs whose loss is not below ``reference * (1 - min_rel_gain)``.
+
+    The reference moves only on such a gain, so a slow creep of tiny gains
+    still runs out of patience.
+    """
+
+    patience: int
+    min_rel_gain: float
+    reference: float = math.inf
+    epochs_without_gain: int = 0
+
+    def update(self, loss: float) -> bool:
+        """Record one epoch's loss; True when training should stop."""
+        if loss < self.reference * (1.0 - self.min_rel_gain):
+            self.reference = loss
+            self.epochs_without_gain = 0
+        else:
+            self.epochs_without_gain += 1
+        return self.epochs_without_gain >= self.patience
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(f"device {name!r} asked for, but torch sees no CUDA device")
+    return device
+
+
+def _mean(totals: dict[str, float], count: int) -> dict[str, float]:
+    return {key: value / max(count, 1) for key, value in totals.items()}
+
+
+def _train_epoch(model: CMVAE, optimiser: torch.optim.Optimizer, dataset: CMVAEDataset, indices: np.ndarray,
+                 settings: TrainEncoderSettings, epoch: int, device: torch.device) -> dict[str, float]:
+    model.train()
+    totals: dict[str, float] = {}
+    seen = 0
+    batches = iter_batches(dataset, indices, settings.batch_size, (settings.seed, epoch),
+                           settings.max_batches_per_epoch)
+    n_batches = count_batches(len(indices), settings.batch_size, settings.max_batches_per_epoch)
+    with tqdm(prefetch(batches), total=n_batches, desc=f"epoch {epoch + 1}/{settings.epochs}", unit="batch",
+              leave=False, dynamic_ncols=True) as bar:
+        for batch in bar:
+            images = images_to_tensor(batch.images, device)
+            labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
+            loss = cmvae_loss(model(images), images, labels, settings.beta)
+            optimiser.zero_grad(set_to_none=True)
+            loss.total.backward()
+            optimiser.step()
+            parts = loss.as_floats()
+            for key, value in parts.items():
+                totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
+            seen += len(batch.indices)
+            bar.set_postfix({key: f"{value:.4f}" for key, value in parts.items()})
+    return _mean(totals, seen)
+
+
+@torch.inference_mode()
+def validate(model: CMVAE, dataset: CMVAEDataset, indices: np.ndarray, batch_size: int, beta: float,
+             device: torch.device) -> dict[str, float]:
+    """Mean losses on ``indices`` with z = mu, plus the MAE of each label in physical units."""
+    model.eval()
+    totals: dict[str, float] = {}
+    errors = np.zeros(len(LABEL_NAMES))
+    seen = 0
+    for batch in prefetch(iter_batches(dataset, indices, batch_size)):
+        images = images_to_tensor(batch.images, device)
+        labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
+        outputs = model(images)
+        for key, value in cmvae_loss(outputs, images, labels, beta).as_floats().items():
+            totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
+        predicted = denormalise_labels(outputs.state.float().cpu().numpy())
+        errors += label_errors(predicted, batch.labels).sum(axis=0)
+        seen += len(batch.indices)
+    metrics = _mean(totals, seen)
+    for name, error in zip(LABEL_NAMES, errors, strict=True):
+        metrics[f"mae_{name}"] = float(error / max(seen, 1))
+    return metrics
+
+
+def _save(checkpoint: dict[str, Any], path: Path) -> None:
+    """Write then rename, so an interrupted save never leaves a half checkpoint behind."""
+    partial = path.with_suffix(".tmp")
+    torch.save(checkpoint, partial)
+    os.replace(partial, path)
+
+
+def _seed_everything(seed: int) -> None:
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def run(settings: TrainEncoderSettings) -> int:
+    if not settings.dataset:
+        raise ValueError("no dataset given: pass --dataset DIR (a folder written by `swimm dataset`)")
+    started = time.perf_counter()
+    device = resolve_device(settings.device)
+    out = Path(settings.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _seed_everything(settings.seed)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+
+    dataset = CMVAEDataset(settings.dataset)
+    train_rows, val_rows = split_indices(len(dataset), settings.val_fraction, settings.seed)
+    if len(val_rows) == 0:
+        raise ValueError("val_fraction is 0: early stopping and best.pt need a validation split")
+    log.info("dataset %s: %d rows (%d train, %d validation), device %s", settings.dataset, len(dataset),
+             len(train_rows), len(val_rows), device)
+
+    model = CMVAE(n_z=settings.n_z).to(device=device, memory_format=torch.channels_last)
+    optimiser = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    stopper = EarlyStopping(settings.patience, settings.min_rel_gain)
+    best_val, best_epoch, start_epoch = math.inf, 0, 0
+    last_path, best_path = out / "last.pt", out / "best.pt"
+    if settings.resume and last_path.is_file():
+        last = read_checkpoint(last_path)
+        if last["config"]["n_z"] != settings.n_z:
+            raise ValueError(f"{last_path} has n_z={last['config']['n_z']}, settings say {settings.n_z}")
+        model.load_state_dict(last["state_dict"])
+        optimiser.load_state_dict(last["optimizer"])
+        torch.set_rng_state(last["torch_rng_state"])
+        stopper = EarlyStopping(settings.patience, settings.min_rel_gain, **last["early_stopping"])
+        best_val, best_epoch, start_epoch = last["best_val_loss"], last["best_epoch"], last["epoch"]
+        log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, start_epoch, best_val)
+    elif settings.resume:
+        log.warning("--resume given but %s does not exist; starting afresh", last_path)
+
+    writer = None
+    if settings.tensorboard:
+        from torch.utils.tensorboard import SummaryWriter  # imported late: tensorboard is slow to import
+
+        writer = SummaryWriter(log_dir=str(out / "tb"))
+    epochs_run, stopped_early, metrics = 0, False, {}
+    try:
+        for epoch in range(start_epoch, settings.epochs):
+            train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device)
+            metrics = validate(model, dataset, val_rows, settings.batch_size, settings.beta, device)
+            epochs_run += 1
+            val_loss = metrics["total"]
+            if writer is not None:
+                for key, value in train_metrics.items():
+                    writer.add_scalar(f"train/{key}", value, epoch + 1)
+                for key, value in metrics.items():
+                    writer.add_scalar(f"val/{key}", value, epoch + 1)
+                writer.flush()
+            log.info("epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)",
+                     epoch + 1, train_metrics["total"], val_loss, metrics["mae_d"], metrics["mae_theta"],
+                     metrics["mae_psi"])
+            if val_loss < best_val:
+                best_val, best_epoch = val_loss, epoch + 1
+                _save(make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics), best_path)
+            stop = stopper.update(val_loss)
+            _save(make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics,
+                                  optimizer=optimiser.state_dict(), torch_rng_state=torch.get_rng_state(),
+                                  seed=settings.seed, best_val_loss=best_val, best_epoch=best_epoch,
+                                  early_stopping={"reference": stopper.reference,
+                                                  "epochs_without_gain": stopper.epochs_without_gain}), last_path)
+            if stop:
+                stopped_early = True
+                log.info("early stop after epoch %d: no %.1f%% gain for %d epochs", epoch + 1,
+                         100 * settings.min_rel_gain, settings.patience)
+                break
+    finally:
+        if writer is not None:
+            writer.close()
+
+    summary = {
+        "settings": asdict(settings),
+        "device": str(device),
+        "dataset_count": len(dataset),
+        "train_count": len(train_rows),
+        "val_count": len(val_rows),
+        "start_epoch": start_epoch + 1,  # epochs count from 1, as in checkpoints and logs
+        "epochs_run": epochs_run,
+        "last_epoch": start_epoch + epochs_run,
+        "stopped_early": stopped_early,
+        "best_epoch": best_epoch,
+        "best_val_loss": best_val,
+        "last_val_metrics": metrics,
+        "wall_time_s": time.perf_counter() - started,
+    }
+    (out / "train_summary.json").write_text(json.dumps(summary, indent=2))
+    log.info("done: best validation loss %.5f at epoch %d; %s", best_val, best_epoch, best_path)
+    return 0
