@@ -1,0 +1,13 @@
+"""Settings of the simulated world, shared by `swimm sim`, `swimm dataset` and in-process use."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class WorldSettings:
+    image_size: int = 64  # square RGB frames for the encoder
+    render: bool = True  # False: telemetry only (state observations, physics tests)
+    render_scale: int = 1  # render at image_size * scale and downscale with OpenCV (anti-aliasing)
+    physics_dt: float = 0.02  # seconds per step: one action per physics step (lock-step)

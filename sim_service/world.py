@@ -1,0 +1,193 @@
+"""The World: one BlueROV2 and one dolphin in MuJoCo, stepped one action at a time.
+
+This is the generic physics half of the dm_control split: it knows bodies,
+thrusters, the camera and the dolphin's swim, and reports ground truth as
+:class:`~services.telemetry.Telemetry`; the tracking task (reward,
+termination, observations) lives with the learner. The same class serves
+`swimm sim`, `swimm dataset`, tests and the in-process baseline, so the
+distributed and in-process runs are the same code and agree bit for bit.
+
+Every random draw comes from the episode seed: ``reset(seed)`` seeds one
+generator for the pose draws and the dolphin's waypoints, so a seed and an
+action sequence fix the whole episode, images included.
+
+Not thread-safe: MuJoCo's GL context belongs to the thread that built it.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import mujoco
+import numpy as np
+
+from services.geometry import ALPHA_DEG
+from services.messages import DiveMode
+from services.telemetry import Telemetry
+from sim_service.camera import CameraFrustum
+from sim_service.dolphin import DolphinBehaviour
+from sim_service.rotations import euler_to_matrix, matrix_to_quat
+from sim_service.rover import RoverDynamics
+from sim_service.settings import WorldSettings
+
+MODEL_PATH = Path(__file__).parent / "assets" / "world.xml"
+CAMERA = "nose"
+#: The dolphin's bounding volume (the reference collider capsule's box): length, width, height in metres.
+TARGET_BOX = (2.57, 0.88, 0.88)
+
+# Reset distributions of the SPEC (training episodes).
+RESET_XY_RANGE = 30.0
+RESET_DEPTH = 4.0
+RESET_DISTANCE = (4.0, 8.0)  # opt_d +- max_d / 2
+RESET_TURN_WEIGHT = 1.3  # deg per step
+
+
+def yaw_matrix(yaw: float) -> np.ndarray:
+    return euler_to_matrix(0.0, 0.0, yaw)
+
+
+class World:
+    def __init__(self, settings: WorldSettings | None = None) -> None:
+        self.settings = settings or WorldSettings()
+        self.model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
+        self.model.opt.timestep = self.settings.physics_dt
+        self.data = mujoco.MjData(self.model)
+        self.rover = RoverDynamics()
+        self.dolphin = DolphinBehaviour()
+        self.rng = np.random.default_rng(0)
+        self._rover_body = self.model.body("rover").id
+        rover_geom = self.model.geom("rover_hull").id
+        target_geom = self.model.geom("dolphin_collider").id
+        self._pair = (min(rover_geom, target_geom), max(rover_geom, target_geom))
+        self._mocap = [self.model.body(name).mocapid[0] for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
+        self._camera = self.model.camera(CAMERA).id
+        self.frustum = CameraFrustum.from_model(self.model, self._camera)
+        self._renderer: mujoco.Renderer | None = None
+        if self.settings.render:
+            self._renderer = self._make_renderer()
+
+    def _make_renderer(self) -> mujoco.Renderer:
+        pixels = self.settings.image_size * self.settings.render_scale
+        self.model.vis.global_.offwidth = max(pixels, 1)
+        self.model.vis.global_.offheight = max(pixels, 1)
+        renderer = mujoco.Renderer(self.model, height=pixels, width=pixels)
+        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_FOG] = True
+        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = True
+        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+        return renderer
+
+    # --- episodes --------------------------------------------------------------------------
+    def reset(self, seed: int) -> tuple[Telemetry, np.ndarray | None]:
+        """Start an episode from the SPEC's reset distributions, every draw from ``seed``."""
+        self.rng = np.random.default_rng(seed)
+        rng = self.rng
+        rover_pos = np.array([*rng.uniform(-RESET_XY_RANGE, RESET_XY_RANGE, size=2), -RESET_DEPTH])
+        rover_yaw = rng.uniform(-math.pi, math.pi)
+        distance = rng.uniform(*RESET_DISTANCE)
+        azimuth = math.radians(rng.uniform(-ALPHA_DEG, ALPHA_DEG))
+        relative_yaw = rng.uniform(-math.pi, math.pi)
+        turn_weight = rng.uniform(-RESET_TURN_WEIGHT, RESET_TURN_WEIGHT)
+        phase = rng.uniform(0.0, 1.0)
+        bearing = rover_yaw + azimuth
+        target_pos = rover_pos + distance * np.array([math.cos(bearing), math.sin(bearing), 0.0])
+        return self.place(rover_pos, rover_yaw, target_pos, rover_yaw + relative_yaw, turn_weight, phase)
+
+    def place(
+        self,
+        rover_pos: np.ndarray,
+        rover_yaw: float,
+        target_pos: np.ndarray,
+        target_yaw: float,
+        turn_weight: float = 0.0,
+        phase: float = 0.0,
+    ) -> tuple[Telemetry, np.ndarray | None]:
+        """Put rover (at rest, level) and dolphin at given poses: the reset primitive, and datasets' sampler.
+
+        Angles in radians; ``turn_weight`` is the dolphin's turn rate in deg/step (it sets its bank).
+        """
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:] = [rover_pos[0], rover_pos[1], rover_pos[2], rover_yaw, 0.0, 0.0]
+        self.rover.reset(depth=float(rover_pos[2]))
+        self.dolphin.reset(self.rng, np.asarray(target_pos, float), target_yaw, turn_weight, phase, rover_pos[:2])
+        self._pose_dolphin()
+        mujoco.mj_forward(self.model, self.data)
+        return self._telemetry(), self._render()
+
+    def step(
+        self, action: tuple[float, float, float, float], dive_mode: DiveMode = DiveMode.DEPTH_HOLD
+    ) -> tuple[Telemetry, np.ndarray | None]:
+        """Advance one physics step with (sway, heave, surge, yaw) commands in [-1, 1]."""
+        d = self.data
+        rotation = d.xmat[self._rover_body].reshape(3, 3)
+        force, torque = self.rover.wrench(
+            action, DiveMode(dive_mode), rotation, d.xpos[self._rover_body], d.qvel[:3], self._rover_ang_vel(), self.dt
+        )
+        d.xfrc_applied[self._rover_body, :3] = force
+        d.xfrc_applied[self._rover_body, 3:] = torque
+        self.dolphin.step(self.dt, self.rng, d.xpos[self._rover_body])
+        self._pose_dolphin()
+        mujoco.mj_step(self.model, d)
+        return self._telemetry(), self._render()
+
+    @property
+    def dt(self) -> float:
+        return self.model.opt.timestep
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # --- internals ---------------------------------------------------------------------------
+    def _pose_dolphin(self) -> None:
+        for mocap, part in zip(self._mocap, self.dolphin.part_poses(), strict=True):
+            self.data.mocap_pos[mocap] = part.position
+            self.data.mocap_quat[mocap] = part.quat
+
+    def _rover_ang_vel(self) -> np.ndarray:
+        velocity = np.zeros(6)
+        mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, self._rover_body, velocity, 0)
+        return velocity[:3]
+
+    def _collided(self) -> bool:
+        geoms = self.data.contact.geom[: self.data.ncon]
+        return bool(np.any((geoms.min(axis=1) == self._pair[0]) & (geoms.max(axis=1) == self._pair[1])))
+
+    def _telemetry(self) -> Telemetry:
+        d = self.data
+        rover_rot = d.xmat[self._rover_body].reshape(3, 3)
+        target_rot = self.dolphin.body_rotation()
+        target_pos = self.dolphin.state.position
+        in_view = self.frustum.sees_box(
+            d.cam_xpos[self._camera], d.cam_xmat[self._camera].reshape(3, 3), target_pos, target_rot, TARGET_BOX
+        )
+        return Telemetry(
+            rover_pos=_vec(d.xpos[self._rover_body]),
+            rover_quat=_vec(d.xquat[self._rover_body]),
+            rover_forward=_vec(rover_rot[:, 0]),
+            rover_lin_vel=_vec(d.qvel[:3]),
+            rover_ang_vel=_vec(self._rover_ang_vel()),
+            target_pos=_vec(target_pos),
+            target_quat=_vec(matrix_to_quat(target_rot)),
+            target_forward=_vec(self.dolphin.forward),
+            target_lin_vel=_vec(self.dolphin.velocity),
+            target_in_frustum=bool(in_view),
+            collided=self._collided(),
+            sim_time=float(d.time),
+        )
+
+    def _render(self) -> np.ndarray | None:
+        if self._renderer is None:
+            return None
+        self._renderer.update_scene(self.data, camera=self._camera)
+        image = self._renderer.render()
+        size = self.settings.image_size
+        if image.shape[0] != size:
+            image = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
+        return image
+
+
+def _vec(values) -> tuple[float, ...]:
+    return tuple(float(v) for v in values)
