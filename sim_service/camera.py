@@ -111,7 +111,7 @@ class CameraFrustum:
     def _unit_normals(self) -> np.ndarray:
         """Outward unit normals of the near plane and the four side planes (far plane ignored: 60 m)."""
         c = self._corners
-        sides = [np.cross(c[(i + 1) % 4] - c[i], c[i + 4] - c[i]) for i in range(4)]
+        sides = [np.cross(c[i + 4] - c[i], c[(i + 1) % 4] - c[i]) for i in range(4)]
         normals = np.array([[0, 0, 1.0], *sides])
         return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
