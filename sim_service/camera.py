@@ -86,8 +86,9 @@ class CameraFrustum:
         axes = axes[np.einsum("ij,ij->i", axes, axes) > 1e-12]
         box_proj = box_corners @ axes.T
         frustum_proj = self._corners @ axes.T
-        separated = (box_proj.max(axis=0) < frustum_proj.min(axis=0)) | (frustum_proj.max(axis=0) < box_proj.min(axis=0))
-        return not bool(separated.any())
+        box_before = box_proj.max(axis=0) < frustum_proj.min(axis=0)
+        box_after = frustum_proj.max(axis=0) < box_proj.min(axis=0)
+        return not bool((box_before | box_after).any())
 
     @cached_property
     def _corners(self) -> np.ndarray:
