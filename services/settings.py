@@ -9,6 +9,8 @@ Naming: field ``max_wait_ms`` is flag ``--max-wait-ms`` and variable
 ``--noise-fog`` / ``SWIMM_NOISE_FOG``, unless the field is marked
 ``metadata={"flatten": True}`` (used for the Zenoh settings every command
 shares), in which case its fields keep their own names (``--connect``).
+A field marked ``metadata={"positional": True}`` is an optional positional
+argument instead of a flag (``swimm bench sim``).
 A YAML file (``--config FILE``) holds the same names as nested maps.
 """
 
@@ -98,7 +100,9 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         flag = "--" + leaf.name.replace("_", "-")
         base, _ = _base_type(leaf.kind)
         help_text = f"(default: {leaf.default!r}; env {ENV_PREFIX}{leaf.name.upper()})"
-        if base is bool:
+        if field_metadata(cls, leaf.path).get("positional"):
+            group.add_argument(leaf.name, nargs="?", type=base, default=None, help=help_text)
+        elif base is bool:
             group.add_argument(
                 flag, dest=leaf.name, action=argparse.BooleanOptionalAction, default=None, help=help_text
             )
@@ -107,6 +111,13 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             group.add_argument(flag, dest=leaf.name, nargs="*", type=item, default=None, help=help_text)
         else:
             group.add_argument(flag, dest=leaf.name, type=base, default=None, help=help_text)
+
+
+def field_metadata(cls: type, path: tuple[str, ...]) -> typing.Mapping[str, Any]:
+    """The dataclass field metadata of a leaf (``flatten``, ``positional``)."""
+    for attr in path[:-1]:
+        cls = typing.get_type_hints(cls)[attr]
+    return {f.name: f.metadata for f in dataclasses.fields(cls)}[path[-1]]
 
 
 def _set(target: Any, path: tuple[str, ...], value: Any) -> None:

@@ -1,0 +1,116 @@
+"""Start swimm services as separate local processes and stop them cleanly.
+
+Used by `swimm up` (the embedded default system), the benchmarks (which
+must measure real processes talking over a real router) and the
+integration tests. Each service is ``python -m services.cli <command> ...``
+with its log in a file, so a failure can be shown with its own words.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def free_tcp_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def wait_for_port(host: str, port: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection((host, port), timeout=0.2):
+                return True
+        except OSError:
+            time.sleep(0.05)
+    return False
+
+
+@dataclass
+class Service:
+    name: str
+    process: subprocess.Popen
+    log_path: Path
+
+    def log_tail(self, lines: int = 30) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return "(no log)"
+
+    @property
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+
+@dataclass
+class ProcessGroup:
+    """A set of swimm processes sharing a log directory; stops them all (SIGTERM, then SIGKILL) on exit."""
+
+    log_dir: Path
+    env: dict[str, str] = field(default_factory=dict)
+    services: list[Service] = field(default_factory=list)
+
+    def start(self, name: str, command: str, *args: str) -> Service:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = self.log_dir / f"{name}.log"
+        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **self.env}
+        with open(log_path, "ab") as log_file:
+            process = subprocess.Popen(
+                [sys.executable, "-m", "services.cli", command, *args],
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,  # a Ctrl-C in the terminal reaches us; we stop children in order
+            )
+        service = Service(name, process, log_path)
+        self.services.append(service)
+        log.info("started %s (pid %d), log %s", name, process.pid, log_path)
+        return service
+
+    def start_router(self, port: int | None = None, name: str = "router") -> str:
+        """Start `swimm router` on a port and wait until it accepts connections; returns its endpoint."""
+        port = port or free_tcp_port()
+        endpoint = f"tcp/127.0.0.1:{port}"
+        service = self.start(name, "router", "--listen", endpoint)
+        if not wait_for_port("127.0.0.1", port, timeout_s=20):
+            raise RuntimeError(f"router did not listen on {endpoint} within 20 s:\n{service.log_tail()}")
+        return endpoint
+
+    def stop(self, service: Service, timeout_s: float = 15.0, kill: bool = False) -> int:
+        """Stop one service: SIGTERM (drain and exit) or SIGKILL (a crash); returns its exit code."""
+        if service.alive:
+            service.process.send_signal(signal.SIGKILL if kill else signal.SIGTERM)
+        try:
+            return service.process.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            log.warning("%s ignored SIGTERM for %.0f s; killing it", service.name, timeout_s)
+            service.process.kill()
+            return service.process.wait()
+
+    def check_alive(self) -> None:
+        for service in self.services:
+            if not service.alive:
+                raise RuntimeError(f"{service.name} exited with {service.process.returncode}:\n{service.log_tail()}")
+
+    def close(self) -> None:
+        for service in reversed(self.services):  # clients first, the router last
+            self.stop(service)
+
+    def __enter__(self) -> ProcessGroup:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
