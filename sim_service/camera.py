@@ -107,7 +107,6 @@ class CameraFrustum:
         sides = [np.cross(c[i + 4] - c[i], c[(i + 1) % 4] - c[i]) for i in range(4)]
         return np.array([[0, 0, 1.0], *sides])
 
-
     @cached_property
     def _unit_normals(self) -> np.ndarray:
         """Outward unit normals of the near plane and the four side planes (far plane ignored: 60 m)."""
