@@ -195,12 +195,14 @@ def run(settings: TrainEncoderSettings) -> int:
 
         writer = SummaryWriter(log_dir=str(out / "tb"))
     epochs_run, stopped_early, metrics = 0, False, {}
+    history: list[dict[str, float]] = []  # this invocation's epochs (a resumed run lists only its own)
     try:
         for epoch in range(start_epoch, settings.epochs):
             train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device)
             metrics = validate(model, dataset, val_rows, settings.batch_size, settings.beta, device)
             epochs_run += 1
             val_loss = metrics["total"]
+            history.append({"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss})
             if writer is not None:
                 for key, value in train_metrics.items():
                     writer.add_scalar(f"train/{key}", value, epoch + 1)
@@ -241,6 +243,7 @@ def run(settings: TrainEncoderSettings) -> int:
         "best_epoch": best_epoch,
         "best_val_loss": best_val,
         "last_val_metrics": metrics,
+        "history": history,
         "wall_time_s": time.perf_counter() - started,
     }
     (out / "train_summary.json").write_text(json.dumps(summary, indent=2))

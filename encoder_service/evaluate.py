@@ -1,0 +1,203 @@
+"""`swimm eval-encoder`: how well a CMVAE reads state from frames, and how its latents move under noise.
+
+Numbers (metrics.json) are those of the paper's encoder tables: the MAE of d,
+theta and psi in physical units and divided by each label's range, and the
+pixel MAE of reconstructions in 0-255. Given a second dataset rendered from
+the same seed with noise on, it also reports the MAE on the noisy frames and
+the mean drift of z[0..2] between the clean and noisy encodings of each pose
+(the paper's Tables 14 and 15). Figures show reconstructions, an
+interpolation between a near and a far target, and what each latent
+dimension does when swept alone.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from encoder_service import figures
+from encoder_service.data import CMVAEDataset, count_batches, iter_batches, prefetch
+from encoder_service.inference import DEFAULT_CHECKPOINT
+from encoder_service.model import (
+    CMVAE,
+    LABEL_NAMES,
+    LABEL_RANGES,
+    denormalise_labels,
+    images_to_tensor,
+    label_errors,
+    load_model,
+    tensor_to_images,
+)
+from encoder_service.train import resolve_device
+
+log = logging.getLogger(__name__)
+
+UNIT_SUFFIX = {"d": "d_m", "theta": "theta_deg", "psi": "psi_deg"}
+N_SHOWN = 8  # frames per reconstruction figure
+SWEEP = np.linspace(-3.0, 3.0, 9)  # the prior's +-3 sigma, for the per-dimension sweeps
+
+
+@dataclass
+class EvalEncoderSettings:
+    checkpoint: str = ""  # default: the shipped model, encoder_service/models/cmvae.pt
+    dataset: str = ""  # held-out frames written by `swimm dataset` (a seed the encoder was not trained on)
+    out: str = "runs/cmvae-eval"
+    noisy_dataset: str = ""  # optional: the same seed rendered with noise on
+    batch_size: int = 256
+    max_images: int = 0  # 0 = the whole dataset
+    device: str = "auto"
+
+
+@dataclass
+class EncodedSet:
+    """One pass of the model over some rows: latents, decoded states and reconstruction errors."""
+
+    mu: np.ndarray  # (N, n_z)
+    predicted: np.ndarray  # (N, 3) physical units
+    labels: np.ndarray  # (N, 3) physical units
+    image_mae: float  # mean |reconstruction - input| in 0-255
+    image_mae_vs_reference: float | None  # the same against the reference dataset's frames, when one is given
+
+
+@torch.inference_mode()
+def encode_rows(model: CMVAE, dataset: CMVAEDataset, rows: np.ndarray, batch_size: int, device: torch.device,
+                reference: CMVAEDataset | None = None, desc: str = "encoding") -> EncodedSet:
+    """Run ``model`` (z = mu) over ``rows``; with ``reference``, rows must show the same poses as there."""
+    mus, predictions, labels = [], [], []
+    abs_error, abs_error_reference, pixels = 0.0, 0.0, 0
+    batches = prefetch(iter_batches(dataset, rows, batch_size))
+    for batch in tqdm(batches, total=count_batches(len(rows), batch_size), desc=desc, unit="batch", leave=False):
+        outputs = model(images_to_tensor(batch.images, device), sample=False)
+        reconstructions = tensor_to_images(outputs.image).astype(np.int16)
+        abs_error += float(np.abs(reconstructions - batch.images).sum())
+        pixels += batch.images.size
+        if reference is not None:
+            twin = reference.read(batch.indices)
+            if not np.allclose(twin.labels, batch.labels, atol=1e-4):
+                raise ValueError(f"{dataset.root} and {reference.root} do not show the same poses "
+                                 f"(labels differ near row {int(batch.indices[0])}); render both with the same seed")
+            abs_error_reference += float(np.abs(reconstructions - twin.images).sum())
+        mus.append(outputs.mu.float().cpu().numpy())
+        predictions.append(denormalise_labels(outputs.state.float().cpu().numpy()))
+        labels.append(batch.labels)
+    return EncodedSet(
+        mu=np.concatenate(mus), predicted=np.concatenate(predictions), labels=np.concatenate(labels),
+        image_mae=abs_error / pixels,
+        image_mae_vs_reference=abs_error_reference / pixels if reference is not None else None,
+    )
+
+
+def state_metrics(encoded: EncodedSet) -> dict[str, dict[str, float]]:
+    """MAE per label in physical units (psi wrapped) and divided by the label's range, as the paper reports."""
+    mae = label_errors(encoded.predicted, encoded.labels).mean(axis=0)
+    widths = LABEL_RANGES[:, 1] - LABEL_RANGES[:, 0]
+    return {
+        "mae": {UNIT_SUFFIX[name]: float(value) for name, value in zip(LABEL_NAMES, mae, strict=True)},
+        "mae_normalised": {name: float(value) for name, value in zip(LABEL_NAMES, mae / widths, strict=True)},
+    }
+
+
+@torch.inference_mode()
+def _decode(model: CMVAE, z: np.ndarray, device: torch.device) -> np.ndarray:
+    return tensor_to_images(model.decode_image(torch.from_numpy(z.astype(np.float32)).to(device)))
+
+
+def _write_figures(model: CMVAE, dataset: CMVAEDataset, rows: np.ndarray, encoded: EncodedSet, out: Path,
+                   device: torch.device) -> list[str]:
+    shown = rows[:N_SHOWN]
+    originals = dataset.read(shown).images
+    paths = [figures.image_grid([list(originals), list(_decode(model, encoded.mu[: len(shown)], device))],
+                                out / "reconstructions.png", "Frames (top) and their reconstructions from mu (bottom)",
+                                row_labels=["input", "decoded"])]
+    near, far = int(np.argmin(encoded.labels[:, 0])), int(np.argmax(encoded.labels[:, 0]))
+    weights = np.linspace(0.0, 1.0, 8)[:, None]
+    path_z = (1 - weights) * encoded.mu[near] + weights * encoded.mu[far]
+    paths.append(figures.image_grid(
+        [list(dataset.read(rows[[near, far]]).images), list(_decode(model, path_z, device))],
+        out / "interpolation.png",
+        f"Latent interpolation: d = {encoded.labels[near, 0]:.1f} m to {encoded.labels[far, 0]:.1f} m",
+        row_labels=["endpoints", "decoded"]))
+    base = encoded.mu.mean(axis=0)
+    sweeps = []
+    for dim in range(model.n_z):
+        z = np.repeat(base[None], len(SWEEP), axis=0)
+        z[:, dim] = SWEEP
+        sweeps.append(list(_decode(model, z, device)))
+    paths.append(figures.image_grid(sweeps, out / "latent_sweeps.png",
+                                    "Each latent swept alone over the prior's +-3 sigma (others at their mean)",
+                                    row_labels=[f"z[{dim}]" for dim in range(model.n_z)],
+                                    col_labels=[f"{value:+.1f}" for value in SWEEP]))
+    paths.append(figures.state_scatter(encoded.predicted, encoded.labels, LABEL_NAMES, out / "state_scatter.png"))
+    return [str(path) for path in paths]
+
+
+def _noise_report(model: CMVAE, clean: CMVAEDataset, noisy: CMVAEDataset, rows: np.ndarray, clean_set: EncodedSet,
+                  settings: EvalEncoderSettings, out: Path, device: torch.device) -> tuple[dict[str, Any], list[str]]:
+    if len(noisy) < len(rows):
+        raise ValueError(f"noisy dataset {noisy.root} holds {len(noisy)} rows, fewer than the {len(rows)} evaluated")
+    noisy_set = encode_rows(model, noisy, rows, settings.batch_size, device, reference=clean, desc="noisy")
+    drift = np.abs(clean_set.mu - noisy_set.mu).mean(axis=0)
+    report = {
+        "dataset": str(noisy.root),
+        **state_metrics(noisy_set),
+        "image_mae_255": noisy_set.image_mae,
+        "image_mae_255_vs_clean": noisy_set.image_mae_vs_reference,
+        "latent_drift": {f"z{dim}": float(drift[dim]) for dim in range(len(LABEL_NAMES))},
+        "latent_drift_all": [float(value) for value in drift],
+    }
+    shown = rows[:N_SHOWN]
+    grid = [list(clean.read(shown).images), list(noisy.read(shown).images),
+            list(_decode(model, clean_set.mu[: len(shown)], device)),
+            list(_decode(model, noisy_set.mu[: len(shown)], device))]
+    paths = [
+        figures.image_grid(grid, out / "noise_comparison.png", "Clean and noisy frames of the same poses",
+                           row_labels=["clean", "noisy", "decoded clean", "decoded noisy"]),
+        figures.drift_bars(drift, out / "latent_drift.png"),
+    ]
+    return report, [str(path) for path in paths]
+
+
+def run(settings: EvalEncoderSettings) -> int:
+    if not settings.dataset:
+        raise ValueError("no dataset given: pass --dataset DIR (held-out frames from `swimm dataset`)")
+    device = resolve_device(settings.device)
+    checkpoint = Path(settings.checkpoint) if settings.checkpoint else DEFAULT_CHECKPOINT
+    model, checkpoint_dict = load_model(checkpoint, device)
+    dataset = CMVAEDataset(settings.dataset)
+    count = min(len(dataset), settings.max_images) if settings.max_images > 0 else len(dataset)
+    rows = np.arange(count)
+    out = Path(settings.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log.info("evaluating %s on %d frames of %s (%s)", checkpoint, count, dataset.root, device)
+
+    encoded = encode_rows(model, dataset, rows, settings.batch_size, device)
+    metrics: dict[str, Any] = {
+        "checkpoint": str(checkpoint),
+        "checkpoint_epoch": int(checkpoint_dict["epoch"]),
+        "dataset": str(dataset.root),
+        "dataset_seed": dataset.seed,
+        "count": count,
+        "n_z": model.n_z,
+        **state_metrics(encoded),
+        "image_mae_255": encoded.image_mae,
+        "latent_std": [float(value) for value in encoded.mu.std(axis=0)],
+        "settings": asdict(settings),
+    }
+    written = _write_figures(model, dataset, rows, encoded, out, device)
+    if settings.noisy_dataset:
+        metrics["noisy"], noisy_figures = _noise_report(model, dataset, CMVAEDataset(settings.noisy_dataset), rows,
+                                                        encoded, settings, out, device)
+        written += noisy_figures
+    metrics["figures"] = written
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    mae = metrics["mae"]
+    log.info("MAE d %.3f m, theta %.2f deg, psi %.1f deg; image MAE %.1f/255; wrote %s", mae["d_m"], mae["theta_deg"],
+             mae["psi_deg"], encoded.image_mae, out / "metrics.json")
+    return 0

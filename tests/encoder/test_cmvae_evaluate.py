@@ -1,0 +1,84 @@
+"""eval-encoder end to end on small synthetic datasets: metrics.json holds the paper's numbers, figures are PNGs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from cmvae_testdata import write_dataset
+
+from encoder_service.evaluate import EvalEncoderSettings, run
+from encoder_service.model import CMVAE, make_checkpoint
+
+FIGURES = ["reconstructions.png", "interpolation.png", "latent_sweeps.png", "state_scatter.png"]
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("cmvae-eval")
+    torch.manual_seed(0)
+    checkpoint = root / "cmvae.pt"
+    torch.save(make_checkpoint(CMVAE(), beta=8.0, epoch=1, val_loss=1.0, metrics={}), checkpoint)
+    return {
+        "checkpoint": checkpoint,
+        "clean": write_dataset(root / "clean", count=40, seed=5, shard_size=16),
+        "noisy": write_dataset(root / "noisy", count=40, seed=5, shard_size=16, noise=40.0),
+        "other": write_dataset(root / "other", count=40, seed=6, shard_size=16),
+    }
+
+
+def test_clean_and_noisy_metrics_and_figures(setup: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    settings = EvalEncoderSettings(checkpoint=str(setup["checkpoint"]), dataset=str(setup["clean"]), out=str(out),
+                                   noisy_dataset=str(setup["noisy"]), batch_size=16, max_images=30, device="cpu")
+    assert run(settings) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["count"] == 30 and metrics["n_z"] == 10 and metrics["dataset_seed"] == 5
+    assert set(metrics["mae"]) == {"d_m", "theta_deg", "psi_deg"}
+    assert set(metrics["mae_normalised"]) == {"d", "theta", "psi"}
+    assert 0 < metrics["mae"]["d_m"] <= 8 and 0 < metrics["mae"]["psi_deg"] <= 180
+    assert metrics["mae_normalised"]["d"] == pytest.approx(metrics["mae"]["d_m"] / 8.0)
+    assert metrics["mae_normalised"]["psi"] == pytest.approx(metrics["mae"]["psi_deg"] / 360.0)
+    assert 0 < metrics["image_mae_255"] < 255
+    assert len(metrics["latent_std"]) == 10
+
+    noisy = metrics["noisy"]
+    assert set(noisy["latent_drift"]) == {"z0", "z1", "z2"} and len(noisy["latent_drift_all"]) == 10
+    assert all(value > 0 for value in noisy["latent_drift"].values())  # noise moves the latents
+    assert noisy["latent_drift"]["z1"] == pytest.approx(noisy["latent_drift_all"][1])
+    assert set(noisy["mae"]) == {"d_m", "theta_deg", "psi_deg"}
+    assert noisy["image_mae_255"] > 0 and noisy["image_mae_255_vs_clean"] > 0
+
+    for name in [*FIGURES, "noise_comparison.png", "latent_drift.png"]:
+        assert (out / name).read_bytes()[:8] == PNG_MAGIC, name
+        assert str(out / name) in metrics["figures"]
+
+
+def test_identical_datasets_drift_by_exactly_zero(setup: dict[str, Path], tmp_path: Path) -> None:
+    out = tmp_path / "same"
+    run(EvalEncoderSettings(checkpoint=str(setup["checkpoint"]), dataset=str(setup["clean"]), out=str(out),
+                            noisy_dataset=str(setup["clean"]), batch_size=64, device="cpu"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["count"] == 40
+    assert np.allclose(metrics["noisy"]["latent_drift_all"], 0.0, atol=1e-6)
+    assert metrics["noisy"]["mae"] == pytest.approx(metrics["mae"])
+    for name in FIGURES:
+        assert (out / name).is_file()
+
+
+def test_a_noisy_dataset_of_other_poses_is_refused(setup: dict[str, Path], tmp_path: Path) -> None:
+    settings = EvalEncoderSettings(checkpoint=str(setup["checkpoint"]), dataset=str(setup["clean"]),
+                                   out=str(tmp_path / "x"), noisy_dataset=str(setup["other"]), device="cpu")
+    with pytest.raises(ValueError, match="same seed"):
+        run(settings)
+
+
+def test_a_missing_checkpoint_names_the_command(setup: dict[str, Path], tmp_path: Path) -> None:
+    settings = EvalEncoderSettings(checkpoint=str(tmp_path / "none.pt"), dataset=str(setup["clean"]),
+                                   out=str(tmp_path / "x"))
+    with pytest.raises(FileNotFoundError, match="swimm train-encoder"):
+        run(settings)

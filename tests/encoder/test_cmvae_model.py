@@ -1,0 +1,128 @@
+"""The CMVAE's modules, loss and label/pixel conversions, on random inputs (CPU, no data on disk)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from encoder_service.model import (
+    CMVAE,
+    LABEL_RANGES,
+    CMVAEOutput,
+    cmvae_loss,
+    denormalise_labels,
+    images_to_tensor,
+    label_errors,
+    normalise_labels,
+    tensor_to_images,
+)
+from services.geometry import ALPHA_DEG
+
+
+@pytest.fixture(scope="module")
+def model() -> CMVAE:
+    torch.manual_seed(0)
+    return CMVAE(n_z=10).to(memory_format=torch.channels_last)
+
+
+@pytest.fixture(scope="module")
+def frames() -> np.ndarray:
+    return np.random.default_rng(0).integers(0, 256, size=(4, 64, 64, 3), dtype=np.uint8)
+
+
+def test_every_module_output_has_the_spec_shape(model: CMVAE, frames: np.ndarray) -> None:
+    images = images_to_tensor(frames)
+    model.train()
+    with torch.no_grad():
+        _check_shapes(model, images)
+
+
+def _check_shapes(model: CMVAE, images: torch.Tensor) -> None:
+    features = model.encoder.features(images)
+    assert features.shape == (4, 128 * 2 * 2)  # 64 -> conv 32 -> pool 16 -> blocks 8, 4, 2
+    mu, logvar = model.encode(images)
+    assert mu.shape == logvar.shape == (4, 10)
+    decoded = model.decode_image(mu)
+    assert decoded.shape == (4, 3, 64, 64)
+    assert float(decoded.min()) >= -1.0 and float(decoded.max()) <= 1.0  # tanh output
+    assert model.decode_state(mu).shape == (4, 3)
+    for decoder in model.state_decoders:
+        assert decoder(mu[:, :1]).shape == (4, 1)
+    outputs = model(images)
+    assert outputs.z.shape == (4, 10) and outputs.image.shape == (4, 3, 64, 64) and outputs.state.shape == (4, 3)
+
+
+def test_training_samples_z_and_eval_uses_the_mean(model: CMVAE, frames: np.ndarray) -> None:
+    images = images_to_tensor(frames)
+    model.eval()
+    with torch.no_grad():
+        outputs = model(images)
+        sampled = model(images, sample=True)
+    assert torch.equal(outputs.z, outputs.mu)
+    assert float((sampled.z - sampled.mu).abs().max()) > 1e-3
+
+
+def test_each_state_decoder_reads_only_its_own_latent(model: CMVAE) -> None:
+    model.eval()
+    z = torch.zeros(1, 10)
+    base = model.decode_state(z)
+    for dim, changes in [(0, (True, False, False)), (1, (False, True, False)), (2, (False, False, True)),
+                         (5, (False, False, False))]:
+        moved = z.clone()
+        moved[0, dim] = 2.0
+        delta = (model.decode_state(moved) - base).abs()[0]
+        assert [bool(value > 0) for value in delta] == list(changes)
+
+
+def test_loss_parts_are_finite_and_kl_scales_with_beta(model: CMVAE, frames: np.ndarray) -> None:
+    images = images_to_tensor(frames)
+    labels = torch.from_numpy(normalise_labels(np.array([[6.0, 0.0, 0.0]] * 4)))
+    model.eval()
+    with torch.no_grad():
+        outputs = model(images)
+    plain = cmvae_loss(outputs, images, labels, beta=0.0)
+    heavy = cmvae_loss(outputs, images, labels, beta=8.0)
+    for value in plain.as_floats().values():
+        assert np.isfinite(value)
+    assert plain.kl.item() > 0
+    assert plain.total.item() == pytest.approx(plain.image.item() + plain.state.item(), rel=1e-6)
+    assert heavy.total.item() - plain.total.item() == pytest.approx(8.0 * plain.kl.item(), rel=1e-5)
+
+
+def test_kl_is_zero_at_the_prior_and_matches_the_closed_form() -> None:
+    zeros = torch.zeros(2, 10)
+    outputs = CMVAEOutput(mu=zeros, logvar=zeros, z=zeros, image=torch.zeros(2, 3, 64, 64), state=torch.zeros(2, 3))
+    assert cmvae_loss(outputs, outputs.image, outputs.state, 8.0).kl.item() == pytest.approx(0.0, abs=1e-7)
+    outputs.mu = torch.ones(2, 10)  # KL(N(1, 1) || N(0, 1)) = 0.5 per dimension, summed over 10
+    parts = cmvae_loss(outputs, outputs.image, outputs.state, 8.0)
+    assert parts.kl.item() == pytest.approx(5.0)
+    assert parts.total.item() == pytest.approx(40.0)
+
+
+def test_label_normalisation_maps_the_ranges_to_minus_one_one_and_back() -> None:
+    edges = np.array([[2.0, -ALPHA_DEG, -180.0], [10.0, ALPHA_DEG, 180.0], [6.0, 0.0, 0.0]])
+    normalised = normalise_labels(edges)
+    np.testing.assert_allclose(normalised, [[-1, -1, -1], [1, 1, 1], [0, 0, 0]], atol=1e-6)
+    labels = np.random.default_rng(1).uniform(LABEL_RANGES[:, 0], LABEL_RANGES[:, 1], size=(100, 3))
+    np.testing.assert_allclose(denormalise_labels(normalise_labels(labels)), labels, atol=1e-4)
+
+
+def test_psi_error_wraps_around_the_circle() -> None:
+    errors = label_errors(np.array([[3.0, 10.0, 179.0], [5.0, -5.0, -90.0]]),
+                          np.array([[2.5, 12.0, -179.0], [5.0, 5.0, 90.0]]))
+    np.testing.assert_allclose(errors, [[0.5, 2.0, 2.0], [0.0, 10.0, 180.0]], atol=1e-9)
+
+
+def test_images_become_channels_last_floats_in_minus_one_one_and_back(frames: np.ndarray) -> None:
+    tensor = images_to_tensor(frames)
+    assert tensor.shape == (4, 3, 64, 64) and tensor.dtype == torch.float32
+    assert tensor.is_contiguous(memory_format=torch.channels_last)
+    assert float(tensor.min()) >= -1.0 and float(tensor.max()) <= 1.0
+    assert tensor[0, :, 5, 7].tolist() == pytest.approx((frames[0, 5, 7] / 127.5 - 1.0).tolist())
+    np.testing.assert_array_equal(tensor_to_images(tensor), frames)
+
+
+def test_n_z_below_three_is_refused() -> None:
+    with pytest.raises(ValueError, match="n_z must be at least 3"):
+        CMVAE(n_z=2)

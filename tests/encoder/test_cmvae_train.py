@@ -1,0 +1,92 @@
+"""Real training runs on a small synthetic dataset: loss falls, checkpoints load safely, resume, early stopping."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from cmvae_testdata import write_dataset
+
+from encoder_service.train import EarlyStopping, TrainEncoderSettings, run
+
+
+@pytest.fixture(scope="module")
+def dataset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("cmvae-train"), count=128, seed=3, shard_size=48)
+
+
+def _settings(dataset_dir: Path, out: Path, **overrides: object) -> TrainEncoderSettings:
+    base = {"dataset": str(dataset_dir), "out": str(out), "epochs": 2, "val_fraction": 0.25, "device": "cpu",
+            "tensorboard": False}
+    return TrainEncoderSettings(**{**base, **overrides})
+
+
+def _summary(out: Path) -> dict:
+    return json.loads((out / "train_summary.json").read_text())
+
+
+def test_two_epochs_lower_the_validation_loss_and_write_safe_checkpoints(dataset_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert run(_settings(dataset_dir, out, tensorboard=True)) == 0
+    summary = _summary(out)
+    assert summary["dataset_count"] == 128 and summary["train_count"] == 96 and summary["val_count"] == 32
+    assert summary["epochs_run"] == 2 and summary["wall_time_s"] > 0
+    first, second = summary["history"]
+    assert second["val_loss"] < first["val_loss"]
+    assert summary["best_epoch"] == 2 and summary["best_val_loss"] == pytest.approx(second["val_loss"])
+
+    best = torch.load(out / "best.pt", weights_only=True)
+    last = torch.load(out / "last.pt", weights_only=True)
+    assert best["format"] == "swimm-cmvae" and best["version"] == 1
+    assert best["config"] == {"n_z": 10, "beta": 8.0}
+    assert best["epoch"] == 2 and best["val_loss"] == pytest.approx(second["val_loss"])
+    assert set(best["metrics"]) >= {"total", "image", "state", "kl", "mae_d", "mae_theta", "mae_psi"}
+    assert "optimizer" not in best  # only last.pt carries the resume state
+    steps = {float(state["step"]) for state in last["optimizer"]["state"].values()}
+    assert steps == {6.0}  # 96 training rows / batch 32 = 3 Adam steps per epoch, 2 epochs
+    assert any((out / "tb").iterdir())  # TensorBoard event file
+
+
+def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run(dataset_dir: Path,
+                                                                               tmp_path: Path) -> None:
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    run(_settings(dataset_dir, straight))
+    run(_settings(dataset_dir, resumed, epochs=1))
+    assert torch.load(resumed / "last.pt", weights_only=True)["epoch"] == 1
+    run(_settings(dataset_dir, resumed, epochs=2, resume=True))
+    summary = _summary(resumed)
+    assert summary["start_epoch"] == 2 and summary["epochs_run"] == 1 and summary["last_epoch"] == 2
+    a = torch.load(straight / "last.pt", weights_only=True)
+    b = torch.load(resumed / "last.pt", weights_only=True)
+    assert b["epoch"] == 2
+    assert b["val_loss"] == pytest.approx(a["val_loss"], rel=1e-5)
+    for name, tensor in a["state_dict"].items():
+        torch.testing.assert_close(b["state_dict"][name], tensor, rtol=1e-5, atol=1e-6)
+
+
+def test_early_stopping_ends_the_run_once_patience_runs_out(dataset_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "stops"
+    # needing a 90% drop per epoch cannot be met, so epoch 2 spends the single epoch of patience
+    run(_settings(dataset_dir, out, epochs=10, patience=1, min_rel_gain=0.9, max_batches_per_epoch=1))
+    summary = _summary(out)
+    assert summary["stopped_early"] is True and summary["epochs_run"] == 2
+
+
+def test_early_stopping_counts_only_gains_of_the_required_size() -> None:
+    stopper = EarlyStopping(patience=2, min_rel_gain=0.01)
+    assert stopper.update(1.0) is False and stopper.reference == 1.0
+    assert stopper.update(0.995) is False  # 0.5% better: not a gain, patience 1 of 2 spent
+    assert stopper.reference == 1.0 and stopper.epochs_without_gain == 1
+    assert stopper.update(0.98) is False  # 2% better than the reference: resets
+    assert stopper.reference == 0.98 and stopper.epochs_without_gain == 0
+    assert stopper.update(0.975) is False
+    assert stopper.update(0.974) is True
+    assert math.isinf(EarlyStopping(patience=1, min_rel_gain=0.01).reference)
+
+
+def test_a_missing_dataset_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="--dataset"):
+        run(TrainEncoderSettings(out=str(tmp_path)))
