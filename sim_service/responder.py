@@ -41,6 +41,7 @@ class SimSettings:
     eval_envs: int = 1
     realtime: bool = False  # physics keeps running at physics_dt; the last action is held
     ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
+    claim_grace_s: float = 10.0  # a claim lapses when its holder's token stays gone this long
 
 
 @dataclass
@@ -101,8 +102,16 @@ class SimResponder:
         self._inbox.put(_Request(kind, env, payload=payload.to_bytes()))
 
     def _on_roster_change(self, joined: set[str], left: set[str]) -> None:
+        """A holder's token went: free its envs unless it is back within the grace period.
+
+        Tokens also vanish while a router restarts; the grace keeps claims across such an outage.
+        """
         if left:
-            self._inbox.put(_Request("lapse", None, gone=left))
+            timer = threading.Timer(
+                self.settings.claim_grace_s, lambda: self._inbox.put(_Request("lapse", None, gone=left))
+            )
+            timer.daemon = True
+            timer.start()
 
     # --- the worker -----------------------------------------------------------------------------
     def _build_envs(self) -> None:
@@ -140,8 +149,9 @@ class SimResponder:
             elif request.kind == "ctl":
                 self._handle_ctl(request)
             elif request.kind == "lapse":
+                still_gone = request.gone - set().union(*(roster.members() for roster in self._rosters))
                 for env in self._envs:
-                    env.lapse(request.gone)
+                    env.lapse(still_gone)
         except Exception:  # a bug in one request must not take the sim down
             self.metrics.count("errors_internal")
             log.exception("internal error while handling a %s request", request.kind)

@@ -1,0 +1,80 @@
+"""Fixtures for tests across real processes: a router, services, and a learner-side client session."""
+
+from __future__ import annotations
+
+import os
+import uuid
+from dataclasses import dataclass
+
+import pytest
+import zenoh
+
+from learner_service.link import RemoteEnvLink, new_holder_id
+from services.keys import Keys
+from services.presence import Roster, announce
+from services.procs import ProcessGroup
+from services.session import open_session
+from services.settings import ZenohSettings
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+@pytest.fixture
+def group(tmp_path):
+    """Processes started by the test; all stopped at teardown. Logs under tmp_path/logs."""
+    with ProcessGroup(tmp_path / "logs") as processes:
+        yield processes
+
+
+@dataclass
+class Client:
+    """A learner-side Zenoh session with a liveliness token, as `swimm learn` has."""
+
+    session: zenoh.Session
+    keys: Keys
+    holder: str
+    token: zenoh.LivelinessToken
+
+    def link(self, channel: str = "train", env: str = "0", encoders: Roster | None = None, **kwargs) -> RemoteEnvLink:
+        return RemoteEnvLink(
+            self.session,
+            self.keys,
+            channel,
+            env,
+            self.holder,
+            encoded=encoders is not None,
+            encoders=encoders,
+            **kwargs,
+        )
+
+    def roster(self, role: str) -> Roster:
+        return Roster(self.session, self.keys, role)
+
+
+@pytest.fixture
+def namespace():
+    return f"swimm/test-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def connect_client(namespace):
+    """Factory: a Client connected to an endpoint; closed at teardown."""
+    opened: list[Client] = []
+
+    def connect(endpoint: str) -> Client:
+        settings = ZenohSettings(connect=[endpoint], namespace=namespace)
+        session = open_session(settings, role="test")
+        keys = Keys(namespace)
+        holder = new_holder_id("learner")
+        client = Client(session, keys, holder, announce(session, keys, "learner", holder))
+        opened.append(client)
+        return client
+
+    yield connect
+    for client in opened:
+        client.token.undeclare()
+        client.session.close()
+
+
+def start_sim(group: ProcessGroup, endpoint: str, namespace: str, *args: str, name: str = "sim"):
+    return group.start(name, "sim", "--connect", endpoint, "--namespace", namespace, *args)
