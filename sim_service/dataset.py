@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import multiprocessing
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -66,6 +67,7 @@ class DatasetSettings:
     count: int = 1000
     seed: int = 3  # the paper: train seed 3, test seed 5
     shard_size: int = 4096
+    workers: int = 1  # processes rendering shards in parallel; the bytes do not depend on it
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
 
 
@@ -94,6 +96,38 @@ def labels_and_pose(telemetry) -> tuple[np.ndarray, np.ndarray]:
     return labels, pose
 
 
+def _write_shard(
+    out: Path, index: int, start: int, n: int, seed: int, world: World, ranges: SamplingRanges, bar: tqdm | None
+) -> str:
+    """Render samples start..start+n into shard files named by ``index``; returns the shard's name."""
+    size = world.settings.image_size
+    name = f"shard-{index:05d}"
+    images = np.lib.format.open_memmap(out / f"{name}.images.npy", "w+", np.uint8, (n, size, size, 3))
+    labels = np.lib.format.open_memmap(out / f"{name}.labels.npy", "w+", np.float32, (n, 3))
+    poses = np.lib.format.open_memmap(out / f"{name}.poses.npy", "w+", np.float32, (n, 12))
+    for j in range(n):
+        telemetry, image = sample_pose(world, np.random.default_rng([seed, start + j]), ranges)
+        images[j] = image
+        labels[j], poses[j] = labels_and_pose(telemetry)
+        if bar is not None:
+            bar.update(1)
+    for array in (images, labels, poses):
+        array.flush()
+    return name
+
+
+def _shard_in_worker(job: tuple) -> tuple[str, int]:
+    """Process-pool entry point: each worker process builds its own World (and GL context) once."""
+    out, index, start, n, seed, settings, ranges = job
+    global _worker_world
+    if _worker_world is None:
+        _worker_world = World(settings)
+    return _write_shard(out, index, start, n, seed, _worker_world, ranges, None), n
+
+
+_worker_world: World | None = None
+
+
 def write_dataset(
     out_dir: str | Path,
     count: int,
@@ -102,45 +136,44 @@ def write_dataset(
     world_settings: WorldSettings | None = None,
     ranges: SamplingRanges | None = None,
     progress: bool = True,
+    workers: int = 1,
 ) -> Path:
-    """Render ``count`` labelled frames into ``out_dir`` (see the module docstring); returns the directory."""
-    if count <= 0 or shard_size <= 0:
-        raise ValueError(f"count and shard_size must be positive (got {count}, {shard_size})")
+    """Render ``count`` labelled frames into ``out_dir`` (see the module docstring); returns the directory.
+
+    With ``workers > 1`` shards are rendered by that many processes; per-sample seeds make the
+    bytes identical to a single-process run.
+    """
+    if count <= 0 or shard_size <= 0 or workers <= 0:
+        raise ValueError(f"count, shard_size and workers must be positive (got {count}, {shard_size}, {workers})")
     out = Path(out_dir)
     if (out / "meta.json").exists():
         raise FileExistsError(f"{out} already holds a dataset; choose another --out or delete it")
     out.mkdir(parents=True, exist_ok=True)
     settings = world_settings or WorldSettings()
     ranges = ranges or SamplingRanges()
-    size = settings.image_size
-    world = World(settings)
-    shards: list[str] = []
-    try:
-        with tqdm(total=count, desc=f"dataset {out.name}", unit="img", disable=not progress) as bar:
-            for start in range(0, count, shard_size):
-                n = min(shard_size, count - start)
-                name = f"shard-{len(shards):05d}"
-                images = np.lib.format.open_memmap(out / f"{name}.images.npy", "w+", np.uint8, (n, size, size, 3))
-                labels = np.lib.format.open_memmap(out / f"{name}.labels.npy", "w+", np.float32, (n, 3))
-                poses = np.lib.format.open_memmap(out / f"{name}.poses.npy", "w+", np.float32, (n, 12))
-                for j in range(n):
-                    rng = np.random.default_rng([seed, start + j])
-                    telemetry, image = sample_pose(world, rng, ranges)
-                    images[j] = image
-                    labels[j], poses[j] = labels_and_pose(telemetry)
-                    bar.update(1)
-                for array in (images, labels, poses):
-                    array.flush()
-                del images, labels, poses
-                shards.append(name)
-    finally:
-        world.close()
+    jobs = [
+        (out, index, start, min(shard_size, count - start), seed, settings, ranges)
+        for index, start in enumerate(range(0, count, shard_size))
+    ]
+    with tqdm(total=count, desc=f"dataset {out.name}", unit="img", disable=not progress) as bar:
+        if workers == 1:
+            world = World(settings)
+            try:
+                shards = [_write_shard(*job[:5], world, ranges, bar) for job in jobs]
+            finally:
+                world.close()
+        else:
+            with multiprocessing.get_context("spawn").Pool(workers) as pool:
+                shards = []
+                for name, n in pool.imap(_shard_in_worker, jobs):
+                    shards.append(name)
+                    bar.update(n)
     meta = {
         "format": FORMAT,
         "version": VERSION,
         "count": count,
         "seed": seed,
-        "image_shape": [size, size, 3],
+        "image_shape": [settings.image_size, settings.image_size, 3],
         "shard_size": shard_size,
         "label_names": list(LABEL_NAMES),
         "pose_names": list(POSE_NAMES),
@@ -154,5 +187,7 @@ def write_dataset(
 
 
 def run(settings: DatasetSettings) -> int:
-    write_dataset(settings.out, settings.count, settings.seed, settings.shard_size, settings.world)
+    write_dataset(
+        settings.out, settings.count, settings.seed, settings.shard_size, settings.world, workers=settings.workers
+    )
     return 0

@@ -40,7 +40,9 @@ def test_same_seed_same_bytes_and_other_seed_differs(tmp_path):
     a = write_dataset(tmp_path / "a", count=8, seed=5, shard_size=8, progress=False)
     b = write_dataset(tmp_path / "b", count=8, seed=5, shard_size=4, progress=False)
     c = write_dataset(tmp_path / "c", count=8, seed=6, shard_size=8, progress=False)
+    parallel = write_dataset(tmp_path / "p", count=8, seed=5, shard_size=3, progress=False, workers=2)
     assert np.array_equal(load(a)[1]["images"], load(b)[1]["images"])  # sharding does not change samples
+    assert np.array_equal(load(a)[1]["images"], load(parallel)[1]["images"])  # nor do worker processes
     assert not np.array_equal(load(a)[1]["labels"], load(c)[1]["labels"])
 
 
