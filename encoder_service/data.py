@@ -64,6 +64,16 @@ class CMVAEDataset:
     def seed(self) -> int:
         return int(self.meta["seed"])
 
+    def read_labels(self, indices: np.ndarray) -> np.ndarray:
+        """Labels of rows ``indices`` only (no image reads), float32 (len, 3)."""
+        indices = np.asarray(indices, dtype=np.int64)
+        shard_of = np.searchsorted(self._starts, indices, side="right") - 1
+        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        for shard in np.unique(shard_of):
+            chosen = shard_of == shard
+            labels[chosen] = self._labels[shard][indices[chosen] - self._starts[shard]]
+        return labels
+
     def read(self, indices: np.ndarray) -> Batch:
         """Rows ``indices`` (any order) as one in-memory batch, in that order.
 

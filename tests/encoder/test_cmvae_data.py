@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,7 @@ def test_rows_read_across_shards_match_the_files_in_any_order(dataset_dir: Path)
         np.testing.assert_array_equal(batch.images[position], images[offset])
         np.testing.assert_array_equal(batch.labels[position], labels[offset])
     np.testing.assert_array_equal(batch.indices, rows)
+    np.testing.assert_array_equal(dataset.read_labels(rows), batch.labels)
 
 
 def test_shards_are_memory_mapped_not_loaded(dataset_dir: Path) -> None:
@@ -144,3 +146,16 @@ def test_prefetch_stops_its_thread_when_the_consumer_leaves_early() -> None:
     assert next(stream) == 0
     stream.close()
     assert threading.active_count() == before
+
+
+def test_a_dataset_rendered_by_the_sim_reads_back_with_labels_in_range(tmp_path: Path) -> None:
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when MuJoCo is first imported
+    from sim_service.dataset import write_dataset as render_dataset
+
+    dataset = CMVAEDataset(render_dataset(tmp_path / "real", count=64, seed=11, shard_size=24, progress=False))
+    assert len(dataset) == 64 and len(dataset.meta["shards"]) == 3
+    batch = dataset.read(np.arange(64))
+    d, theta, psi = batch.labels.T
+    assert d.min() >= 2.0 and d.max() <= 10.0
+    assert np.abs(theta).max() <= 39.99 and np.abs(psi).max() <= 180.0
+    assert batch.images.std() > 5  # real pictures, not blank frames

@@ -1,21 +1,25 @@
-"""Real training runs on a small synthetic dataset: loss falls, checkpoints load safely, resume, early stopping."""
+"""Real training runs on 128 frames rendered by the sim: loss falls, safe checkpoints, resume, early stopping."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import pytest
 import torch
-from cmvae_testdata import write_dataset
 
 from encoder_service.train import EarlyStopping, TrainEncoderSettings, run
 
 
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_dataset(tmp_path_factory.mktemp("cmvae-train"), count=128, seed=3, shard_size=48)
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when MuJoCo is first imported
+    from sim_service.dataset import write_dataset
+
+    return write_dataset(tmp_path_factory.mktemp("cmvae-train") / "frames", count=128, seed=3, shard_size=48,
+                         progress=False)
 
 
 def _settings(dataset_dir: Path, out: Path, **overrides: object) -> TrainEncoderSettings:
