@@ -76,9 +76,10 @@ class ImageNoise:
               motion_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
         """Return a degraded copy of ``image`` (uint8 HxWx3).
 
-        ``depth`` is the per-pixel distance along the view in metres (HxW; inf or nan = nothing hit, treated as
-        infinitely far); required when fog or depth of field is on. ``motion_px`` is the apparent image motion
-        (x right, y down) in pixels over one frame; it only matters when motion blur is on.
+        ``depth`` is the per-pixel distance from the camera in metres (HxW, e.g. MuJoCo's depth buffer in metres;
+        inf or nan = nothing hit, treated as infinitely far); required when fog or depth of field is on.
+        ``motion_px`` is the apparent image motion (x right, y down) in pixels over one frame; it only matters
+        when motion blur is on.
         """
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
             raise ValueError(f"image must be uint8 HxWx3, got {image.dtype} {image.shape}")
