@@ -1,0 +1,98 @@
+"""Fixtures every test folder shares: free ports, a real Zenoh router process, and swimm sub-commands as processes.
+
+Everything here starts real components (no fakes): a test that needs a
+router gets ``swimm router`` in its own process on its own port, and a
+namespace of its own, so tests never hear each other's traffic.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from collections.abc import Callable, Iterator
+
+import pytest
+import zenoh
+
+from services.procs import ProcessGroup, Service, free_tcp_port
+from services.session import open_session
+from services.settings import ZenohSettings
+
+# MuJoCo picks its GL backend at import; headless machines (CI, the device box) render through EGL.
+os.environ["MUJOCO_GL"] = "egl"
+
+#: How long a test waits for its router or a session to appear before failing, in seconds.
+STARTUP_TIMEOUT_S = 20.0
+
+
+@pytest.fixture
+def free_port() -> Callable[[], int]:
+    """Call it for a TCP port on 127.0.0.1 that nothing listens on right now (one per call)."""
+    return free_tcp_port
+
+
+@pytest.fixture
+def processes(tmp_path) -> Iterator[ProcessGroup]:
+    """The processes a test starts, with logs under ``tmp_path/logs``; all stopped (SIGTERM, then SIGKILL) at teardown.
+
+    Teardown stops them in reverse start order, so clients go before the router they talk to.
+    """
+    with ProcessGroup(tmp_path / "logs") as group:
+        yield group
+
+
+@pytest.fixture
+def spawn(processes: ProcessGroup) -> Callable[..., Service]:
+    """Start any swimm sub-command as ``python -m services.cli <command> <args>`` in its own process.
+
+    Usage: ``service = spawn("sim", "--connect", endpoint, "--namespace", ns, name="sim-a")``.
+    The returned :class:`services.procs.Service` has ``process`` (the Popen), ``alive`` and
+    ``log_tail()`` (stdout and stderr together, from ``tmp_path/logs/<name>.log``). The process is
+    stopped at teardown; stop it earlier (or crash it with ``kill=True``) with ``processes.stop(service)``.
+    ``name`` defaults to the command and must be unique within a test, as it names the log file.
+    """
+
+    def start(command: str, *args: str, name: str | None = None) -> Service:
+        return processes.start(name or command, command, *args)
+
+    return start
+
+
+@pytest.fixture
+def zenoh_router(processes: ProcessGroup) -> str:
+    """A ``swimm router`` process listening on a free local port; the value is its endpoint ``tcp/127.0.0.1:<port>``.
+
+    Fails the test with the router's own log when it does not accept connections within 20 s.
+    """
+    return processes.start_router()
+
+
+@pytest.fixture
+def namespace() -> str:
+    """A Zenoh namespace unique to this test, so concurrent or earlier tests' traffic never reaches it."""
+    return f"swimm/test-{uuid.uuid4().hex[:8]}"
+
+
+@pytest.fixture
+def zenoh_settings(namespace: str) -> Callable[[str], ZenohSettings]:
+    """Call with an endpoint for client settings connected to it, in this test's namespace."""
+
+    def build(endpoint: str) -> ZenohSettings:
+        return ZenohSettings(connect=[endpoint], namespace=namespace, startup_timeout_s=STARTUP_TIMEOUT_S)
+
+    return build
+
+
+@pytest.fixture
+def zenoh_session(zenoh_settings: Callable[[str], ZenohSettings]) -> Iterator[Callable[[str], zenoh.Session]]:
+    """Call with an endpoint to open a client session there; every session opened is closed at teardown."""
+    opened: list[zenoh.Session] = []
+
+    def connect(endpoint: str) -> zenoh.Session:
+        session = open_session(zenoh_settings(endpoint), role="test")
+        opened.append(session)
+        return session
+
+    yield connect
+    for session in opened:
+        session.close()

@@ -1,0 +1,294 @@
+"""The step-pipeline codec: every message survives a round trip, and bad input becomes BadMessage with its reason."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+
+from services.messages import (
+    MAX_PAYLOAD_BYTES,
+    PROTOCOL_VERSION,
+    ActionMsg,
+    BadMessage,
+    DiveMode,
+    ErrorMsg,
+    LatentMsg,
+    ObservationMsg,
+    encode_reply,
+    encode_request,
+    unpack,
+)
+from services.telemetry import Telemetry
+
+TELEMETRY = Telemetry(
+    rover_pos=(1.5, -2.25, -3.0),
+    rover_quat=(0.9238795325112867, 0.0, 0.0, 0.3826834323650898),
+    rover_forward=(0.7071067811865476, 0.7071067811865475, 0.0),
+    rover_lin_vel=(0.25, 0.0, -0.01),
+    rover_ang_vel=(0.0, 0.0, 0.1),
+    target_pos=(5.0, 3.0, -3.2),
+    target_quat=(1.0, 0.0, 0.0, 0.0),
+    target_forward=(1.0, 0.0, 0.0),
+    target_lin_vel=(0.6, 0.0, 0.0),
+    target_in_frustum=True,
+    collided=False,
+    sim_time=12.34,
+)
+
+
+def _image(shape: tuple[int, int, int] = (64, 64, 3), seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, size=shape, dtype=np.uint8)
+
+
+def _observation_body(**overrides) -> dict:
+    """The map an ObservationMsg encodes to, with fields replaced to make it bad."""
+    body = unpack(ObservationMsg("0", 1, 2, TELEMETRY, _image()).encode())
+    body.update(overrides)
+    return body
+
+
+def _action_body(**overrides) -> dict:
+    body = unpack(ActionMsg(ep=1, seq=2, action=(0.0, 0.0, 0.5, -0.5)).encode())
+    body.update(overrides)
+    return body
+
+
+def _pack(body) -> bytes:
+    return msgpack.packb(body, use_bin_type=True)
+
+
+# --- round trips -----------------------------------------------------------------------------------------------
+
+
+def test_action_round_trips_every_field():
+    sent = ActionMsg(
+        ep=3,
+        seq=417,
+        action=(-1.0, 0.25, 1.0, -0.125),
+        dive_mode=DiveMode.STABILISE,
+        route="enc-2",
+        sender="learner-ab12",
+        sent_at=1700000000.5,
+    )
+    assert ActionMsg.decode(sent.encode()) == sent
+
+
+def test_action_defaults_to_depth_hold_and_direct_route():
+    received = ActionMsg.decode(_pack({"v": PROTOCOL_VERSION, "ep": 0, "seq": 0, "action": [0, 0, 1, 0]}))
+    assert received.dive_mode is DiveMode.DEPTH_HOLD
+    assert received.route == "direct"
+    assert received.action == (0.0, 0.0, 1.0, 0.0)
+
+
+def test_observation_round_trips_image_bytes_and_telemetry():
+    image = _image(seed=7)
+    sent = ObservationMsg(env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25)
+    received = ObservationMsg.decode(sent.encode(), expected_shape=(64, 64, 3))
+    assert (received.env, received.ep, received.seq, received.sent_at) == ("3", 2, 99, 1700000001.25)
+    assert received.telemetry == TELEMETRY
+    assert received.image.dtype == np.uint8
+    assert received.image.shape == (64, 64, 3)
+    assert np.array_equal(received.image, image)
+
+
+def test_observation_carries_any_hxwx3_size_when_no_shape_is_expected():
+    image = _image((36, 64, 3), seed=1)
+    received = ObservationMsg.decode(ObservationMsg("0", 0, 0, TELEMETRY, image).encode())
+    assert received.image.shape == (36, 64, 3)
+    assert np.array_equal(received.image, image)
+
+
+def test_latent_round_trips_every_field():
+    sent = LatentMsg(
+        env="1",
+        ep=4,
+        seq=8,
+        telemetry=TELEMETRY,
+        mu=(0.5, -1.25, 3.0, 0.0, 2.5, -0.75, 1.0, 0.125, 4.0, -4.0),
+        logvar=(-2.0,) * 10,
+        encoder="enc-1",
+        sent_at=1700000002.0,
+    )
+    assert LatentMsg.decode(sent.encode()) == sent
+
+
+def test_error_round_trips_reason_and_addressee():
+    sent = ErrorMsg(reason="action components must lie in [-1, 1]", ep=5, seq=6, sender="learner-1")
+    received = ErrorMsg.decode(sent.encode())
+    assert (received.reason, received.ep, received.seq, received.sender) == (sent.reason, 5, 6, "learner-1")
+
+
+def test_control_request_and_reply_carry_version_time_and_fields():
+    request = unpack(encode_request("reset", ep=3, seed=42, holder="learner-1"))
+    assert request["v"] == PROTOCOL_VERSION
+    assert (request["op"], request["ep"], request["seed"], request["holder"]) == ("reset", 3, 42, "learner-1")
+    assert request["t"] > 1.6e9
+    reply = unpack(encode_reply(False, error="env 0 is held by learner-2"))
+    assert reply["ok"] is False
+    assert reply["error"] == "env 0 is held by learner-2"
+
+
+def test_every_message_carries_version_episode_sequence_and_send_time():
+    for payload in (
+        ActionMsg(ep=1, seq=2, action=(0, 0, 0, 0), sent_at=10.0).encode(),
+        ObservationMsg("0", 1, 2, TELEMETRY, _image(), sent_at=10.0).encode(),
+        LatentMsg("0", 1, 2, TELEMETRY, (0.0,), (0.0,), "enc-1", sent_at=10.0).encode(),
+        ErrorMsg("no", ep=1, seq=2, sent_at=10.0).encode(),
+    ):
+        body = unpack(payload)
+        assert (body["v"], body["ep"], body["seq"], body["t"]) == (PROTOCOL_VERSION, 1, 2, 10.0)
+
+
+# --- refusals: envelope ----------------------------------------------------------------------------------------
+
+
+def test_malformed_msgpack_is_refused():
+    with pytest.raises(BadMessage, match="malformed msgpack"):
+        unpack(b"\xc1")  # 0xc1 is the one byte msgpack never uses
+    with pytest.raises(BadMessage, match="malformed msgpack"):
+        ActionMsg.decode(_pack(_action_body())[:-3])  # truncated
+
+
+def test_a_payload_that_is_not_a_map_is_refused():
+    with pytest.raises(BadMessage, match="must be a msgpack map"):
+        unpack(_pack([PROTOCOL_VERSION, 1, 2]))
+
+
+@pytest.mark.parametrize("version", [0, PROTOCOL_VERSION + 1, "1", None])
+def test_unknown_protocol_version_is_refused_naming_both_versions(version):
+    body = _action_body(v=version)
+    with pytest.raises(BadMessage, match=rf"unknown protocol version {version!r}.*speaks {PROTOCOL_VERSION}"):
+        ActionMsg.decode(_pack(body))
+
+
+def test_missing_protocol_version_is_refused():
+    body = _action_body()
+    del body["v"]
+    with pytest.raises(BadMessage, match="unknown protocol version None"):
+        ActionMsg.decode(_pack(body))
+
+
+def test_oversized_payload_is_refused_before_decoding_with_its_size():
+    payload = b"\x00" * (MAX_PAYLOAD_BYTES + 1)
+    with pytest.raises(BadMessage, match=f"{MAX_PAYLOAD_BYTES + 1} bytes exceeds the {MAX_PAYLOAD_BYTES}-byte limit"):
+        unpack(payload)
+
+
+def test_a_large_frame_under_the_limit_is_accepted():
+    image = _image((1080, 1920, 3), seed=3)  # the paper's largest frame, ~6.2 MB
+    payload = ObservationMsg("0", 0, 0, TELEMETRY, image).encode()
+    assert len(payload) < MAX_PAYLOAD_BYTES
+    assert np.array_equal(ObservationMsg.decode(payload).image, image)
+
+
+# --- refusals: actions -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("action", "reason"),
+    [
+        ([0.0, 0.0, math.nan, 0.0], "NaN or infinity"),
+        ([0.0, 0.0, 0.0, math.inf], "NaN or infinity"),
+        ([0.0, 0.0, 1.5, 0.0], r"must lie in \[-1, 1\]"),
+        ([-1.0001, 0.0, 0.0, 0.0], r"must lie in \[-1, 1\]"),
+        ([0.0, 1.0], "must be 4 numbers"),
+        ([0.0, 0.0, 0.0, 0.0, 0.0], "must be 4 numbers"),
+        ([0.0, "fast", 0.0, 0.0], "non-number"),
+        ("forward", "must be 4 numbers"),
+    ],
+)
+def test_bad_action_is_refused(action, reason):
+    with pytest.raises(BadMessage, match=reason):
+        ActionMsg.decode(_pack(_action_body(action=action)))
+
+
+def test_action_at_the_bounds_is_accepted():
+    received = ActionMsg.decode(_pack(_action_body(action=[-1.0, 1.0, -1.0, 1.0])))
+    assert received.action == (-1.0, 1.0, -1.0, 1.0)
+
+
+@pytest.mark.parametrize(("field", "value"), [("seq", -1), ("seq", 1.5), ("ep", True), ("ep", "3"), ("seq", None)])
+def test_episode_and_sequence_must_be_non_negative_integers(field, value):
+    with pytest.raises(BadMessage, match=f"field '{field}' must be a non-negative integer"):
+        ActionMsg.decode(_pack(_action_body(**{field: value})))
+
+
+def test_unknown_dive_mode_is_refused():
+    with pytest.raises(BadMessage, match="unknown dive_mode 'turbo'"):
+        ActionMsg.decode(_pack(_action_body(dive_mode="turbo")))
+
+
+def test_non_string_route_is_refused():
+    with pytest.raises(BadMessage, match="field 'route' must be a string"):
+        ActionMsg.decode(_pack(_action_body(route=7)))
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="services/messages.py decodes 't' with a bare float(), so a bad send time escapes as ValueError/TypeError "
+    "instead of BadMessage (reported to the lead)",
+)
+@pytest.mark.parametrize("sent_at", ["yesterday", None])
+def test_bad_send_time_is_refused_as_bad_message(sent_at):
+    with pytest.raises(BadMessage, match="'t'"):
+        ActionMsg.decode(_pack(_action_body(t=sent_at)))
+
+
+# --- refusals: images and telemetry ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("overrides", "reason"),
+    [
+        ({"dtype": "float32"}, "image dtype must be uint8, got 'float32'"),
+        ({"shape": [64, 64, 4]}, r"image shape must be \[H, W, 3\]"),
+        ({"shape": [64, 64]}, r"image shape must be \[H, W, 3\]"),
+        ({"shape": [0, 64, 3]}, r"image shape must be \[H, W, 3\]"),
+        ({"shape": "64x64x3"}, r"image shape must be \[H, W, 3\]"),
+        ({"shape": [32, 64, 3]}, r"image bytes do not match shape \[32, 64, 3\]"),
+        ({"image": b"\x00" * 100}, r"image bytes do not match shape \[64, 64, 3\]"),
+        ({"image": "pixels"}, r"image bytes do not match shape"),
+    ],
+)
+def test_bad_image_is_refused(overrides, reason):
+    with pytest.raises(BadMessage, match=reason):
+        ObservationMsg.decode(_pack(_observation_body(**overrides)))
+
+
+def test_image_of_an_unexpected_size_is_refused_naming_both_shapes():
+    payload = ObservationMsg("0", 0, 0, TELEMETRY, _image((128, 128, 3))).encode()
+    with pytest.raises(BadMessage, match=r"image shape \[128, 128, 3\] differs from the expected \[64, 64, 3\]"):
+        ObservationMsg.decode(payload, expected_shape=(64, 64, 3))
+
+
+def test_observation_without_telemetry_field_is_refused_naming_it():
+    telemetry = TELEMETRY.to_dict()
+    del telemetry["target_pos"]
+    with pytest.raises(BadMessage, match="telemetry lacks field 'target_pos'"):
+        ObservationMsg.decode(_pack(_observation_body(telemetry=telemetry)))
+
+
+def test_observation_with_malformed_telemetry_is_refused():
+    with pytest.raises(BadMessage, match="'telemetry' must be a map"):
+        ObservationMsg.decode(_pack(_observation_body(telemetry=[1, 2, 3])))
+    bad_quat = {**TELEMETRY.to_dict(), "rover_quat": [1.0, 0.0, 0.0]}
+    with pytest.raises(BadMessage, match="'rover_quat' must have 4 numbers"):
+        ObservationMsg.decode(_pack(_observation_body(telemetry=bad_quat)))
+
+
+def test_latent_with_mismatched_logvar_or_nan_mean_is_refused():
+    body = unpack(LatentMsg("0", 0, 0, TELEMETRY, (0.0, 1.0), (0.0, 0.0), "enc-1").encode())
+    with pytest.raises(BadMessage, match="field 'logvar' must be 2 numbers"):
+        LatentMsg.decode(_pack({**body, "logvar": [0.0, 0.0, 0.0]}))
+    with pytest.raises(BadMessage, match="field 'mu' holds NaN or infinity"):
+        LatentMsg.decode(_pack({**body, "mu": [math.nan, 0.0]}))
+
+
+def test_error_without_reason_is_refused():
+    body = unpack(ErrorMsg("x").encode())
+    del body["error"]
+    with pytest.raises(BadMessage, match="field 'error' must be a string"):
+        ErrorMsg.decode(_pack(body))

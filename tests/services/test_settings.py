@@ -1,0 +1,176 @@
+"""Settings layering: defaults < YAML file < SWIMM_* environment < command-line flags, for nested and flat fields."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import re
+
+import pytest
+
+from services import settings as settings_mod
+from services.settings import ZenohSettings
+
+
+@dataclasses.dataclass
+class Noise:
+    fog: float = 0.0
+    blur: bool = False
+
+
+@dataclasses.dataclass
+class Example:
+    """A command's settings with every kind of field the loader supports."""
+
+    steps: int = 100
+    render: bool = True
+    algo: str = "sac"
+    checkpoint: str | None = None
+    seeds: list[int] = dataclasses.field(default_factory=lambda: [1, 2])
+    image_shape: tuple[int, int, int] = (64, 64, 3)
+    noise: Noise = dataclasses.field(default_factory=Noise)
+    zenoh: ZenohSettings = dataclasses.field(default_factory=ZenohSettings, metadata={"flatten": True})
+    target: str = dataclasses.field(default="sim", metadata={"positional": True})
+
+
+def _parse(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    settings_mod.add_arguments(parser, Example)
+    return parser.parse_args(list(argv))
+
+
+def _load(*argv: str, environ: dict[str, str] | None = None, config_file=None) -> Example:
+    return settings_mod.load(Example, _parse(*argv), config_file, environ or {})
+
+
+def test_defaults_hold_when_nothing_is_given():
+    loaded = _load()
+    assert loaded == Example()
+    assert loaded.zenoh.connect == ["tcp/127.0.0.1:7447"]
+    assert loaded.zenoh.startup_timeout_s == 60.0
+
+
+def test_each_layer_overrides_the_one_below(tmp_path):
+    config = tmp_path / "run.yaml"
+    config.write_text("steps: 200\nalgo: ppo\nnoise:\n  fog: 0.2\nconnect: [tcp/10.0.0.1:7447]\n")
+    environ = {"SWIMM_ALGO": "td3", "SWIMM_NOISE_FOG": "0.4"}
+
+    from_file = _load(config_file=config)
+    assert (from_file.steps, from_file.algo, from_file.noise.fog) == (200, "ppo", 0.2)
+    assert from_file.zenoh.connect == ["tcp/10.0.0.1:7447"]
+
+    from_env = _load(config_file=config, environ=environ)
+    assert (from_env.steps, from_env.algo, from_env.noise.fog) == (200, "td3", 0.4)
+
+    from_flags = _load("--noise-fog", "0.6", "--steps", "300", config_file=config, environ=environ)
+    assert (from_flags.steps, from_flags.algo, from_flags.noise.fog) == (300, "td3", 0.6)
+    assert from_flags.zenoh.connect == ["tcp/10.0.0.1:7447"]  # untouched by higher layers
+
+
+def test_nested_fields_are_prefixed_and_flattened_fields_keep_their_names():
+    parser = argparse.ArgumentParser()
+    settings_mod.add_arguments(parser, Example)
+    flags = set(re.findall(r"--[a-z][a-z0-9-]*", parser.format_help()))
+    assert {"--noise-fog", "--noise-blur", "--no-noise-blur", "--steps", "--image-shape"} <= flags
+    assert {"--connect", "--listen", "--namespace", "--startup-timeout-s", "--zenoh-config"} <= flags
+    assert {flag for flag in flags if flag.startswith("--zenoh-")} == {"--zenoh-config"}
+
+    loaded = _load(environ={"SWIMM_NOISE_BLUR": "true", "SWIMM_NAMESPACE": "swimm/lab", "SWIMM_MODE": "peer"})
+    assert loaded.noise.blur is True
+    assert (loaded.zenoh.namespace, loaded.zenoh.mode) == ("swimm/lab", "peer")
+
+
+def test_yaml_accepts_nested_maps_and_flat_names(tmp_path):
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("noise: {fog: 0.3, blur: true}\nzenoh: {namespace: swimm/a}\n")
+    flat = tmp_path / "flat.yaml"
+    flat.write_text("noise_fog: 0.3\nnoise_blur: true\nnamespace: swimm/a\n")
+    for config in (nested, flat):
+        loaded = _load(config_file=config)
+        assert (loaded.noise.fog, loaded.noise.blur, loaded.zenoh.namespace) == (0.3, True, "swimm/a")
+
+
+def test_an_empty_yaml_file_means_defaults(tmp_path):
+    config = tmp_path / "empty.yaml"
+    config.write_text("")
+    assert _load(config_file=config) == Example()
+
+
+def test_lists_parse_from_comma_separated_variables_and_repeated_flag_values():
+    from_env = _load(environ={"SWIMM_CONNECT": "tcp/a:1, tcp/b:2,", "SWIMM_SEEDS": "3,5,8"})
+    assert from_env.zenoh.connect == ["tcp/a:1", "tcp/b:2"]
+    assert from_env.seeds == [3, 5, 8]
+
+    from_flags = _load("--connect", "tcp/c:3", "tcp/d:4", "--seeds", "13", "21", "--image-shape", "32", "32", "3")
+    assert from_flags.zenoh.connect == ["tcp/c:3", "tcp/d:4"]
+    assert from_flags.seeds == [13, 21]
+    assert from_flags.image_shape == (32, 32, 3)  # a tuple field stays a tuple
+
+
+def test_empty_list_flag_clears_the_default():
+    assert _load("--connect").zenoh.connect == []
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [("1", True), ("true", True), ("YES", True), ("on", True), ("0", False), ("False", False), ("no", False)],
+)
+def test_booleans_parse_from_variables(text, expected):
+    assert _load(environ={"SWIMM_RENDER": text}).render is expected
+
+
+def test_boolean_flags_have_a_negative_form():
+    assert _load("--no-render").render is False
+    assert _load("--render", environ={"SWIMM_RENDER": "false"}).render is True
+
+
+def test_optional_fields_accept_none_from_variables():
+    assert _load(environ={"SWIMM_CHECKPOINT": "runs/a/best.zip"}).checkpoint == "runs/a/best.zip"
+    assert _load(environ={"SWIMM_CHECKPOINT": "none"}).checkpoint is None
+
+
+def test_positional_field_is_an_optional_argument():
+    assert _load().target == "sim"
+    assert _load("encoder").target == "encoder"
+    assert _load(environ={"SWIMM_TARGET": "train"}).target == "train"
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "reason"),
+    [
+        ("SWIMM_RENDER", "maybe", "SWIMM_RENDER: 'maybe' is not a boolean"),
+        ("SWIMM_STEPS", "many", "SWIMM_STEPS: invalid literal for int"),
+        ("SWIMM_NOISE_FOG", "thick", "SWIMM_NOISE_FOG: could not convert"),
+        ("SWIMM_SEEDS", "1,two", "SWIMM_SEEDS: invalid literal for int"),
+    ],
+)
+def test_bad_variable_values_are_refused_naming_the_variable(name, text, reason):
+    with pytest.raises(ValueError, match=reason):
+        _load(environ={name: text})
+
+
+def test_bad_flag_values_are_refused_by_the_parser(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        _parse("--steps", "many")
+    assert exit_info.value.code == 2
+    assert "--steps: invalid int value: 'many'" in capsys.readouterr().err
+
+
+def test_a_yaml_file_that_is_not_a_mapping_is_refused(tmp_path):
+    config = tmp_path / "list.yaml"
+    config.write_text("- steps\n- 200\n")
+    with pytest.raises(ValueError, match="must hold a YAML mapping"):
+        _load(config_file=config)
+
+
+def test_process_environment_is_read_when_no_mapping_is_given(monkeypatch):
+    # monkeypatch.setenv only scopes a real environment variable to this test; nothing is faked.
+    monkeypatch.setenv("SWIMM_STEPS", "7")
+    assert settings_mod.load(Example).steps == 7
+
+
+def test_to_dict_is_plain_nested_data():
+    view = settings_mod.to_dict(_load("--noise-fog", "0.5"))
+    assert view["noise"] == {"fog": 0.5, "blur": False}
+    assert view["zenoh"]["connect"] == ["tcp/127.0.0.1:7447"]
+    assert view["steps"] == 100
