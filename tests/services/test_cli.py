@@ -1,0 +1,114 @@
+"""The `swimm` command line, run as users run it: in its own process."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from services.cli import COMMANDS
+from services.procs import wait_for_port
+
+#: The command line DESIGN.md promises.
+DESIGNED_COMMANDS = ("router", "sim", "encoder", "learn", "eval", "dataset", "train-encoder", "up", "bench")
+
+
+def swimm(*args: str, timeout_s: float = 30.0, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run ``python -m services.cli <args>`` to completion and capture its output."""
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=timeout_s, env=env
+    )
+
+
+def test_help_lists_every_command_with_its_summary():
+    result = swimm("--help")
+    assert result.returncode == 0
+    assert set(DESIGNED_COMMANDS) <= set(COMMANDS)
+    for name, command in COMMANDS.items():
+        assert name in result.stdout
+        assert command.help in result.stdout
+
+
+def test_a_sub_commands_help_lists_its_settings_as_flags_with_defaults_and_variables():
+    result = swimm("router", "--help")
+    assert result.returncode == 0
+    for text in (
+        "--listen",
+        "--connect",
+        "--zenoh-config",
+        "--config CONFIG",
+        "--log-level",
+        "(default: ['tcp/127.0.0.1:7447']; env SWIMM_LISTEN)",
+        "env SWIMM_ZENOH_CONFIG",
+    ):
+        assert text in result.stdout
+
+
+def test_help_imports_neither_torch_nor_mujoco():
+    probe = (
+        "import sys\n"
+        "from services import cli\n"
+        "for argv in (['--help'], ['router', '--help']):\n"
+        "    try:\n"
+        "        cli.main(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "print(sorted(m for m in ('torch', 'mujoco') if m in sys.modules))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=30)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_console_script_is_installed():
+    executable = shutil.which("swimm")
+    assert executable is not None, "run `pip install -e '.[dev]'` (as .ci/run does) to install the swimm command"
+    result = subprocess.run([executable, "--help"], capture_output=True, text=True, timeout=30)
+    assert result.returncode == 0
+    assert "router" in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("args", "error"),
+    [
+        ((), "the following arguments are required: COMMAND"),
+        (("fly",), "argument COMMAND: invalid choice: 'fly'"),
+        (("router", "--port", "7447"), "unrecognized arguments: --port 7447"),
+    ],
+)
+def test_usage_errors_exit_2_with_the_reason(args, error):
+    result = swimm(*args)
+    assert result.returncode == 2
+    assert error in result.stderr
+
+
+def test_a_failing_command_exits_1_with_one_clear_line_not_a_traceback(tmp_path):
+    result = swimm("router", "--config", str(tmp_path / "absent.yaml"))
+    assert result.returncode == 1
+    assert "router failed: [Errno 2] No such file or directory" in result.stderr
+    assert "absent.yaml" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_router_listens_where_the_variable_says_and_drains_on_sigterm(spawn, processes, free_port):
+    port = free_port()
+    processes.env["SWIMM_LISTEN"] = f"tcp/127.0.0.1:{port}"
+    router = spawn("router")
+    assert wait_for_port("127.0.0.1", port, timeout_s=20), router.log_tail()
+    router.process.send_signal(signal.SIGTERM)
+    assert router.process.wait(timeout=10) == 0
+    log = router.log_tail()
+    assert f"listening on ['tcp/127.0.0.1:{port}']" in log
+    assert "router stopped" in log
+
+
+def test_flags_override_the_yaml_file(spawn, free_port, tmp_path):
+    file_port, flag_port = free_port(), free_port()
+    config = tmp_path / "router.yaml"
+    config.write_text(f"listen: [tcp/127.0.0.1:{file_port}]\n")
+    router = spawn("router", "--config", str(config), "--listen", f"tcp/127.0.0.1:{flag_port}")
+    assert wait_for_port("127.0.0.1", flag_port, timeout_s=20), router.log_tail()
+    assert not wait_for_port("127.0.0.1", file_port, timeout_s=0.2)
