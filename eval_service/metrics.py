@@ -1,0 +1,133 @@
+"""Behaviour metrics of evaluation episodes: the paper's Table 12 (A, D, A', D', C', S_D, S_A) and returns.
+
+An :class:`EpisodeMetrics` is fed one step at a time, so the evaluator can
+write its per-step CSV (with per-step smoothness) and the per-episode summary
+row from the same numbers; :func:`summarise` folds summary rows into the
+table's values.
+
+Choices the SPEC leaves open, made here:
+- Actions are (surge, yaw): component 0 is surge (S_D), component 1 is yaw (S_A).
+  The SPEC's worked example fixes this: only that assignment gives S_D = 0.175 and S_A = 0.0425.
+- Smoothness at step t uses up to 10 previous actions *of this episode*, unpadded, with the raw weights
+  W_1..W_n (no renormalisation when n < 10): the first step of an episode has S = 0.
+- A is capped at 1 per step (the SPEC says so); D is not capped, so a policy that drifts far away in a
+  3000-step evaluation episode (no early termination) shows it fully instead of saturating at 1.
+- Episode-level A, D, S_D, S_A are means over that episode's steps; the summary averages episodes, so every
+  episode weighs the same (they all run 3000 steps in evaluation anyway).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from learner_service.task import NO_CAUSE, violation_cause
+from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+
+#: Smoothness weights, W[0] for the most recent previous action (the SPEC's W_1).
+SMOOTHNESS_WEIGHTS = np.array([0.25, 0.20, 0.15, 0.10, 0.08, 0.06, 0.05, 0.04, 0.04, 0.03])
+SURGE, YAW = 0, 1
+
+SUMMARY_ROW_FIELDS = (
+    "label", "episode", "return", "A", "D", "left_view", "distance_exceeded", "collided", "S_D", "S_A", "first_cause",
+)
+
+
+def smoothness(history: Sequence[Sequence[float]], action: Sequence[float]) -> np.ndarray:
+    """Per-component smoothness S_k = 1/2 * sum_i |a_t[k] - a_{t-i}[k]| * W_i of ``action`` after ``history``.
+
+    ``history`` lists previous actions oldest to newest; only its last 10 count.
+    """
+    current = np.asarray(action, dtype=np.float64)
+    recent = list(history)[-len(SMOOTHNESS_WEIGHTS) :][::-1]  # newest first, matching W_1, W_2, ...
+    if not recent:
+        return np.zeros_like(current)
+    previous = np.asarray(recent, dtype=np.float64)
+    weights = SMOOTHNESS_WEIGHTS[: len(previous), None]
+    return 0.5 * np.sum(np.abs(current - previous) * weights, axis=0)
+
+
+class EpisodeMetrics:
+    """Accumulates one episode's steps into its summary row."""
+
+    def __init__(self, label: str = "", episode: int = 0) -> None:
+        self.label = label
+        self.episode = episode
+        self.steps = 0
+        self.total_reward = 0.0
+        self.left_view = False
+        self.distance_exceeded = False
+        self.collided = False
+        self.first_cause = NO_CAUSE
+        self._angle_error_sum = 0.0
+        self._distance_error_sum = 0.0
+        self._smoothness_sum = np.zeros(2)
+        self._history: deque[np.ndarray] = deque(maxlen=len(SMOOTHNESS_WEIGHTS))
+
+    def add(
+        self, d: float, theta: float, in_frustum: bool, collided: bool, action: Sequence[float], reward: float
+    ) -> tuple[float, float]:
+        """Record one step (``theta`` unsigned, degrees; ``action`` = (surge, yaw)); returns its (s_d, s_a)."""
+        act = np.asarray(action, dtype=np.float64)
+        step_smoothness = smoothness(self._history, act)
+        self._history.append(act)
+        self._smoothness_sum += step_smoothness
+        self._angle_error_sum += min(abs(theta), ALPHA_DEG) / ALPHA_DEG
+        self._distance_error_sum += abs(d - OPT_D) / MAX_D
+        self.total_reward += reward
+        self.steps += 1
+        self.left_view |= not in_frustum
+        self.collided |= collided
+        self.distance_exceeded |= abs(d - OPT_D) >= MAX_D
+        if self.first_cause == NO_CAUSE:
+            self.first_cause = violation_cause(d, in_frustum, collided)
+        return float(step_smoothness[SURGE]), float(step_smoothness[YAW])
+
+    def row(self) -> dict[str, Any]:
+        """The per-episode summary row (interfaces.md field names)."""
+        if self.steps == 0:
+            raise ValueError(f"episode {self.episode} of {self.label!r} has no steps to summarise")
+        smooth = self._smoothness_sum / self.steps
+        return {
+            "label": self.label,
+            "episode": self.episode,
+            "return": self.total_reward,
+            "A": self._angle_error_sum / self.steps,
+            "D": self._distance_error_sum / self.steps,
+            "left_view": self.left_view,
+            "distance_exceeded": self.distance_exceeded,
+            "collided": self.collided,
+            "S_D": float(smooth[SURGE]),
+            "S_A": float(smooth[YAW]),
+            "first_cause": self.first_cause,
+        }
+
+
+def summarise(episodes: Iterable[Mapping[str, Any] | EpisodeMetrics]) -> dict[str, float]:
+    """Table 12 over episodes (summary rows or accumulators): means of A, D, S_D, S_A; fractions A', D', C'.
+
+    ``std_return`` is the population standard deviation (ddof 0), like the paper's tables over 100 episodes.
+    """
+    rows = [e.row() if isinstance(e, EpisodeMetrics) else e for e in episodes]
+    if not rows:
+        raise ValueError("no episodes to summarise")
+
+    def column(name: str) -> np.ndarray:
+        return np.asarray([row[name] for row in rows], dtype=np.float64)
+
+    returns = column("return")
+    return {
+        "episodes": float(len(rows)),
+        "A": float(column("A").mean()),
+        "D": float(column("D").mean()),
+        "A'": float(column("left_view").mean()),
+        "D'": float(column("distance_exceeded").mean()),
+        "C'": float(column("collided").mean()),
+        "S_D": float(column("S_D").mean()),
+        "S_A": float(column("S_A").mean()),
+        "mean_return": float(returns.mean()),
+        "std_return": float(returns.std()),
+    }

@@ -1,0 +1,101 @@
+"""Behaviour metrics: the SPEC's smoothness example and hand-computed episode rows and summaries."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from eval_service.metrics import SUMMARY_ROW_FIELDS, EpisodeMetrics, smoothness, summarise
+from services.geometry import ALPHA_DEG
+
+
+def test_the_papers_worked_example_with_surge_first() -> None:
+    # ActPrev oldest first; actions are (surge, yaw). Surge: 0.5 * (0.1*0.25 + 0.5*0.20 + 1.5*0.15) = 0.175;
+    # yaw: 0.5 * (0*0.25 + 0.2*0.20 + 0.3*0.15) = 0.0425. The other assignment would not reproduce both numbers.
+    s = smoothness([(-1.0, 0.5), (1.0, 0.0), (0.4, 0.2)], (0.5, 0.2))
+    assert s[0] == pytest.approx(1.75e-1)  # S_D
+    assert s[1] == pytest.approx(4.25e-2)  # S_A
+
+
+def test_smoothness_uses_only_the_last_ten_actions() -> None:
+    # 11 previous actions: the oldest (far away) must not count; the other ten differ by 1, weights sum to 1.
+    history = [(100.0, 100.0)] + [(0.0, 1.0)] * 10
+    np.testing.assert_allclose(smoothness(history, (1.0, 0.0)), [0.5, 0.5])
+    np.testing.assert_array_equal(smoothness([], (0.3, -0.3)), [0.0, 0.0])
+    # one previous action: only W_1 = 0.25 applies
+    np.testing.assert_allclose(smoothness([(0.0, 0.0)], (1.0, -0.4)), [0.125, 0.05])
+
+
+def test_episode_row_from_hand_computed_steps() -> None:
+    metrics = EpisodeMetrics(label="sac", episode=3)
+    steps = [
+        # d, theta, in_frustum, collided, action, reward
+        (6.0, 0.0, True, False, (0.0, 0.0), 1.0),
+        (8.0, 20.0, True, False, (1.0, 0.0), 0.5),
+        (11.0, 80.0, False, False, (1.0, 1.0), -1.0),
+        (4.0, 10.0, True, True, (0.0, 1.0), 0.0),
+    ]
+    per_step = [metrics.add(*step) for step in steps]
+    # smoothness (s_d, s_a): step 1 none; step 2: 0.5*1*0.25; step 3: s_d 0.5*(0*0.25 + 1*0.2), s_a 0.5*1*(0.25+0.2);
+    # step 4: s_d 0.5*(1*0.25 + 1*0.2 + 0*0.15), s_a 0.5*(0*0.25 + 1*0.2 + 1*0.15)
+    expected_steps = [(0.0, 0.0), (0.125, 0.0), (0.1, 0.225), (0.225, 0.175)]
+    np.testing.assert_allclose(per_step, expected_steps)
+    row = metrics.row()
+    assert tuple(row) == SUMMARY_ROW_FIELDS
+    assert row["label"] == "sac" and row["episode"] == 3
+    assert row["return"] == pytest.approx(0.5)
+    # A: (0 + 20/alpha + 1 (capped) + 10/alpha) / 4
+    assert row["A"] == pytest.approx((30.0 / ALPHA_DEG + 1.0) / 4)
+    # D: (0 + 2/4 + 5/4 (uncapped) + 2/4) / 4
+    assert row["D"] == pytest.approx(2.25 / 4)
+    assert row["left_view"] is True and row["distance_exceeded"] is True and row["collided"] is True
+    assert row["first_cause"] == "visibility"  # step 3 left the view (and the distance band) first: most severe wins
+    assert row["S_D"] == pytest.approx((0.125 + 0.1 + 0.225) / 4)
+    assert row["S_A"] == pytest.approx((0.225 + 0.175) / 4)
+
+
+def test_a_clean_episode_has_no_violation() -> None:
+    metrics = EpisodeMetrics("scripted", 1)
+    for _ in range(3):
+        metrics.add(7.0, 5.0, True, False, (0.2, -0.2), 0.9)
+    row = metrics.row()
+    assert (row["left_view"], row["distance_exceeded"], row["collided"], row["first_cause"]) == (
+        False, False, False, ""
+    )
+    assert row["S_D"] == 0.0 and row["S_A"] == 0.0
+    assert row["D"] == pytest.approx(0.25)
+    assert row["A"] == pytest.approx(5.0 / ALPHA_DEG)
+    with pytest.raises(ValueError, match="no steps"):
+        EpisodeMetrics("empty", 2).row()
+
+
+def test_summary_over_episodes() -> None:
+    rows = [
+        {"return": 100.0, "A": 0.1, "D": 0.2, "left_view": True, "distance_exceeded": False, "collided": False,
+         "S_D": 0.01, "S_A": 0.02},
+        {"return": 300.0, "A": 0.3, "D": 0.4, "left_view": True, "distance_exceeded": True, "collided": False,
+         "S_D": 0.03, "S_A": 0.04},
+        {"return": -100.0, "A": 0.2, "D": 0.0, "left_view": False, "distance_exceeded": False, "collided": True,
+         "S_D": 0.05, "S_A": 0.06},
+        {"return": 100.0, "A": 0.2, "D": 0.2, "left_view": False, "distance_exceeded": False, "collided": False,
+         "S_D": 0.01, "S_A": 0.0},
+    ]
+    summary = summarise(rows)
+    assert summary["episodes"] == 4
+    assert summary["A"] == pytest.approx(0.2)
+    assert summary["D"] == pytest.approx(0.2)
+    assert summary["A'"] == pytest.approx(0.5)
+    assert summary["D'"] == pytest.approx(0.25)
+    assert summary["C'"] == pytest.approx(0.25)
+    assert summary["S_D"] == pytest.approx(0.025)
+    assert summary["S_A"] == pytest.approx(0.03)
+    assert summary["mean_return"] == pytest.approx(100.0)
+    assert summary["std_return"] == pytest.approx(np.sqrt((0 + 200**2 + 200**2 + 0) / 4))
+
+
+def test_summary_accepts_accumulators_and_refuses_nothing() -> None:
+    metrics = EpisodeMetrics("x", 1)
+    metrics.add(6.0, 0.0, True, False, (0.0, 0.0), 2.0)
+    assert summarise([metrics])["mean_return"] == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="no episodes"):
+        summarise([])
