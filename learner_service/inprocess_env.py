@@ -1,0 +1,94 @@
+"""The tracking env in one process: World + TrackingTask (+ latent encoder), no network in between.
+
+This is the baseline the distributed ProxyEnv is measured against and must
+agree with: the same episode seeds (``episode_seed(base_seed, ep)``, ep
+counting from 1), the same task arithmetic, the same time limit reported as
+``truncated``. Only the transport differs, so the same seed and actions give
+the same trajectory either way.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from learner_service.task import Frame, TaskSettings, TrackingTask, episode_seed
+from services.messages import DiveMode
+from services.telemetry import Telemetry
+from sim_service.settings import WorldSettings
+from sim_service.world import World
+
+log = logging.getLogger(__name__)
+
+IMAGE_MODES = ("cmvae", "image")
+
+
+class TrackingEnv(gym.Env):
+    """Gymnasium env of the tracking task; ``info`` carries telemetry, cause, d, theta, azimuth, psi, episode, seed.
+
+    ``encoder`` is any object with ``encode(images uint8 (N, 64, 64, 3)) -> (mu, logvar)``; in cmvae mode without
+    one, the default :class:`encoder_service.inference.LatentEncoder` checkpoint is loaded at the first reset.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(
+        self,
+        task_settings: TaskSettings | None = None,
+        world_settings: WorldSettings | None = None,
+        base_seed: int = 0,
+        encoder: Any = None,
+    ) -> None:
+        self.task = TrackingTask(task_settings)
+        needs_images = self.task.settings.obs in IMAGE_MODES
+        world_settings = world_settings or WorldSettings(render=needs_images)
+        if needs_images and not world_settings.render:
+            raise ValueError(f"observation mode {self.task.settings.obs!r} needs a rendering world (render=True)")
+        self.world = World(world_settings)
+        self.observation_space = self.task.observation_space
+        self.action_space = self.task.action_space
+        self.base_seed = base_seed
+        self.episode = 0
+        self._encoder = encoder
+
+    @property
+    def encoder(self) -> Any:
+        if self._encoder is None:
+            from encoder_service.inference import LatentEncoder  # torch loads only when a latent is needed
+
+            self._encoder = LatentEncoder()
+        return self._encoder
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict[str, Any]]:
+        """Next episode; a ``seed`` restarts the run's episode sequence at episode 1 of base seed ``seed``."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self.base_seed, self.episode = seed, 0
+        self.episode += 1
+        world_seed = episode_seed(self.base_seed, self.episode)
+        telemetry, image = self.world.reset(world_seed)
+        obs = self.task.reset(self._frame(telemetry, image), seed=world_seed)
+        info = self.task.info(telemetry) | {"episode": self.episode, "seed": world_seed}
+        log.debug("episode %d (seed %d) starts at d %.2f m, theta %.1f deg", self.episode, world_seed,
+                  info["d"], info["theta"])
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        if self.episode == 0:
+            raise RuntimeError("call reset() before step()")
+        telemetry, image = self.world.step(self.task.to_sim_action(action), DiveMode.DEPTH_HOLD)
+        obs, reward, terminated, info = self.task.step(action, self._frame(telemetry, image))
+        info |= {"episode": self.episode}
+        return obs, reward, terminated, self.task.time_up, info
+
+    def _frame(self, telemetry: Telemetry, image: np.ndarray | None) -> Frame:
+        if self.task.settings.obs != "cmvae":
+            return Frame(telemetry, image=image)
+        mu, logvar = self.encoder.encode(image[None])
+        return Frame(telemetry, image=image, mu=mu[0], logvar=logvar[0])
+
+    def close(self) -> None:
+        self.world.close()
