@@ -42,6 +42,9 @@ COMMANDS: dict[str, Command] = {
     "eval-encoder": Command(
         "encoder_service.evaluate:EvalEncoderSettings", "encoder_service.evaluate:run", "evaluate a CMVAE"
     ),
+    "export-encoder": Command(
+        "encoder_service.export:ExportEncoderSettings", "encoder_service.export:run", "shrink a CMVAE for shipping"
+    ),
     "up": Command("services.up:UpSettings", "services.up:run", "launch router, sim, encoder, learner locally"),
     "bench": Command("bench.command:BenchSettings", "bench.command:run", "run a benchmark: sim | encoder | train"),
 }

@@ -7,6 +7,7 @@ callers, :func:`reply` for the queryable side.
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
 import zenoh
@@ -14,10 +15,15 @@ import zenoh
 from services.messages import BadMessage, encode_reply, encode_request, unpack
 
 log = logging.getLogger(__name__)
+MATCH_POLL_S = 0.005  # how often request() checks whether a responder is reachable yet
 
 
 class ControlError(RuntimeError):
     """A control request was refused or went unanswered; the message says which and why."""
+
+
+class ControlTimeout(ControlError):
+    """Nobody answered a control request in time: worth retrying, unlike a refusal."""
 
 
 def request(session: zenoh.Session, key: str, op: str, timeout_s: float = 5.0, **args: Any) -> dict[str, Any]:
@@ -26,7 +32,15 @@ def request(session: zenoh.Session, key: str, op: str, timeout_s: float = 5.0, *
     Raises :class:`ControlError` with the responder's reason on refusal, or
     naming the key when nobody answered within ``timeout_s``.
     """
-    replies = session.get(key, payload=encode_request(op, **args), timeout=timeout_s)
+    deadline = time.monotonic() + timeout_s
+    querier = session.declare_querier(key, timeout=timeout_s)
+    try:
+        # A query sent before the responder's route reached this session gets no reply at all; wait (bounded) for it.
+        while not querier.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(MATCH_POLL_S)
+        replies = list(querier.get(payload=encode_request(op, **args)))
+    finally:
+        querier.undeclare()
     for reply in replies:
         if reply.ok is None:
             raise ControlError(f"{op} on {key} failed: {reply.err.payload.to_bytes().decode(errors='replace')}")
@@ -37,13 +51,17 @@ def request(session: zenoh.Session, key: str, op: str, timeout_s: float = 5.0, *
         if not body.get("ok"):
             raise ControlError(f"{op} on {key} refused: {body.get('error', 'no reason given')}")
         return body
-    raise ControlError(f"{op} on {key}: no reply within {timeout_s:.1f} s; is `swimm sim` running with this env?")
+    raise ControlTimeout(f"{op} on {key}: no reply within {timeout_s:.1f} s; is `swimm sim` running with this env?")
 
 
 def survey(session: zenoh.Session, key: str, timeout_s: float = 3.0) -> list[dict[str, Any]]:
     """Ask every responder matching a wildcard key for its ``info`` (discovery of live envs)."""
     found = []
-    for reply in session.get(key, payload=encode_request("info"), timeout=timeout_s):
+    # Without NONE, Zenoh merges replies that share a key expression, and each env answers on the query's key.
+    replies = session.get(
+        key, payload=encode_request("info"), timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
+    )
+    for reply in replies:
         if reply.ok is None:
             continue
         try:

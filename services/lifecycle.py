@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import signal
 import threading
-from typing import Protocol
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any, Protocol
+
+log = logging.getLogger(__name__)
 
 
 class Service(Protocol):
@@ -23,3 +28,28 @@ def serve_until_signalled(service: Service, stop_event: threading.Event | None =
         stop_event.wait()
     finally:
         service.stop()
+
+
+@contextmanager
+def stop_on_signals(event: threading.Event, then: str, second_ctrl_c_interrupts: bool = False) -> Iterator[None]:
+    """While inside, SIGTERM and SIGINT set ``event`` (and log ``then``, what happens next) instead of killing.
+
+    With ``second_ctrl_c_interrupts`` a second Ctrl-C raises KeyboardInterrupt, for work that may hang
+    in its clean-up. Off the main thread (where Python cannot install handlers) it does nothing.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def request_stop(signum: int, _frame: Any) -> None:
+        if event.is_set() and signum == signal.SIGINT and second_ctrl_c_interrupts:
+            raise KeyboardInterrupt
+        log.info("%s received: %s", signal.Signals(signum).name, then)
+        event.set()
+
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

@@ -41,6 +41,11 @@ def _pack(body: dict[str, Any]) -> bytes:
     return msgpack.packb(body, use_bin_type=True)
 
 
+def _pack_stamped(ep: int, seq: int, sent_at: float, **fields_: Any) -> bytes:
+    """A message of one step: the version, the (episode, seq) it belongs to and when it was sent, then its fields."""
+    return _pack({"v": PROTOCOL_VERSION, "ep": ep, "seq": seq, "t": sent_at, **fields_})
+
+
 def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     """Decode a payload into a map, checking size, format and protocol version."""
     if len(payload) > MAX_PAYLOAD_BYTES:
@@ -69,6 +74,14 @@ def _str(body: dict[str, Any], name: str, default: str | None = None) -> str:
     if not isinstance(value, str):
         raise BadMessage(f"field {name!r} must be a string, got {value!r}")
     return value
+
+
+def _time(body: dict[str, Any]) -> float:
+    """The send time ``t`` (seconds since the epoch); 0.0 when absent."""
+    value = body.get("t", 0.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise BadMessage(f"field 't' must be a number, got {value!r}")
+    return float(value)
 
 
 def _float_list(body: dict[str, Any], name: str, size: int | None) -> tuple[float, ...]:
@@ -103,17 +116,14 @@ class ActionMsg:
     sent_at: float = field(default_factory=time.time)
 
     def encode(self) -> bytes:
-        return _pack(
-            {
-                "v": PROTOCOL_VERSION,
-                "ep": self.ep,
-                "seq": self.seq,
-                "t": self.sent_at,
-                "action": list(self.action),
-                "dive_mode": self.dive_mode.value,
-                "route": self.route,
-                "sender": self.sender,
-            }
+        return _pack_stamped(
+            self.ep,
+            self.seq,
+            self.sent_at,
+            action=list(self.action),
+            dive_mode=self.dive_mode.value,
+            route=self.route,
+            sender=self.sender,
         )
 
     @classmethod
@@ -133,7 +143,7 @@ class ActionMsg:
             dive_mode=dive_mode,
             route=_str(body, "route", DIRECT_ROUTE),
             sender=_str(body, "sender", ""),
-            sent_at=float(body.get("t", 0.0)),
+            sent_at=_time(body),
         )
 
 
@@ -169,31 +179,26 @@ class ObservationMsg:
     ep: int
     seq: int
     telemetry: Telemetry
-    image: np.ndarray  # HxWx3 uint8
+    image: np.ndarray | None  # HxWx3 uint8; None from a sim that does not render (state observations)
     sent_at: float = field(default_factory=time.time)
 
     def encode(self) -> bytes:
-        body = {
-            "v": PROTOCOL_VERSION,
-            "env": self.env,
-            "ep": self.ep,
-            "seq": self.seq,
-            "t": self.sent_at,
-            "telemetry": self.telemetry.to_dict(),
-        }
-        body.update(image_to_fields(self.image))
-        return _pack(body)
+        image = image_to_fields(self.image) if self.image is not None else {}
+        return _pack_stamped(self.ep, self.seq, self.sent_at, env=self.env, telemetry=self.telemetry.to_dict(), **image)
 
     @classmethod
     def decode(cls, payload: bytes, expected_shape: tuple[int, ...] | None = None) -> ObservationMsg:
+        """``expected_shape`` given: the image is required and must have it; otherwise a missing image is None."""
         body = unpack(payload)
+        if "image" not in body and expected_shape is not None:
+            raise BadMessage(f"observation carries no image, expected {list(expected_shape)} (does the sim render?)")
         return cls(
             env=_str(body, "env"),
             ep=_int(body, "ep"),
             seq=_int(body, "seq"),
             telemetry=_telemetry(body),
-            image=image_from_fields(body, expected_shape),
-            sent_at=float(body.get("t", 0.0)),
+            image=image_from_fields(body, expected_shape) if "image" in body else None,
+            sent_at=_time(body),
         )
 
 
@@ -221,18 +226,15 @@ class LatentMsg:
     sent_at: float = field(default_factory=time.time)
 
     def encode(self) -> bytes:
-        return _pack(
-            {
-                "v": PROTOCOL_VERSION,
-                "env": self.env,
-                "ep": self.ep,
-                "seq": self.seq,
-                "t": self.sent_at,
-                "telemetry": self.telemetry.to_dict(),
-                "mu": list(self.mu),
-                "logvar": list(self.logvar),
-                "encoder": self.encoder,
-            }
+        return _pack_stamped(
+            self.ep,
+            self.seq,
+            self.sent_at,
+            env=self.env,
+            telemetry=self.telemetry.to_dict(),
+            mu=list(self.mu),
+            logvar=list(self.logvar),
+            encoder=self.encoder,
         )
 
     @classmethod
@@ -247,7 +249,7 @@ class LatentMsg:
             mu=mu,
             logvar=_float_list(body, "logvar", len(mu)),
             encoder=_str(body, "encoder"),
-            sent_at=float(body.get("t", 0.0)),
+            sent_at=_time(body),
         )
 
 
@@ -266,16 +268,7 @@ class ErrorMsg:
     sent_at: float = field(default_factory=time.time)
 
     def encode(self) -> bytes:
-        return _pack(
-            {
-                "v": PROTOCOL_VERSION,
-                "ep": self.ep,
-                "seq": self.seq,
-                "t": self.sent_at,
-                "error": self.reason,
-                "sender": self.sender,
-            }
-        )
+        return _pack_stamped(self.ep, self.seq, self.sent_at, error=self.reason, sender=self.sender)
 
     @classmethod
     def decode(cls, payload: bytes) -> ErrorMsg:

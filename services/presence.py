@@ -24,6 +24,19 @@ def announce(session: zenoh.Session, keys: Keys, role: str, ident: str) -> zenoh
     return session.liveliness().declare_token(keys.live(role, ident))
 
 
+def live_now(session: zenoh.Session, keys: Keys, role: str, timeout_s: float = 2.0) -> set[str]:
+    """The members of ``role`` whose tokens the network holds right now, asked afresh.
+
+    A :class:`Roster` can keep a stale arrival (its history reply may land after the departure it
+    predates), so decisions that free resources ask again here.
+    """
+    members = set()
+    for reply in session.liveliness().get(keys.live_role(role), timeout=timeout_s):
+        if reply.ok is not None:
+            members.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+    return members
+
+
 class Roster:
     """The live members of one role, kept current by a liveliness subscriber.
 
@@ -51,8 +64,8 @@ class Roster:
             if sample.kind == zenoh.SampleKind.PUT:
                 joined, left = ({ident} - self._members), set()
                 self._members.add(ident)
-            else:
-                joined, left = set(), ({ident} & self._members)
+            else:  # reported even when its arrival was never seen: the token may have raced a claim
+                joined, left = set(), {ident}
                 self._members.discard(ident)
             self._changed.notify_all()
         if joined or left:

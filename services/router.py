@@ -8,14 +8,17 @@ from dataclasses import dataclass, field
 
 from services.lifecycle import serve_until_signalled
 from services.session import open_session
-from services.settings import ZenohSettings
+from services.settings import LOCAL_ROUTER, ZenohSettings
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class RouterSettings:
-    listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = field(
+        default_factory=list,
+        metadata={"help": f"endpoints to listen on; none: the --zenoh-config file's, else {LOCAL_ROUTER}"},
+    )
     connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
     zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
 
@@ -34,7 +37,7 @@ class Router:
             startup_timeout_s=10.0,
         )
         self.session = open_session(zenoh_settings, role="router")
-        log.info("router %s listening on %s", self.session.zid(), self.settings.listen)
+        log.info("router %s up", self.session.zid())
 
     def stop(self) -> None:
         self.session.close()

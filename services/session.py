@@ -14,7 +14,7 @@ import time
 
 import zenoh
 
-from services.settings import ZenohSettings
+from services.settings import LOCAL_ROUTER, ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -24,12 +24,23 @@ class StartupTimeout(RuntimeError):
 
 
 def build_config(settings: ZenohSettings) -> zenoh.Config:
+    """The Zenoh config: the file's (if any), then the settings' endpoints over it.
+
+    Endpoints come from the flags when given, else from the config file when it names any, else a
+    router listens on (and the others connect to) :data:`LOCAL_ROUTER`.
+    """
     config = zenoh.Config.from_file(settings.zenoh_config) if settings.zenoh_config else zenoh.Config()
+    stock = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
-    if settings.connect:
-        config.insert_json5("connect/endpoints", json.dumps(list(settings.connect)))
-    if settings.listen:
-        config.insert_json5("listen/endpoints", json.dumps(list(settings.listen)))
+    for key, given, local_default in (
+        ("connect/endpoints", settings.connect, settings.mode != "router"),
+        ("listen/endpoints", settings.listen, settings.mode == "router"),
+    ):
+        endpoints = list(given)
+        if not endpoints and local_default and config.get_json(key) == stock.get_json(key):
+            endpoints = [LOCAL_ROUTER]
+        if endpoints:
+            config.insert_json5(key, json.dumps(endpoints))
     if not settings.zenoh_config:
         config.insert_json5("scouting/multicast/enabled", "false")
     if settings.mode != "router":
@@ -38,26 +49,47 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     return config
 
 
+def endpoints(config: zenoh.Config, direction: str = "connect") -> list[str] | dict[str, list[str]]:
+    """The endpoints a config will ``connect`` to or ``listen`` on (a list, or a map per mode), for messages."""
+    return json.loads(config.get_json(f"{direction}/endpoints"))
+
+
+def describe_endpoints(config: zenoh.Config, direction: str = "connect") -> str:
+    """``endpoints`` as a person reads it in a log line or an error: comma-separated, per mode where mapped."""
+    found = endpoints(config, direction)
+    if isinstance(found, dict):
+        return "; ".join(f"{mode}: {', '.join(items)}" for mode, items in found.items()) or "none"
+    return ", ".join(found) or "none"
+
+
 def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Session:
     """Open a session, retrying with back-off until ``settings.startup_timeout_s``."""
+    try:
+        config = build_config(settings)  # a bad config file is the user's to fix: fail at once, not after retries
+    except zenoh.ZError as exc:
+        raise ValueError(f"cannot use Zenoh config {settings.zenoh_config!r}: {exc}") from None
     deadline = time.monotonic() + settings.startup_timeout_s
     delay = 0.1
     attempt = 0
     while True:
         attempt += 1
         try:
-            session = zenoh.open(build_config(settings))
+            session = zenoh.open(config)
             log.info(
-                "%s joined Zenoh as %s (connect=%s listen=%s)", role, settings.mode, settings.connect, settings.listen
+                "%s joined Zenoh as %s (connect=%s listen=%s)",
+                role,
+                settings.mode,
+                describe_endpoints(config),
+                describe_endpoints(config, "listen"),
             )
             return session
         except zenoh.ZError as exc:
             if time.monotonic() + delay > deadline:
                 raise StartupTimeout(
-                    f"{role} could not reach a Zenoh router at {settings.connect} within "
+                    f"{role} could not reach a Zenoh router at {describe_endpoints(config)} within "
                     f"{settings.startup_timeout_s:.0f} s ({attempt} attempts): {exc}. Is `swimm router` running?"
                 ) from None
-            log.info("%s waiting for a Zenoh router at %s (attempt %d): %s", role, settings.connect, attempt, exc)
+            log.info("%s waiting for a Zenoh router at %s (attempt %d): %s", role, describe_endpoints(config), attempt, exc)
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
 

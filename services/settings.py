@@ -10,7 +10,8 @@ Naming: field ``max_wait_ms`` is flag ``--max-wait-ms`` and variable
 ``metadata={"flatten": True}`` (used for the Zenoh settings every command
 shares), in which case its fields keep their own names (``--connect``).
 A field marked ``metadata={"positional": True}`` is an optional positional
-argument instead of a flag (``swimm bench sim``).
+argument instead of a flag (``swimm bench sim``); ``metadata={"help": ...}``
+puts a sentence before the default in ``--help``.
 A YAML file (``--config FILE``) holds the same names as nested maps.
 """
 
@@ -28,6 +29,7 @@ import yaml
 
 T = TypeVar("T")
 ENV_PREFIX = "SWIMM_"
+LOCAL_ROUTER = "tcp/127.0.0.1:7447"  # where clients connect and `swimm router` listens when nothing says otherwise
 
 
 @dataclasses.dataclass
@@ -35,9 +37,12 @@ class ZenohSettings:
     """How a service joins the Zenoh network; shared by every command."""
 
     mode: str = "client"  # client | peer | router
-    connect: list[str] = dataclasses.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = dataclasses.field(
+        default_factory=list,
+        metadata={"help": f"endpoints to connect to; none: the --zenoh-config file's, else {LOCAL_ROUTER}"},
+    )
     listen: list[str] = dataclasses.field(default_factory=list)
-    zenoh_config: str | None = None  # a Zenoh JSON5 config file; the fields above override it
+    zenoh_config: str | None = None  # a Zenoh JSON5 config file; endpoints given as flags override its own
     namespace: str = "swimm/default"
     startup_timeout_s: float = 60.0  # how long to wait for the router or peers at start
 
@@ -99,8 +104,11 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
     for leaf in _leaves(cls):
         flag = "--" + leaf.name.replace("_", "-")
         base, _ = _base_type(leaf.kind)
+        metadata = field_metadata(cls, leaf.path)
         help_text = f"(default: {leaf.default!r}; env {ENV_PREFIX}{leaf.name.upper()})"
-        if field_metadata(cls, leaf.path).get("positional"):
+        if metadata.get("help"):
+            help_text = f"{metadata['help']} {help_text}"
+        if metadata.get("positional"):
             group.add_argument(leaf.name, nargs="?", type=base, default=None, help=help_text)
         elif base is bool:
             group.add_argument(
@@ -108,7 +116,10 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             )
         elif typing.get_origin(base) in (list, tuple):
             (item,) = typing.get_args(base)[:1] or (str,)
-            group.add_argument(flag, dest=leaf.name, nargs="*", type=item, default=None, help=help_text)
+            # extend: a repeated flag adds to the list (`--checkpoint a --checkpoint b`) instead of replacing it
+            group.add_argument(
+                flag, dest=leaf.name, nargs="*", action="extend", type=item, default=None, help=help_text
+            )
         else:
             group.add_argument(flag, dest=leaf.name, type=base, default=None, help=help_text)
 

@@ -7,8 +7,6 @@ namespace of its own, so tests never hear each other's traffic.
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import os
 import uuid
 from collections.abc import Callable, Iterator
@@ -22,12 +20,6 @@ from services.settings import ZenohSettings
 
 # MuJoCo picks its GL backend at import; headless machines (CI, the device box) render through EGL.
 os.environ["MUJOCO_GL"] = "egl"
-
-# Mesa's software EGL (llvmpipe) and triton (which pip installs with torch on Linux) each load their own LLVM:
-# importing triton after a frame was rendered segfaults, importing it first does not. Torch imports triton lazily
-# (torch._dynamo), so a test that trains after one that rendered would crash the whole run; load it first.
-if importlib.util.find_spec("triton") is not None:
-    importlib.import_module("triton")
 
 #: How long a test waits for its router or a session to appear before failing, in seconds.
 STARTUP_TIMEOUT_S = 20.0

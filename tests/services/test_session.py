@@ -10,8 +10,8 @@ import time
 import pytest
 import zenoh
 
-from services.session import StartupTimeout, build_config, open_session, router_settings
-from services.settings import ZenohSettings
+from services.session import StartupTimeout, build_config, endpoints, open_session, router_settings
+from services.settings import LOCAL_ROUTER, ZenohSettings
 
 
 def test_no_router_raises_startup_timeout_within_the_bound(free_port):
@@ -84,11 +84,19 @@ def test_settings_override_a_zenoh_config_file(tmp_path):
     assert json.loads(config.get_json("connect/endpoints")) == ["tcp/10.0.0.1:7447"]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="services/session.py builds the config inside the retry loop and retries every zenoh.ZError, so a missing "
-    "config file is retried until the timeout and reported as an unreachable router (reported to the lead)",
-)
+def test_without_flags_a_config_files_endpoints_hold_and_without_either_the_local_router(tmp_path):
+    router_file = tmp_path / "router.json5"
+    router_file.write_text('{ listen: { endpoints: ["tls/0.0.0.0:7447"] } }')
+    client_file = tmp_path / "client.json5"
+    client_file.write_text('{ connect: { endpoints: ["tls/router.lan:7447"] } }')
+    site_router = build_config(router_settings([], zenoh_config=str(router_file)))
+    assert endpoints(site_router, "listen") == ["tls/0.0.0.0:7447"]
+    assert endpoints(build_config(ZenohSettings(zenoh_config=str(client_file)))) == ["tls/router.lan:7447"]
+    assert endpoints(build_config(router_settings([])), "listen") == [LOCAL_ROUTER]
+    assert endpoints(build_config(ZenohSettings())) == [LOCAL_ROUTER]
+    assert endpoints(build_config(router_settings([]))) == []  # a router connects to no one unless told
+
+
 def test_a_missing_zenoh_config_file_fails_at_once_naming_the_file(tmp_path):
     missing = tmp_path / "absent.json5"
     started = time.monotonic()

@@ -46,7 +46,7 @@ def _load(*argv: str, environ: dict[str, str] | None = None, config_file=None) -
 def test_defaults_hold_when_nothing_is_given():
     loaded = _load()
     assert loaded == Example()
-    assert loaded.zenoh.connect == ["tcp/127.0.0.1:7447"]
+    assert loaded.zenoh.connect == []  # open_session then uses the config file's endpoints, else LOCAL_ROUTER
     assert loaded.zenoh.startup_timeout_s == 60.0
 
 
@@ -172,5 +172,5 @@ def test_process_environment_is_read_when_no_mapping_is_given(monkeypatch):
 def test_to_dict_is_plain_nested_data():
     view = settings_mod.to_dict(_load("--noise-fog", "0.5"))
     assert view["noise"] == {"fog": 0.5, "blur": False}
-    assert view["zenoh"]["connect"] == ["tcp/127.0.0.1:7447"]
+    assert view["zenoh"]["connect"] == []
     assert view["steps"] == 100

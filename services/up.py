@@ -1,0 +1,254 @@
+"""`swimm up`: the whole local system as separate processes: router, sim, encoder(s) and a learner that trains.
+
+    swimm up                                   # SAC on cmvae observations with the shipped CMVAE
+    swimm up --obs state --steps 20000         # ground-truth observations: no encoder is started
+    swimm up --encoders 2 --envs 4 --hyperparams "{train_freq: [64, step]}"
+
+Every `swimm learn` flag is a `swimm up` flag too (``--algo``, ``--steps``, ``--eval-*``, ``--run-dir`` ...)
+and is handed to the learner through ``<run>/learn.yaml``; ``--connect`` is ignored, as every process joins
+the router this command starts (on ``--port``, 7447 by default, so `swimm eval --connect tcp/127.0.0.1:7447`
+can attach to the sim's spare eval env while training runs).
+
+Start-up is ordered and bounded: the router must listen, then the sim and each encoder must announce
+themselves (liveliness) within ``--startup-timeout-s``; a process that dies meanwhile fails the command with
+its own log. Then the learner trains with its progress shown here (from ``<run>/progress.json``). When it
+ends, or on Ctrl-C / SIGTERM, the learner is stopped first (it saves its model and summary plot), then the
+encoders, the sim and the router. The run folder keeps the learner's outputs and every process's log in logs/.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+import encoder_service
+from learner_service.learn_settings import LearnCommandSettings, default_run_dir
+from learner_service.progress import progress_postfix, read_progress
+from services.keys import Keys
+from services.lifecycle import stop_on_signals
+from services.presence import Roster
+from services.procs import ProcessGroup, Service
+from services.session import open_session
+from services.settings import ZenohSettings, to_dict
+
+log = logging.getLogger(__name__)
+
+#: encoder_service.inference.DEFAULT_CHECKPOINT, found without importing torch into this process.
+SHIPPED_CMVAE = Path(encoder_service.__file__).parent / "models" / "cmvae.pt"
+LEARN_CONFIG = "learn.yaml"
+WATCH_PERIOD_S = 0.5
+
+
+@dataclass
+class UpSettings:
+    learn: LearnCommandSettings = field(default_factory=LearnCommandSettings, metadata={"flatten": True})
+    port: int = 7447  # the router's TCP port on 127.0.0.1; 0 = any free port
+    encoders: int = 1  # encoder processes (cmvae only)
+    sim_eval_envs: int = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
+    stop_timeout_s: float = 180.0  # how long the learner may take to save after SIGTERM before it is killed
+
+
+class ServiceDied(RuntimeError):
+    """A process of the system exited while it was needed; the message carries its log's tail."""
+
+
+def encoder_checkpoint(learn: LearnCommandSettings) -> Path | None:
+    """The CMVAE the encoders load (None when the observation mode needs no encoder); fails clearly if absent."""
+    if learn.obs != "cmvae":
+        return None
+    path = Path(learn.encoder_checkpoint) if learn.encoder_checkpoint else SHIPPED_CMVAE
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"the CMVAE checkpoint {path} does not exist. Train one (`swimm dataset`, then `swimm train-encoder`) "
+            f"and pass it with --encoder-checkpoint, or run without an encoder: `swimm up --obs state`"
+        )
+    return path
+
+
+def check_port_free(port: int) -> None:
+    """Refuse a busy port at once: a router of another run there would otherwise be joined by mistake."""
+    with socket.socket() as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            raise RuntimeError(
+                f"port {port} is in use (another `swimm up` or router?); stop it or pass --port 0 for a free one"
+            ) from None
+
+
+class LocalSystem:
+    """The processes of one `swimm up`, started in order and watched until the learner is done."""
+
+    def __init__(self, settings: UpSettings, group: ProcessGroup, run_dir: Path, stop: threading.Event) -> None:
+        self.settings = settings
+        self.learn = settings.learn
+        self.group = group
+        self.run_dir = run_dir
+        self.stop = stop
+        self.namespace = self.learn.zenoh.namespace
+        self.wait_s = self.learn.zenoh.startup_timeout_s
+
+    # --- start-up ---------------------------------------------------------------------------------
+    def start_services(self, checkpoint: Path | None) -> str:
+        """Router, sim and encoders, each waited for; returns the router's endpoint."""
+        if self.settings.port:
+            check_port_free(self.settings.port)
+        endpoint = self.group.start_router(self.settings.port or None)
+        common = ("--connect", endpoint, "--namespace", self.namespace)
+        sim_args = ["--train-envs", str(self.learn.envs), "--eval-envs", str(self.settings.sim_eval_envs)]
+        self.group.start("sim", "sim", *common, *sim_args)
+        encoders = self.settings.encoders if checkpoint is not None else 0
+        for index in range(encoders):
+            name = "encoder" if encoders == 1 else f"encoder-{index}"
+            self.group.start(name, "encoder", *common, "--checkpoint", str(checkpoint), "--ident", f"enc-{index}")
+        watcher = ZenohSettings(connect=[endpoint], namespace=self.namespace, startup_timeout_s=self.wait_s)
+        session = open_session(watcher, role="up")
+        try:
+            self.wait_for_role(session, "sim", 1)
+            if encoders:
+                self.wait_for_role(session, "encoder", encoders)
+        finally:
+            session.close()
+        return endpoint
+
+    def wait_for_role(self, session: Any, role: str, count: int) -> None:
+        """Block until ``count`` ``role`` processes announce themselves; fail early if one of ours died."""
+        roster = Roster(session, Keys(self.namespace), role)
+        started = time.monotonic()
+        next_note = started + 10.0
+        try:
+            while len(roster.members()) < count:
+                self.check_services()
+                if self.stop.is_set():
+                    raise KeyboardInterrupt
+                waited = time.monotonic() - started
+                if waited > self.wait_s:
+                    raise TimeoutError(
+                        f"{role}: {len(roster.members())} of {count} up after {self.wait_s:.0f} s; "
+                        f"see {self.group.log_dir}"
+                    )
+                if time.monotonic() >= next_note:
+                    log.info(
+                        "waiting for %s (%d of %d up, %.0f s of %.0f s)",
+                        role,
+                        len(roster.members()),
+                        count,
+                        waited,
+                        self.wait_s,
+                    )
+                    next_note += 10.0
+                time.sleep(0.1)
+            log.info("%s up: %s (%.1f s)", role, sorted(roster.members()), time.monotonic() - started)
+        finally:
+            roster.close()
+
+    def check_services(self, skip: Service | None = None) -> None:
+        for service in self.group.services:
+            if service is not skip and not service.alive:
+                raise ServiceDied(
+                    f"{service.name} exited with {service.process.returncode}; its log ends:\n{service.log_tail()}"
+                )
+
+    def start_learner(self, endpoint: str) -> Service:
+        learn = dataclasses.replace(
+            self.learn,
+            zenoh=dataclasses.replace(self.learn.zenoh, connect=[endpoint]),
+            run_dir=str(self.run_dir),
+            backend="zenoh",
+            progress_bar=False,  # this command draws the bar
+        )
+        config = self.run_dir / LEARN_CONFIG
+        config.write_text(yaml.safe_dump(to_dict(learn), sort_keys=False))
+        return self.group.start("learner", "learn", "--config", str(config))
+
+    # --- watching -----------------------------------------------------------------------------------
+    def watch(self, learner: Service) -> int:
+        """Show the learner's progress until it exits, a service dies, or a stop is asked; returns an exit code."""
+        interactive = sys.stderr.isatty()
+        bar = tqdm(unit="step", disable=not interactive, dynamic_ncols=True)
+        next_line = time.monotonic() + self.learn.log_interval_s
+        try:
+            with logging_redirect_tqdm():
+                while learner.alive:
+                    if self.stop.is_set():
+                        self.stop_learner(learner)
+                        break
+                    self.check_services(skip=learner)
+                    progress = read_progress(self.run_dir)
+                    if progress is not None:
+                        self.show(bar, progress)
+                        if not interactive and time.monotonic() >= next_line:
+                            next_line = time.monotonic() + self.learn.log_interval_s
+                            steps = f"{progress['num_timesteps']}/{progress['total_timesteps']} steps"
+                            log.info("learner: %s, %s", steps, progress_postfix(progress))
+                    self.stop.wait(WATCH_PERIOD_S)
+        except ServiceDied:
+            self.stop_learner(learner)
+            raise
+        finally:
+            progress = read_progress(self.run_dir)
+            if progress is not None:
+                self.show(bar, progress)
+            bar.close()
+        code = learner.process.wait()
+        if code < 0:  # killed by a signal (e.g. SIGTERM before its training loop began): the shell's convention
+            code = 128 - code
+        if code != 0 and not self.stop.is_set():
+            log.error("the learner exited with %d; its log ends:\n%s", code, learner.log_tail())
+        return code
+
+    @staticmethod
+    def show(bar: tqdm, progress: dict[str, Any]) -> None:
+        bar.total = progress["total_timesteps"]
+        bar.update(progress["num_timesteps"] - bar.n)
+        bar.set_postfix(progress_postfix(progress), refresh=True)
+
+    def stop_learner(self, learner: Service) -> None:
+        log.info("stopping the learner (up to %.0f s to save)", self.settings.stop_timeout_s)
+        self.group.stop(learner, timeout_s=self.settings.stop_timeout_s)
+
+
+def run(settings: UpSettings) -> int:
+    learn = settings.learn
+    if learn.backend != "zenoh":
+        log.info("swimm up always trains through the services; --backend %s is ignored", learn.backend)
+    checkpoint = encoder_checkpoint(learn)
+    run_dir = Path(learn.run_dir) if learn.run_dir else default_run_dir(learn)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    stop = threading.Event()
+    started = time.monotonic()
+    on_signal = stop_on_signals(stop, "stopping the learner (it saves), then the services")
+    with on_signal, ProcessGroup(run_dir / "logs") as group:
+        system = LocalSystem(settings, group, run_dir, stop)
+        try:
+            endpoint = system.start_services(checkpoint)
+        except KeyboardInterrupt:
+            log.info("stopped during start-up")
+            return 130
+        log.info(
+            "router at %s, namespace %s; training %s on %s, run folder %s",
+            endpoint,
+            system.namespace,
+            learn.algo,
+            learn.obs,
+            run_dir,
+        )
+        code = system.watch(system.start_learner(endpoint))
+    log.info(
+        "all processes stopped after %.0f s; run folder %s (logs in %s)",
+        time.monotonic() - started,
+        run_dir,
+        run_dir / "logs",
+    )
+    return code
