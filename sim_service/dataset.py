@@ -84,7 +84,7 @@ def sample_pose(world: World, rng: np.random.Generator, ranges: SamplingRanges):
     target_yaw = rng.uniform(-math.pi, math.pi)
     turn_weight = rng.uniform(-ranges.turn_weight, ranges.turn_weight)
     phase = rng.uniform(0.0, 1.0)
-    return world.place(rover, rover_yaw, target, target_yaw, turn_weight, phase)
+    return world.place(rover, rover_yaw, target, target_yaw, turn_weight, phase, noise_rng=rng)
 
 
 def labels_and_pose(telemetry) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim_service.rotations import euler_to_matrix, matrix_to_quat
+from sim_service.rotations import clamp, euler_to_matrix, matrix_to_quat
 
 #: Pivot offsets along the body's -x axis (metres), matching assets/world.xml.
 TAIL_PIVOT = 0.78  # body centre -> peduncle joint
@@ -94,14 +94,14 @@ class DolphinBehaviour:
     def step(self, dt: float, rng: np.random.Generator, rover_xy: np.ndarray) -> None:
         p, s = self.params, self.state
         to_waypoint = s.waypoint - s.position[:2]
-        if np.hypot(*to_waypoint) < p.arrival_radius:
+        if math.hypot(to_waypoint[0], to_waypoint[1]) < p.arrival_radius:
             self._new_waypoint(rng, rover_xy)
             to_waypoint = s.waypoint - s.position[:2]
         heading_error = math.degrees(_wrap(math.atan2(to_waypoint[1], to_waypoint[0]) - s.yaw))
-        wish = np.clip(p.turn_gain * heading_error, -p.max_turn_deg_per_step, p.max_turn_deg_per_step)
+        wish = clamp(p.turn_gain * heading_error, -p.max_turn_deg_per_step, p.max_turn_deg_per_step)
         ease = p.turn_easing_deg_per_step
-        eased = s.turn_rate + np.clip(wish - s.turn_rate, -ease, ease)
-        s.turn_rate = float(np.clip(eased, -p.max_turn_deg_per_step, p.max_turn_deg_per_step))
+        eased = s.turn_rate + clamp(wish - s.turn_rate, -ease, ease)
+        s.turn_rate = clamp(eased, -p.max_turn_deg_per_step, p.max_turn_deg_per_step)
         s.yaw = _wrap(s.yaw + math.radians(s.turn_rate))
         s.position[:2] += s.speed * dt * np.array([math.cos(s.yaw), math.sin(s.yaw)])
         s.phase = (s.phase + p.beat_hz_per_mps * s.speed * dt) % 1.0

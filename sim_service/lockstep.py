@@ -75,14 +75,14 @@ class LockstepEnv:
         if sender != self.holder:
             raise Refusal(f"env {self.name} is held by {self.holder}, not {sender or 'an anonymous sender'}")
 
-    def reset(self, sender: str, ep: int, seed: int, route: str = DIRECT_ROUTE) -> Outcome:
+    def reset(self, sender: str, ep: int, seed: int, route: str = DIRECT_ROUTE, noise: bool | None = None) -> Outcome:
         self._check_holder(sender)
         self.route = route
         if ep == self.ep and self.seq == 0 and self._last_payload is not None and seed == self.seed:
             return Outcome(self._last_payload, replayed=True)
         if ep <= self.ep and self._last_payload is not None:
             raise Refusal(f"env {self.name}: episode {ep} is not after the current episode {self.ep}")
-        telemetry, image = self.world.reset(seed)
+        telemetry, image = self.world.reset(seed, noise)
         self.ep, self.seq, self.seed = ep, 0, seed
         self.action = (0.0, 0.0, 0.0, 0.0)
         return self._emit(telemetry, image)

@@ -22,7 +22,7 @@ from services.keys import Keys
 from services.lifecycle import serve_until_signalled
 from services.messages import ActionMsg, BadMessage, ErrorMsg, unpack
 from services.metrics import Metrics, MetricsPublisher
-from services.presence import Roster, announce
+from services.presence import Roster, announce, live_now
 from services.session import open_session
 from services.settings import ZenohSettings
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
@@ -73,6 +73,7 @@ class SimResponder:
         if not self._ready.wait(timeout=120):
             raise RuntimeError("the sim worker did not build its worlds within 120 s")
         self.session = open_session(self.settings.zenoh, role="sim")
+        self._rosters = [Roster(self.session, self.keys, role, self._on_roster_change) for role in CLAIMANT_ROLES]
         self._declared = []
         for env in self._envs:
             self._declared.append(
@@ -86,7 +87,6 @@ class SimResponder:
                     lambda q, e=env: self._inbox.put(_Request("ctl", e, query=q)),
                 )
             )
-        self._rosters = [Roster(self.session, self.keys, role, self._on_roster_change) for role in CLAIMANT_ROLES]
         self._token = announce(self.session, self.keys, "sim", self.ident)
         self._metrics_publisher = MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics)
         log.info(
@@ -107,11 +107,17 @@ class SimResponder:
         Tokens also vanish while a router restarts; the grace keeps claims across such an outage.
         """
         if left:
-            timer = threading.Timer(
-                self.settings.claim_grace_s, lambda: self._inbox.put(_Request("lapse", None, gone=left))
-            )
+            timer = threading.Timer(self.settings.claim_grace_s, self._lapse_if_still_gone, args=(left,))
             timer.daemon = True
             timer.start()
+
+    def _lapse_if_still_gone(self, left: set[str]) -> None:
+        """On the grace timer's thread: ask the network which of ``left`` are back, and lapse the others' claims."""
+        if self._stop.is_set():
+            return
+        back = set().union(*(live_now(self.session, self.keys, role) for role in CLAIMANT_ROLES))
+        if left - back:
+            self._inbox.put(_Request("lapse", None, gone=left - back))
 
     # --- the worker -----------------------------------------------------------------------------
     def _build_envs(self) -> None:
@@ -149,9 +155,8 @@ class SimResponder:
             elif request.kind == "ctl":
                 self._handle_ctl(request)
             elif request.kind == "lapse":
-                still_gone = request.gone - set().union(*(roster.members() for roster in self._rosters))
                 for env in self._envs:
-                    env.lapse(still_gone)
+                    env.lapse(request.gone)
         except Exception:  # a bug in one request must not take the sim down
             self.metrics.count("errors_internal")
             log.exception("internal error while handling a %s request", request.kind)
@@ -202,9 +207,12 @@ class SimResponder:
             elif op == "reset":
                 ep, seed = body.get("ep"), body.get("seed")
                 route = str(body.get("route", "direct"))
+                noise = body.get("noise")
                 if not isinstance(ep, int) or not isinstance(seed, int):
                     raise BadMessage("reset needs integer 'ep' and 'seed'")
-                outcome = env.reset(holder, ep, seed, route)
+                if noise is not None and not isinstance(noise, bool):
+                    raise BadMessage(f"reset's 'noise' must be true, false or absent, got {noise!r}")
+                outcome = env.reset(holder, ep, seed, route, noise)
                 self._publish(env, route, outcome, request.received_at)
                 control.reply(query, True, **env.info(), replayed=outcome.replayed)
             else:

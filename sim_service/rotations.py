@@ -1,9 +1,10 @@
-"""Small rotation helpers (numpy), so the world's kinematics read as maths, not MuJoCo calls."""
+"""Small rotation helpers, so the world's kinematics read as maths rather than as MuJoCo calls."""
 
 from __future__ import annotations
 
 import math
 
+import mujoco
 import numpy as np
 
 
@@ -22,23 +23,13 @@ def euler_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 
 def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
-    """(w, x, y, z) unit quaternion of a rotation matrix, w >= 0 (MuJoCo's convention)."""
-    m = rotation
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = np.array([0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s])
-    else:
-        i = int(np.argmax([m[0, 0], m[1, 1], m[2, 2]]))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = np.empty(4)
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (m[j, i] + m[i, j]) / s
-        q[1 + k] = (m[k, i] + m[i, k]) / s
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    """(w, x, y, z) unit quaternion of a rotation matrix, w >= 0 (MuJoCo's convention).
+
+    MuJoCo's C routine: the world calls this four times a step, where numpy's small-array overhead showed.
+    """
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rotation, dtype=float).reshape(9))
+    return -quat if quat[0] < 0 else quat
 
 
 def quat_to_euler(quat) -> tuple[float, float, float]:
@@ -48,3 +39,8 @@ def quat_to_euler(quat) -> tuple[float, float, float]:
     pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
     yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
     return roll, pitch, yaw
+
+
+def clamp(value: float, low: float, high: float) -> float:
+    """``value`` limited to [low, high], for scalars (np.clip's array machinery costs microseconds per call)."""
+    return low if value < low else high if value > high else value

@@ -25,11 +25,13 @@ nose left (counter-clockwise seen from above).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from services.messages import DiveMode
+from sim_service.rotations import clamp
 
 GRAVITY = 9.81
 
@@ -82,6 +84,8 @@ class RoverDynamics:
 
     def __post_init__(self) -> None:
         self._alloc = _allocation(self.params)
+        self._linear_damping = np.array(self.params.linear_damping)
+        self._quadratic_damping = np.array(self.params.quadratic_damping)
         self._alloc_pinv = np.linalg.pinv(self._alloc)
         # Full authority per axis: the wrench when every thruster pushes that axis at its limit.
         self._axis_max = np.abs(self._alloc).sum(axis=1) * self.params.max_thrust
@@ -128,14 +132,18 @@ class RoverDynamics:
         torque_b = np.array([roll_torque, 0.0, mz])
 
         velocity_b = np.concatenate([lin_b, ang_b])
-        drag = -(np.array(p.linear_damping) + np.array(p.quadratic_damping) * np.abs(velocity_b)) * velocity_b
+        drag = -(self._linear_damping + self._quadratic_damping * np.abs(velocity_b)) * velocity_b
         force_b += drag[:3]
         torque_b += drag[3:]
 
-        buoyancy_w = np.array([0.0, 0.0, p.buoyancy])
-        lever_w = rotation @ np.array([0.0, 0.0, p.cob_above_cog])
-        force_w = rotation @ force_b + buoyancy_w
-        torque_w = rotation @ torque_b + np.cross(lever_w, buoyancy_w)
+        # Buoyancy acts straight up at the centre of buoyancy, cob_above_cog along the body's z axis: its
+        # moment is lever x (0, 0, B), written out (np.cross costs more than the rest of the wrench).
+        lever_x, lever_y = rotation[0, 2] * p.cob_above_cog, rotation[1, 2] * p.cob_above_cog
+        force_w = rotation @ force_b
+        force_w[2] += p.buoyancy
+        torque_w = rotation @ torque_b
+        torque_w[0] += lever_y * p.buoyancy
+        torque_w[1] -= lever_x * p.buoyancy
         return force_w, torque_w
 
     def _vertical(
@@ -161,10 +169,11 @@ class RoverDynamics:
             heave_force = heave * limit
         roll_torque = 0.0
         if mode in (DiveMode.DEPTH_HOLD, DiveMode.STABILISE):
-            roll = np.arctan2(rotation[2, 1], rotation[2, 2])
+            roll = math.atan2(rotation[2, 1], rotation[2, 2])
             roll_torque = -g.roll_kp * roll - g.roll_kd * ang_b[0]
         # Split into the two thrusters and saturate each, as the hardware would.
         arm = self.params.vertical_y
-        left = np.clip(heave_force / 2 + roll_torque / (2 * arm), -self.params.max_thrust, self.params.max_thrust)
-        right = np.clip(heave_force / 2 - roll_torque / (2 * arm), -self.params.max_thrust, self.params.max_thrust)
+        per_thruster = self.params.max_thrust
+        left = clamp(float(heave_force / 2 + roll_torque / (2 * arm)), -per_thruster, per_thruster)
+        right = clamp(float(heave_force / 2 - roll_torque / (2 * arm)), -per_thruster, per_thruster)
         return float(left + right), float((left - right) * arm)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from sim_service.noise import NoiseSettings
 
 
 @dataclass
@@ -11,3 +13,4 @@ class WorldSettings:
     render: bool = True  # False: telemetry only (state observations, physics tests)
     render_scale: int = 1  # render at image_size * scale and downscale with OpenCV (anti-aliasing)
     physics_dt: float = 0.02  # seconds per step: one action per physics step (lock-step)
+    noise: NoiseSettings = field(default_factory=NoiseSettings)  # image noise, all off by default (--noise-* flags)

@@ -9,13 +9,17 @@ distributed and in-process runs are the same code and agree bit for bit.
 
 Every random draw comes from the episode seed: ``reset(seed)`` seeds one
 generator for the pose draws and the dolphin's waypoints, so a seed and an
-action sequence fix the whole episode, images included.
+action sequence fix the whole episode, images included. Image noise draws
+from a child of that generator's seed, so switching noise on or off never
+changes the trajectory: clean and noisy runs of one seed see the same poses.
 
 Not thread-safe: MuJoCo's GL context belongs to the thread that built it.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
 import math
 from pathlib import Path
 
@@ -28,6 +32,7 @@ from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.camera import CameraFrustum
 from sim_service.dolphin import DolphinBehaviour
+from sim_service.noise import NOISY_PRESET, ImageNoise
 from sim_service.rotations import euler_to_matrix, matrix_to_quat
 from sim_service.rover import RoverDynamics
 from sim_service.settings import WorldSettings
@@ -42,6 +47,18 @@ RESET_XY_RANGE = 30.0
 RESET_DEPTH = 4.0
 RESET_DISTANCE = (4.0, 8.0)  # opt_d +- max_d / 2
 RESET_TURN_WEIGHT = 1.3  # deg per step
+
+
+def load_triton_before_rendering() -> None:
+    """Import triton, when installed, before MuJoCo's first render in this process.
+
+    Mesa's software EGL (llvmpipe) and triton (which pip installs beside torch) each load their own LLVM.
+    Torch imports triton lazily, and doing so after a frame was rendered segfaults the process; importing
+    it first does not. Any process that renders and later trains or encodes (in-process envs, benchmarks,
+    tests) is covered by doing it here, once, where rendering starts.
+    """
+    if importlib.util.find_spec("triton") is not None:
+        importlib.import_module("triton")
 
 
 def yaw_matrix(yaw: float) -> np.ndarray:
@@ -67,8 +84,15 @@ class World:
         self._renderer: mujoco.Renderer | None = None
         if self.settings.render:
             self._renderer = self._make_renderer()
+        noise = self.settings.noise
+        self._configured_noise = ImageNoise(noise if noise.enabled else NOISY_PRESET)
+        self._noise = self._configured_noise if noise.enabled else None
+        self._noise_rng = np.random.default_rng(0)
+        # Apparent image motion per radian of yaw: the frame's width spans the horizontal field of view.
+        self._px_per_rad = self.settings.image_size / math.radians(2 * ALPHA_DEG)
 
     def _make_renderer(self) -> mujoco.Renderer:
+        load_triton_before_rendering()
         pixels = self.settings.image_size * self.settings.render_scale
         self.model.vis.global_.offwidth = max(pixels, 1)
         self.model.vis.global_.offheight = max(pixels, 1)
@@ -79,8 +103,16 @@ class World:
         return renderer
 
     # --- episodes --------------------------------------------------------------------------
-    def reset(self, seed: int) -> tuple[Telemetry, np.ndarray | None]:
-        """Start an episode from the SPEC's reset distributions, every draw from ``seed``."""
+    def reset(self, seed: int, noise: bool | None = None) -> tuple[Telemetry, np.ndarray | None]:
+        """Start an episode from the SPEC's reset distributions, every draw from ``seed``.
+
+        ``noise`` switches image noise for this episode and the ones after it: True applies the world's
+        noise settings (or :data:`~sim_service.noise.NOISY_PRESET` when they are all off), False renders
+        clean frames, None keeps the current choice. Alternating clean and noisy episodes is how the
+        paper trains for robustness.
+        """
+        if noise is not None:
+            self._noise = self._configured_noise if noise else None
         self.rng = np.random.default_rng(seed)
         rng = self.rng
         rover_pos = np.array([*rng.uniform(-RESET_XY_RANGE, RESET_XY_RANGE, size=2), -RESET_DEPTH])
@@ -102,11 +134,15 @@ class World:
         target_yaw: float,
         turn_weight: float = 0.0,
         phase: float = 0.0,
+        noise_rng: np.random.Generator | None = None,
     ) -> tuple[Telemetry, np.ndarray | None]:
         """Put rover (at rest, level) and dolphin at given poses: the reset primitive, and datasets' sampler.
 
         Angles in radians; ``turn_weight`` is the dolphin's turn rate in deg/step (it sets its bank).
+        ``noise_rng`` feeds the image noise; by default a child of the world's generator, drawn without
+        advancing it.
         """
+        self._noise_rng = noise_rng or np.random.default_rng(self.rng.bit_generator.seed_seq.spawn(1)[0])
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = [rover_pos[0], rover_pos[1], rover_pos[2], rover_yaw, 0.0, 0.0]
         self.rover.reset(depth=float(rover_pos[2]))
@@ -152,6 +188,8 @@ class World:
         return velocity[:3]
 
     def _collided(self) -> bool:
+        if self.data.ncon == 0:  # the usual case: skip the array work
+            return False
         geoms = self.data.contact.geom[: self.data.ncon]
         return bool(np.any((geoms.min(axis=1) == self._pair[0]) & (geoms.max(axis=1) == self._pair[1])))
 
@@ -182,12 +220,27 @@ class World:
         if self._renderer is None:
             return None
         self._renderer.update_scene(self.data, camera=self._camera)
-        image = self._renderer.render()
+        image = self._downscale(self._renderer.render())
+        if self._noise is None:
+            return image
+        depth = self._render_depth() if self._noise.settings.needs_depth else None
+        yaw_rate = float(self._rover_ang_vel()[2])  # + turns the nose left, so the scene slides right
+        return self._noise.apply(image, depth, self._noise_rng, (yaw_rate * self.dt * self._px_per_rad, 0.0))
+
+    def _render_depth(self) -> np.ndarray:
+        """Distance along the view axis in metres, per pixel of the output image."""
+        self._renderer.enable_depth_rendering()
+        try:
+            return self._downscale(self._renderer.render())
+        finally:
+            self._renderer.disable_depth_rendering()
+
+    def _downscale(self, pixels: np.ndarray) -> np.ndarray:
         size = self.settings.image_size
-        if image.shape[0] != size:
-            image = cv2.resize(image, (size, size), interpolation=cv2.INTER_AREA)
-        return image
+        if pixels.shape[0] == size:
+            return pixels
+        return cv2.resize(pixels, (size, size), interpolation=cv2.INTER_AREA)
 
 
 def _vec(values) -> tuple[float, ...]:
-    return tuple(float(v) for v in values)
+    return tuple(np.asarray(values, dtype=float).tolist())

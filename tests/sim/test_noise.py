@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import time
 
 import numpy as np
 import pytest
@@ -38,8 +37,13 @@ def _depth(value: float) -> np.ndarray:
     return np.full((SIZE, SIZE), value, dtype=np.float32)
 
 
-def _apply(settings: NoiseSettings, image: np.ndarray, depth: np.ndarray | None = None, seed: int = 0,
-           motion_px: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+def _apply(
+    settings: NoiseSettings,
+    image: np.ndarray,
+    depth: np.ndarray | None = None,
+    seed: int = 0,
+    motion_px: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
     return ImageNoise(settings).apply(image, depth, np.random.default_rng(seed), motion_px)
 
 
@@ -75,7 +79,7 @@ def test_fog_pulls_far_pixels_toward_water_colour_more_than_near_ones():
     settings = NoiseSettings(fog=density)
     image = np.full((SIZE, SIZE, 3), 255, dtype=np.uint8)
     depth = _depth(near_m)
-    depth[:, SIZE // 2:] = far_m
+    depth[:, SIZE // 2 :] = far_m
     depth[0, -1] = np.inf  # nothing hit: pure water
     out = _apply(settings, image, depth).astype(np.float64)
     colour = np.array(settings.fog_color, dtype=np.float64)
@@ -122,15 +126,17 @@ def test_horizontal_motion_blur_smooths_horizontal_gradients_only():
 
 def test_motion_blur_grows_with_the_setting():
     image = _checkerboard(8)
-    energies = [_gradient_energy(_apply(NoiseSettings(motion_blur=scale), image, motion_px=(0.0, 3.0)), axis=0)
-                for scale in (0.5, 1.0, 2.0)]
+    energies = [
+        _gradient_energy(_apply(NoiseSettings(motion_blur=scale), image, motion_px=(0.0, 3.0)), axis=0)
+        for scale in (0.5, 1.0, 2.0)
+    ]
     assert energies[0] > energies[1] > energies[2]
 
 
 def test_depth_of_field_blurs_far_pixels_and_keeps_focused_ones():
     image = _checkerboard(2)
     depth = _depth(FOCUS_M)
-    depth[:, SIZE // 2:] = 60.0  # circle of confusion 0.9 of the largest
+    depth[:, SIZE // 2 :] = 60.0  # circle of confusion 0.9 of the largest
     out = _apply(NoiseSettings(depth_of_field=3.0, focus_m=FOCUS_M), image, depth)
     np.testing.assert_array_equal(out[:, : SIZE // 2], image[:, : SIZE // 2])
     far = slice(SIZE // 2 + 4, SIZE)
@@ -178,8 +184,12 @@ def test_depth_map_of_wrong_size_raises():
 
 @pytest.mark.parametrize(
     "settings",
-    [NoiseSettings(grain=-1.0), NoiseSettings(focus_m=0.0), NoiseSettings(fog_color=[0, 300, 0]),
-     NoiseSettings(fog_color=[1, 2])],
+    [
+        NoiseSettings(grain=-1.0),
+        NoiseSettings(focus_m=0.0),
+        NoiseSettings(fog_color=[0, 300, 0]),
+        NoiseSettings(fog_color=[1, 2]),
+    ],
 )
 def test_invalid_settings_raise(settings):
     with pytest.raises(ValueError):
@@ -197,16 +207,3 @@ def test_settings_become_noise_flags():
     loaded = settings_module.load(Holder, args, environ={"SWIMM_NOISE_GRAIN": "4.5"})
     assert loaded.noise == NoiseSettings(fog=0.1, fog_color=[10, 20, 30], grain=4.5)
     assert loaded.noise.enabled and loaded.noise.needs_depth
-
-
-def test_whole_chain_at_64_pixels_is_fast():
-    noise = ImageNoise(_everything())
-    image, depth, rng = _texture(7), np.random.default_rng(8).uniform(1, 30, (SIZE, SIZE)).astype(np.float32), \
-        np.random.default_rng(9)
-    noise.apply(image, depth, rng, (2.0, 1.0))  # builds the distortion maps
-    repeats = 200
-    start = time.perf_counter()
-    for _ in range(repeats):
-        noise.apply(image, depth, rng, (2.0, 1.0))
-    per_frame_ms = (time.perf_counter() - start) / repeats * 1e3
-    assert per_frame_ms < 2.0  # about 0.4 ms on a 2-core EPYC VM; the bound leaves room for loaded CI machines

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
 from services.geometry import ALPHA_DEG, HFOV_DEG, VFOV_DEG, relative_geometry, yaw_of
 from services.messages import DiveMode
+from sim_service.noise import NoiseSettings
 from sim_service.rotations import euler_to_matrix
 from sim_service.settings import WorldSettings
 from sim_service.world import TARGET_BOX, World
@@ -178,3 +180,51 @@ def test_render_scale_downsamples_to_the_image_size():
         assert image.shape == (64, 64, 3)
     finally:
         world.close()
+
+
+# --- image noise ---------------------------------------------------------------------------------
+
+
+def _episode(world: World, seed: int, noise: bool | None, steps: int = 20):
+    telemetry, image = world.reset(seed, noise=noise)
+    frames, poses = [image], [telemetry]
+    for _ in range(steps):
+        telemetry, image = world.step((0.0, 0.0, 0.6, 0.8))  # turning: motion blur has something to smear
+        frames.append(image)
+        poses.append(telemetry)
+    return poses, np.stack(frames)
+
+
+def test_noise_changes_frames_but_never_the_trajectory_and_replays_exactly(camera_world):
+    clean_poses, clean = _episode(camera_world, 21, noise=False)
+    noisy_poses, noisy = _episode(camera_world, 21, noise=True)
+    again_poses, again = _episode(camera_world, 21, noise=True)
+    assert noisy_poses == clean_poses  # noise draws from its own stream
+    assert np.array_equal(noisy, again)  # and that stream is the seed's
+    difference = np.abs(noisy.astype(int) - clean.astype(int)).mean(axis=(1, 2, 3))
+    assert np.all(difference > 3.0)  # every frame degraded, by more than a rounding error
+    assert _high_frequency(noisy[0]) > 1.5 * _high_frequency(clean[0])  # the film grain is there
+
+
+def _high_frequency(image: np.ndarray) -> float:
+    return float((image.astype(float) - cv2.GaussianBlur(image, (5, 5), 0).astype(float)).std())
+
+
+def test_noise_choice_persists_until_the_next_reset_says_otherwise(camera_world):
+    _, noisy = _episode(camera_world, 22, noise=True, steps=0)
+    _, kept = _episode(camera_world, 22, noise=None, steps=0)
+    _, clean = _episode(camera_world, 22, noise=False, steps=0)
+    _, fresh = _episode(World(), 22, noise=None, steps=0)  # a new world starts from its settings: clean
+    assert np.array_equal(kept, noisy)
+    assert np.array_equal(clean, fresh) and not np.array_equal(clean, noisy)
+
+
+def test_configured_noise_is_on_from_the_start(camera_world):
+    settings = WorldSettings(noise=NoiseSettings(fog=0.3))
+    world = World(settings)
+    _, image = world.reset(23)
+    world.close()
+    _, clean = camera_world.reset(23, noise=False)
+    water = np.array(settings.noise.fog_color, float)
+    # Fog pulls every pixel toward the water colour: the foggy frame is closer to it than the clean one.
+    assert np.abs(image - water).mean() < 0.8 * np.abs(clean - water).mean()
