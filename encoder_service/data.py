@@ -52,8 +52,9 @@ class CMVAEDataset:
             self._labels.append(labels)
         sizes = [len(images) for images in self._images]
         if sum(sizes) != self.meta["count"]:
-            raise DatasetFormatError(f"{self.root}: meta.json says count={self.meta['count']} "
-                                     f"but the shards hold {sum(sizes)} rows")
+            raise DatasetFormatError(
+                f"{self.root}: meta.json says count={self.meta['count']} but the shards hold {sum(sizes)} rows"
+            )
         #: first global row of each shard, plus the end
         self._starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
@@ -103,8 +104,12 @@ def _read_meta(root: Path) -> dict[str, Any]:
         meta = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise DatasetFormatError(f"{path} is not valid JSON: {exc}") from None
-    expected = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "image_shape": list(IMAGE_SHAPE),
-                "label_names": list(LABEL_NAMES)}
+    expected = {
+        "format": DATASET_FORMAT,
+        "version": DATASET_VERSION,
+        "image_shape": list(IMAGE_SHAPE),
+        "label_names": list(LABEL_NAMES),
+    }
     for key, value in expected.items():
         if meta.get(key) != value:
             raise DatasetFormatError(f"{path}: {key} is {meta.get(key)!r}, expected {value!r}")
@@ -124,8 +129,10 @@ def _open_shard(root: Path, shard: str) -> tuple[np.ndarray, np.ndarray]:
             raise DatasetFormatError(f"shard file {path} is missing")
         array = np.load(path, mmap_mode="r")
         if array.dtype != dtype or array.ndim != 1 + len(shape) or tuple(array.shape[1:]) != shape:
-            raise DatasetFormatError(f"{path}: expected {np.dtype(dtype).name} (n, {', '.join(map(str, shape))}), "
-                                     f"got {array.dtype} {array.shape}")
+            raise DatasetFormatError(
+                f"{path}: expected {np.dtype(dtype).name} (n, {', '.join(map(str, shape))}), "
+                f"got {array.dtype} {array.shape}"
+            )
         arrays.append(array)
     images, labels = arrays
     if len(images) != len(labels):
@@ -144,8 +151,13 @@ def split_indices(count: int, val_fraction: float, seed: int) -> tuple[np.ndarra
     return np.sort(permutation[n_val:]), np.sort(permutation[:n_val])
 
 
-def iter_batches(dataset: CMVAEDataset, indices: np.ndarray, batch_size: int,
-                 shuffle_seed: int | tuple[int, ...] | None = None, max_batches: int = 0) -> Iterator[Batch]:
+def iter_batches(
+    dataset: CMVAEDataset,
+    indices: np.ndarray,
+    batch_size: int,
+    shuffle_seed: int | tuple[int, ...] | None = None,
+    max_batches: int = 0,
+) -> Iterator[Batch]:
     """Batches over ``indices``; shuffled by ``shuffle_seed`` (e.g. (seed, epoch)) when given; the last may be short.
 
     ``max_batches`` > 0 stops early (quick runs); 0 means all.

@@ -67,8 +67,15 @@ class EncodedSet:
 
 
 @torch.inference_mode()
-def encode_rows(model: CMVAE, dataset: CMVAEDataset, rows: np.ndarray, batch_size: int, device: torch.device,
-                reference: CMVAEDataset | None = None, desc: str = "encoding") -> EncodedSet:
+def encode_rows(
+    model: CMVAE,
+    dataset: CMVAEDataset,
+    rows: np.ndarray,
+    batch_size: int,
+    device: torch.device,
+    reference: CMVAEDataset | None = None,
+    desc: str = "encoding",
+) -> EncodedSet:
     """Run ``model`` (z = mu) over ``rows``; ``reference`` (same poses) adds the reconstruction error against it."""
     mus, predictions, labels = [], [], []
     abs_error, abs_error_reference, pixels = 0.0, 0.0, 0
@@ -85,7 +92,9 @@ def encode_rows(model: CMVAE, dataset: CMVAEDataset, rows: np.ndarray, batch_siz
         predictions.append(denormalise_labels(outputs.state.float().cpu().numpy()))
         labels.append(batch.labels)
     return EncodedSet(
-        mu=np.concatenate(mus), predicted=np.concatenate(predictions), labels=np.concatenate(labels),
+        mu=np.concatenate(mus),
+        predicted=np.concatenate(predictions),
+        labels=np.concatenate(labels),
         image_mae=abs_error / pixels,
         image_mae_vs_reference=abs_error_reference / pixels if reference is not None else None,
     )
@@ -97,8 +106,10 @@ def require_same_poses(clean: CMVAEDataset, noisy: CMVAEDataset, rows: np.ndarra
         raise ValueError(f"noisy dataset {noisy.root} holds {len(noisy)} rows, fewer than the {len(rows)} evaluated")
     differs = np.flatnonzero(~np.isclose(clean.read_labels(rows), noisy.read_labels(rows), atol=1e-4).all(axis=1))
     if differs.size:
-        raise ValueError(f"{clean.root} and {noisy.root} do not show the same poses (first difference at row "
-                         f"{int(rows[differs[0]])}); render both with the same seed")
+        raise ValueError(
+            f"{clean.root} and {noisy.root} do not show the same poses (first difference at row "
+            f"{int(rows[differs[0]])}); render both with the same seed"
+        )
 
 
 def state_metrics(encoded: EncodedSet) -> dict[str, dict[str, float]]:
@@ -116,37 +127,59 @@ def _decode(model: CMVAE, z: np.ndarray, device: torch.device) -> np.ndarray:
     return tensor_to_images(model.decode_image(torch.from_numpy(z.astype(np.float32)).to(device)))
 
 
-def _write_figures(model: CMVAE, dataset: CMVAEDataset, rows: np.ndarray, encoded: EncodedSet, out: Path,
-                   device: torch.device) -> list[str]:
+def _write_figures(
+    model: CMVAE, dataset: CMVAEDataset, rows: np.ndarray, encoded: EncodedSet, out: Path, device: torch.device
+) -> list[str]:
     shown = rows[:N_SHOWN]
     originals = dataset.read(shown).images
-    paths = [figures.image_grid([list(originals), list(_decode(model, encoded.mu[: len(shown)], device))],
-                                out / "reconstructions.png", "Frames (top) and their reconstructions from mu (bottom)",
-                                row_labels=["input", "decoded"])]
+    paths = [
+        figures.image_grid(
+            [list(originals), list(_decode(model, encoded.mu[: len(shown)], device))],
+            out / "reconstructions.png",
+            "Frames (top) and their reconstructions from mu (bottom)",
+            row_labels=["input", "decoded"],
+        )
+    ]
     near, far = int(np.argmin(encoded.labels[:, 0])), int(np.argmax(encoded.labels[:, 0]))
     weights = np.linspace(0.0, 1.0, 8)[:, None]
     path_z = (1 - weights) * encoded.mu[near] + weights * encoded.mu[far]
-    paths.append(figures.image_grid(
-        [list(dataset.read(rows[[near, far]]).images), list(_decode(model, path_z, device))],
-        out / "interpolation.png",
-        f"Latent interpolation: d = {encoded.labels[near, 0]:.1f} m to {encoded.labels[far, 0]:.1f} m",
-        row_labels=["endpoints", "decoded"]))
+    paths.append(
+        figures.image_grid(
+            [list(dataset.read(rows[[near, far]]).images), list(_decode(model, path_z, device))],
+            out / "interpolation.png",
+            f"Latent interpolation: d = {encoded.labels[near, 0]:.1f} m to {encoded.labels[far, 0]:.1f} m",
+            row_labels=["endpoints", "decoded"],
+        )
+    )
     base = encoded.mu.mean(axis=0)
     sweeps = []
     for dim in range(model.n_z):
         z = np.repeat(base[None], len(SWEEP), axis=0)
         z[:, dim] = SWEEP
         sweeps.append(list(_decode(model, z, device)))
-    paths.append(figures.image_grid(sweeps, out / "latent_sweeps.png",
-                                    "Each latent swept alone over the prior's +-3 sigma (others at their mean)",
-                                    row_labels=[f"z[{dim}]" for dim in range(model.n_z)],
-                                    col_labels=[f"{value:+.1f}" for value in SWEEP]))
+    paths.append(
+        figures.image_grid(
+            sweeps,
+            out / "latent_sweeps.png",
+            "Each latent swept alone over the prior's +-3 sigma (others at their mean)",
+            row_labels=[f"z[{dim}]" for dim in range(model.n_z)],
+            col_labels=[f"{value:+.1f}" for value in SWEEP],
+        )
+    )
     paths.append(figures.state_scatter(encoded.predicted, encoded.labels, LABEL_NAMES, out / "state_scatter.png"))
     return [str(path) for path in paths]
 
 
-def _noise_report(model: CMVAE, clean: CMVAEDataset, noisy: CMVAEDataset, rows: np.ndarray, clean_set: EncodedSet,
-                  settings: EvalEncoderSettings, out: Path, device: torch.device) -> tuple[dict[str, Any], list[str]]:
+def _noise_report(
+    model: CMVAE,
+    clean: CMVAEDataset,
+    noisy: CMVAEDataset,
+    rows: np.ndarray,
+    clean_set: EncodedSet,
+    settings: EvalEncoderSettings,
+    out: Path,
+    device: torch.device,
+) -> tuple[dict[str, Any], list[str]]:
     noisy_set = encode_rows(model, noisy, rows, settings.batch_size, device, reference=clean, desc="noisy")
     drift = np.abs(clean_set.mu - noisy_set.mu).mean(axis=0)
     report = {
@@ -158,12 +191,19 @@ def _noise_report(model: CMVAE, clean: CMVAEDataset, noisy: CMVAEDataset, rows: 
         "latent_drift_all": [float(value) for value in drift],
     }
     shown = rows[:N_SHOWN]
-    grid = [list(clean.read(shown).images), list(noisy.read(shown).images),
-            list(_decode(model, clean_set.mu[: len(shown)], device)),
-            list(_decode(model, noisy_set.mu[: len(shown)], device))]
+    grid = [
+        list(clean.read(shown).images),
+        list(noisy.read(shown).images),
+        list(_decode(model, clean_set.mu[: len(shown)], device)),
+        list(_decode(model, noisy_set.mu[: len(shown)], device)),
+    ]
     paths = [
-        figures.image_grid(grid, out / "noise_comparison.png", "Clean and noisy frames of the same poses",
-                           row_labels=["clean", "noisy", "decoded clean", "decoded noisy"]),
+        figures.image_grid(
+            grid,
+            out / "noise_comparison.png",
+            "Clean and noisy frames of the same poses",
+            row_labels=["clean", "noisy", "decoded clean", "decoded noisy"],
+        ),
         figures.drift_bars(drift, out / "latent_drift.png"),
     ]
     return report, [str(path) for path in paths]
@@ -205,6 +245,12 @@ def run(settings: EvalEncoderSettings) -> int:
     metrics["figures"] = written
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     mae = metrics["mae"]
-    log.info("MAE d %.3f m, theta %.2f deg, psi %.1f deg; image MAE %.1f/255; wrote %s", mae["d_m"], mae["theta_deg"],
-             mae["psi_deg"], encoded.image_mae, out / "metrics.json")
+    log.info(
+        "MAE d %.3f m, theta %.2f deg, psi %.1f deg; image MAE %.1f/255; wrote %s",
+        mae["d_m"],
+        mae["theta_deg"],
+        mae["psi_deg"],
+        encoded.image_mae,
+        out / "metrics.json",
+    )
     return 0

@@ -18,8 +18,9 @@ import numpy as np  # noqa: E402
 UNITS = {"d": "m", "theta": "deg", "psi": "deg"}
 
 
-def image_grid(rows: Sequence[np.ndarray], path: Path, title: str, row_labels: Sequence[str] = (),
-               col_labels: Sequence[str] = ()) -> Path:
+def image_grid(
+    rows: Sequence[np.ndarray], path: Path, title: str, row_labels: Sequence[str] = (), col_labels: Sequence[str] = ()
+) -> Path:
     """Save a grid of uint8 frames: ``rows[r][c]`` is one (64, 64, 3) image."""
     n_rows, n_cols = len(rows), max(len(row) for row in rows)
     fig, axes = plt.subplots(n_rows, n_cols, figsize=(1.3 * n_cols + 0.8, 1.3 * n_rows + 0.6), squeeze=False)

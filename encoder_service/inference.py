@@ -50,8 +50,9 @@ def _traced_or_eager(encoder: torch.nn.Module, device: torch.device) -> Encoder:
 class LatentEncoder:
     """Loads a CMVAE checkpoint and encodes uint8 frames (N, 64, 64, 3) into (mu, logvar), each (N, n_z) float32."""
 
-    def __init__(self, checkpoint: str | Path = DEFAULT_CHECKPOINT, device: str = "cpu",
-                 threads: int | None = None) -> None:
+    def __init__(
+        self, checkpoint: str | Path = DEFAULT_CHECKPOINT, device: str = "cpu", threads: int | None = None
+    ) -> None:
         path = Path(checkpoint)
         if not path.is_file():
             raise FileNotFoundError(

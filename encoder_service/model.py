@@ -147,8 +147,9 @@ class StateDecoder(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(1, 64), nn.ReLU(inplace=True), nn.Linear(64, 32), nn.ReLU(inplace=True),
-                                 nn.Linear(32, 1))
+        self.mlp = nn.Sequential(
+            nn.Linear(1, 64), nn.ReLU(inplace=True), nn.Linear(64, 32), nn.ReLU(inplace=True), nn.Linear(32, 1)
+        )
 
     def forward(self, z_i: torch.Tensor) -> torch.Tensor:
         return self.mlp(z_i)
@@ -208,24 +209,29 @@ class LossParts:
 
 
 def cmvae_loss(outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor, beta: float) -> LossParts:
-    """Image MSE (pixels in [-1, 1]) + state MSE (normalised labels) + beta * KL.
+    """Image MSE (pixels in [-1, 1]) + state MSE (normalised labels) + beta * KL per image value.
 
-    Both MSEs are means over their elements; the KL is summed over latent
-    dimensions and averaged over the batch, the reference's scaling, under
-    which its beta = 8 is a strong pull towards the prior that only the
-    latents the decoders need resist.
+    Both MSEs are means over their elements, so the KL (summed over latent
+    dimensions, averaged over the batch) is divided by the number of values
+    in one image: beta then weighs the KL against the image term as in a
+    VAE whose reconstruction error is summed over pixels. Without it, the
+    SPEC's beta = 8 outweighs a per-pixel mean MSE by four orders of
+    magnitude and the latent collapses onto the prior (every prediction at
+    the label mean; measured: psi MAE 90 deg). See docs/encoder.md.
     """
     image = F.mse_loss(outputs.image, images)
     state = F.mse_loss(outputs.state, labels)
     kl = (-0.5 * (1.0 + outputs.logvar - outputs.mu.pow(2) - outputs.logvar.exp()).sum(dim=1)).mean()
-    return LossParts(total=image + state + beta * kl, image=image, state=state, kl=kl)
+    kl_per_value = kl / images[0].numel()
+    return LossParts(total=image + state + beta * kl_per_value, image=image, state=state, kl=kl)
 
 
 # ---------------------------------------------------------------- checkpoints
 
 
-def make_checkpoint(model: CMVAE, beta: float, epoch: int, val_loss: float, metrics: dict[str, float],
-                    **extra: Any) -> dict[str, Any]:
+def make_checkpoint(
+    model: CMVAE, beta: float, epoch: int, val_loss: float, metrics: dict[str, float], **extra: Any
+) -> dict[str, Any]:
     """The checkpoint dict: plain types and CPU tensors only, so ``torch.load(weights_only=True)`` reads it.
 
     ``epoch`` counts completed epochs (1 after the first); ``extra`` carries

@@ -93,16 +93,30 @@ def _mean(totals: dict[str, float], count: int) -> dict[str, float]:
     return {key: value / max(count, 1) for key, value in totals.items()}
 
 
-def _train_epoch(model: CMVAE, optimiser: torch.optim.Optimizer, dataset: CMVAEDataset, indices: np.ndarray,
-                 settings: TrainEncoderSettings, epoch: int, device: torch.device) -> dict[str, float]:
+def _train_epoch(
+    model: CMVAE,
+    optimiser: torch.optim.Optimizer,
+    dataset: CMVAEDataset,
+    indices: np.ndarray,
+    settings: TrainEncoderSettings,
+    epoch: int,
+    device: torch.device,
+) -> dict[str, float]:
     model.train()
     totals: dict[str, float] = {}
     seen = 0
-    batches = iter_batches(dataset, indices, settings.batch_size, (settings.seed, epoch),
-                           settings.max_batches_per_epoch)
+    batches = iter_batches(
+        dataset, indices, settings.batch_size, (settings.seed, epoch), settings.max_batches_per_epoch
+    )
     n_batches = count_batches(len(indices), settings.batch_size, settings.max_batches_per_epoch)
-    with tqdm(prefetch(batches), total=n_batches, desc=f"epoch {epoch + 1}/{settings.epochs}", unit="batch",
-              leave=False, dynamic_ncols=True) as bar:
+    with tqdm(
+        prefetch(batches),
+        total=n_batches,
+        desc=f"epoch {epoch + 1}/{settings.epochs}",
+        unit="batch",
+        leave=False,
+        dynamic_ncols=True,
+    ) as bar:
         for batch in bar:
             images = images_to_tensor(batch.images, device)
             labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
@@ -119,8 +133,9 @@ def _train_epoch(model: CMVAE, optimiser: torch.optim.Optimizer, dataset: CMVAED
 
 
 @torch.inference_mode()
-def validate(model: CMVAE, dataset: CMVAEDataset, indices: np.ndarray, batch_size: int, beta: float,
-             device: torch.device) -> dict[str, float]:
+def validate(
+    model: CMVAE, dataset: CMVAEDataset, indices: np.ndarray, batch_size: int, beta: float, device: torch.device
+) -> dict[str, float]:
     """Mean losses on ``indices`` with z = mu, plus the MAE of each label in physical units."""
     model.eval()
     totals: dict[str, float] = {}
@@ -168,8 +183,14 @@ def run(settings: TrainEncoderSettings) -> int:
     train_rows, val_rows = split_indices(len(dataset), settings.val_fraction, settings.seed)
     if len(val_rows) == 0:
         raise ValueError("val_fraction is 0: early stopping and best.pt need a validation split")
-    log.info("dataset %s: %d rows (%d train, %d validation), device %s", settings.dataset, len(dataset),
-             len(train_rows), len(val_rows), device)
+    log.info(
+        "dataset %s: %d rows (%d train, %d validation), device %s",
+        settings.dataset,
+        len(dataset),
+        len(train_rows),
+        len(val_rows),
+        device,
+    )
 
     model = CMVAE(n_z=settings.n_z).to(device=device, memory_format=torch.channels_last)
     optimiser = torch.optim.Adam(model.parameters(), lr=settings.lr)
@@ -209,22 +230,43 @@ def run(settings: TrainEncoderSettings) -> int:
                 for key, value in metrics.items():
                     writer.add_scalar(f"val/{key}", value, epoch + 1)
                 writer.flush()
-            log.info("epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)",
-                     epoch + 1, train_metrics["total"], val_loss, metrics["mae_d"], metrics["mae_theta"],
-                     metrics["mae_psi"])
+            log.info(
+                "epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)",
+                epoch + 1,
+                train_metrics["total"],
+                val_loss,
+                metrics["mae_d"],
+                metrics["mae_theta"],
+                metrics["mae_psi"],
+            )
             if val_loss < best_val:
                 best_val, best_epoch = val_loss, epoch + 1
                 _save(make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics), best_path)
             stop = stopper.update(val_loss)
-            _save(make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics,
-                                  optimizer=optimiser.state_dict(), torch_rng_state=torch.get_rng_state(),
-                                  seed=settings.seed, best_val_loss=best_val, best_epoch=best_epoch,
-                                  early_stopping={"reference": stopper.reference,
-                                                  "epochs_without_gain": stopper.epochs_without_gain}), last_path)
+            _save(
+                make_checkpoint(
+                    model,
+                    settings.beta,
+                    epoch + 1,
+                    val_loss,
+                    metrics,
+                    optimizer=optimiser.state_dict(),
+                    torch_rng_state=torch.get_rng_state(),
+                    seed=settings.seed,
+                    best_val_loss=best_val,
+                    best_epoch=best_epoch,
+                    early_stopping={"reference": stopper.reference, "epochs_without_gain": stopper.epochs_without_gain},
+                ),
+                last_path,
+            )
             if stop:
                 stopped_early = True
-                log.info("early stop after epoch %d: no %.1f%% gain for %d epochs", epoch + 1,
-                         100 * settings.min_rel_gain, settings.patience)
+                log.info(
+                    "early stop after epoch %d: no %.1f%% gain for %d epochs",
+                    epoch + 1,
+                    100 * settings.min_rel_gain,
+                    settings.patience,
+                )
                 break
     finally:
         if writer is not None:

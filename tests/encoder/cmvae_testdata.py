@@ -36,8 +36,9 @@ def draw_frames(labels: np.ndarray) -> np.ndarray:
 def write_dataset(root: Path, count: int, seed: int, shard_size: int, noise: float = 0.0) -> Path:
     """Write ``count`` frames in shards of ``shard_size``; ``noise`` > 0 adds Gaussian pixel noise (same poses)."""
     rng = np.random.default_rng(seed)
-    labels = np.stack([rng.uniform(2, 10, count), rng.uniform(-ALPHA_DEG, ALPHA_DEG, count),
-                       rng.uniform(-180, 180, count)], axis=1).astype(np.float32)
+    labels = np.stack(
+        [rng.uniform(2, 10, count), rng.uniform(-ALPHA_DEG, ALPHA_DEG, count), rng.uniform(-180, 180, count)], axis=1
+    ).astype(np.float32)
     poses = rng.normal(size=(count, 12)).astype(np.float32)
     frames = draw_frames(labels)
     if noise > 0:
@@ -52,8 +53,16 @@ def write_dataset(root: Path, count: int, seed: int, shard_size: int, noise: flo
         np.save(root / f"{name}.labels.npy", labels[part])
         np.save(root / f"{name}.poses.npy", poses[part])
         shards.append(name)
-    meta = {"format": "swimm-cmvae-dataset", "version": 1, "count": count, "seed": seed, "image_shape": [64, 64, 3],
-            "shard_size": shard_size, "label_names": ["d", "theta", "psi"], "pose_names": POSE_NAMES,
-            "shards": shards}
+    meta = {
+        "format": "swimm-cmvae-dataset",
+        "version": 1,
+        "count": count,
+        "seed": seed,
+        "image_shape": [64, 64, 3],
+        "shard_size": shard_size,
+        "label_names": ["d", "theta", "psi"],
+        "pose_names": POSE_NAMES,
+        "shards": shards,
+    }
     (root / "meta.json").write_text(json.dumps(meta))
     return root

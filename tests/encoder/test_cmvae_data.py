@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cmvae_testdata import write_dataset
 
 from encoder_service.data import (
     CMVAEDataset,
@@ -18,6 +17,7 @@ from encoder_service.data import (
     prefetch,
     split_indices,
 )
+from tests.encoder.cmvae_testdata import write_dataset
 
 
 @pytest.fixture(scope="module")
@@ -74,8 +74,9 @@ def _copy_with(dataset_dir: Path, target: Path, **changes: object) -> Path:
         ({"shards": []}, "non-empty list"),
     ],
 )
-def test_bad_meta_is_refused_with_the_problem_named(dataset_dir: Path, tmp_path: Path, changes: dict,
-                                                    message: str) -> None:
+def test_bad_meta_is_refused_with_the_problem_named(
+    dataset_dir: Path, tmp_path: Path, changes: dict, message: str
+) -> None:
     with pytest.raises(DatasetFormatError, match=message):
         CMVAEDataset(_copy_with(dataset_dir, tmp_path / "bad", **changes))
 

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from cmvae_testdata import write_dataset
 
 from encoder_service.evaluate import EvalEncoderSettings, run
 from encoder_service.model import CMVAE, make_checkpoint
+from tests.encoder.cmvae_testdata import write_dataset
 
 FIGURES = ["reconstructions.png", "interpolation.png", "latent_sweeps.png", "state_scatter.png"]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -33,8 +33,15 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 def test_clean_and_noisy_metrics_and_figures(setup: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "eval"
-    settings = EvalEncoderSettings(checkpoint=str(setup["checkpoint"]), dataset=str(setup["clean"]), out=str(out),
-                                   noisy_dataset=str(setup["noisy"]), batch_size=16, max_images=30, device="cpu")
+    settings = EvalEncoderSettings(
+        checkpoint=str(setup["checkpoint"]),
+        dataset=str(setup["clean"]),
+        out=str(out),
+        noisy_dataset=str(setup["noisy"]),
+        batch_size=16,
+        max_images=30,
+        device="cpu",
+    )
     assert run(settings) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["count"] == 30 and metrics["n_z"] == 10 and metrics["dataset_seed"] == 5
@@ -60,8 +67,16 @@ def test_clean_and_noisy_metrics_and_figures(setup: dict[str, Path], tmp_path: P
 
 def test_identical_datasets_drift_by_exactly_zero(setup: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "same"
-    run(EvalEncoderSettings(checkpoint=str(setup["checkpoint"]), dataset=str(setup["clean"]), out=str(out),
-                            noisy_dataset=str(setup["clean"]), batch_size=64, device="cpu"))
+    run(
+        EvalEncoderSettings(
+            checkpoint=str(setup["checkpoint"]),
+            dataset=str(setup["clean"]),
+            out=str(out),
+            noisy_dataset=str(setup["clean"]),
+            batch_size=64,
+            device="cpu",
+        )
+    )
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["count"] == 40
     assert np.allclose(metrics["noisy"]["latent_drift_all"], 0.0, atol=1e-6)
@@ -71,14 +86,20 @@ def test_identical_datasets_drift_by_exactly_zero(setup: dict[str, Path], tmp_pa
 
 
 def test_a_noisy_dataset_of_other_poses_is_refused(setup: dict[str, Path], tmp_path: Path) -> None:
-    settings = EvalEncoderSettings(checkpoint=str(setup["checkpoint"]), dataset=str(setup["clean"]),
-                                   out=str(tmp_path / "x"), noisy_dataset=str(setup["other"]), device="cpu")
+    settings = EvalEncoderSettings(
+        checkpoint=str(setup["checkpoint"]),
+        dataset=str(setup["clean"]),
+        out=str(tmp_path / "x"),
+        noisy_dataset=str(setup["other"]),
+        device="cpu",
+    )
     with pytest.raises(ValueError, match="same seed"):
         run(settings)
 
 
 def test_a_missing_checkpoint_names_the_command(setup: dict[str, Path], tmp_path: Path) -> None:
-    settings = EvalEncoderSettings(checkpoint=str(tmp_path / "none.pt"), dataset=str(setup["clean"]),
-                                   out=str(tmp_path / "x"))
+    settings = EvalEncoderSettings(
+        checkpoint=str(tmp_path / "none.pt"), dataset=str(setup["clean"]), out=str(tmp_path / "x")
+    )
     with pytest.raises(FileNotFoundError, match="swimm train-encoder"):
         run(settings)

@@ -18,13 +18,20 @@ def dataset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when MuJoCo is first imported
     from sim_service.dataset import write_dataset
 
-    return write_dataset(tmp_path_factory.mktemp("cmvae-train") / "frames", count=128, seed=3, shard_size=48,
-                         progress=False)
+    return write_dataset(
+        tmp_path_factory.mktemp("cmvae-train") / "frames", count=128, seed=3, shard_size=48, progress=False
+    )
 
 
 def _settings(dataset_dir: Path, out: Path, **overrides: object) -> TrainEncoderSettings:
-    base = {"dataset": str(dataset_dir), "out": str(out), "epochs": 2, "val_fraction": 0.25, "device": "cpu",
-            "tensorboard": False}
+    base = {
+        "dataset": str(dataset_dir),
+        "out": str(out),
+        "epochs": 2,
+        "val_fraction": 0.25,
+        "device": "cpu",
+        "tensorboard": False,
+    }
     return TrainEncoderSettings(**{**base, **overrides})
 
 
@@ -54,8 +61,9 @@ def test_two_epochs_lower_the_validation_loss_and_write_safe_checkpoints(dataset
     assert any((out / "tb").iterdir())  # TensorBoard event file
 
 
-def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run(dataset_dir: Path,
-                                                                               tmp_path: Path) -> None:
+def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run(
+    dataset_dir: Path, tmp_path: Path
+) -> None:
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
     run(_settings(dataset_dir, straight))
     run(_settings(dataset_dir, resumed, epochs=1))

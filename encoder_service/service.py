@@ -1,0 +1,273 @@
+"""`swimm encoder`: observations in, latents out, batched across environments.
+
+Routing: the learner picks one live encoder per environment (rendezvous
+hashing over the encoders' liveliness tokens) and the sim publishes each
+frame on ``<ns>/<channel>/<env>/obs/<encoder id>``. This encoder subscribes
+only to its own id, so each frame crosses the network once and is encoded
+once. When an encoder dies its token goes; the learner's next retry routes
+to a live one (docs/encoder_service.md gives the bound).
+
+Batching (:class:`LatentBatcher`): the Zenoh callback only queues raw
+bytes; one worker thread takes the first waiting frame, gathers more until
+``max_batch`` frames or ``max_wait_ms`` have passed, encodes them in one
+forward pass and publishes each latent with its telemetry passed through.
+Frames that cannot be decoded or have the wrong shape or dtype are refused
+with a logged reason, counted, and reported on the env's ``err`` key; the
+service keeps serving.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
+from services.keys import Keys
+from services.lifecycle import serve_until_signalled
+from services.messages import BadMessage, ErrorMsg, LatentMsg, ObservationMsg, unpack
+from services.metrics import Metrics, MetricsPublisher
+from services.presence import announce
+from services.session import open_session
+from services.settings import ZenohSettings
+
+log = logging.getLogger(__name__)
+IMAGE_SHAPE = (64, 64, 3)
+
+
+@dataclass
+class EncoderSettings:
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
+    checkpoint: str = ""  # a CMVAE checkpoint; default: the shipped model
+    max_batch: int = 32  # frames per forward pass
+    max_wait_ms: float = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
+    device: str = "cpu"
+    threads: int = 0  # torch threads; 0 = torch's default
+    ident: str = ""  # this encoder's id in routing keys and liveliness; default enc-<pid>
+    metrics_period_s: float = 2.0  # how often counters go out on <ns>/metrics/encoder/<id>
+
+
+@dataclass
+class _Frame:
+    key: str
+    payload: bytes
+    received_at: float
+
+
+class LatentBatcher:
+    """Gathers frames into batches: the first waits at most ``max_wait_ms`` for up to ``max_batch - 1`` more.
+
+    Frames already queued join at once, so under load batches fill without
+    waiting; the wait only matters when frames trickle in.
+    """
+
+    def __init__(self, max_batch: int, max_wait_ms: float) -> None:
+        if max_batch < 1 or max_wait_ms < 0:
+            raise ValueError(f"max_batch must be >= 1 and max_wait_ms >= 0 (got {max_batch}, {max_wait_ms})")
+        self.max_batch = max_batch
+        self.max_wait_s = max_wait_ms / 1e3
+        self.inbox: queue.Queue[_Frame | None] = queue.Queue()
+
+    def put(self, frame: _Frame) -> None:
+        self.inbox.put(frame)
+
+    def next_batch(self, idle_timeout_s: float = 0.5) -> list[_Frame] | None:
+        """A batch, [] when idle for ``idle_timeout_s``, or None once closed."""
+        try:
+            first = self.inbox.get(timeout=idle_timeout_s)
+        except queue.Empty:
+            return []
+        if first is None:
+            return None
+        batch = [first]
+        deadline = time.perf_counter() + self.max_wait_s
+        while len(batch) < self.max_batch:
+            left = deadline - time.perf_counter()
+            try:
+                item = self.inbox.get(timeout=left) if left > 0 else self.inbox.get_nowait()
+            except queue.Empty:
+                break
+            if item is None:
+                self.inbox.put(None)  # finish this batch, stop on the next call
+                break
+            batch.append(item)
+        return batch
+
+    def close(self) -> None:
+        """Stop after the frames already queued have been served (a drain, not a drop)."""
+        self.inbox.put(None)
+
+
+class EncoderMetrics(Metrics):
+    """The shared counters and latency percentiles, plus batch sizes and throughput over a recent window."""
+
+    def __init__(self, window_s: float = 10.0) -> None:
+        super().__init__()
+        self._window_s = window_s
+        self._batches: deque[tuple[float, int]] = deque()  # (time, size), the last window_s seconds
+
+    def record_batch(self, size: int) -> None:
+        self.count("batches")
+        self.count("images", size)
+        now = time.monotonic()
+        with self._lock:
+            self._batches.append((now, size))
+            while self._batches and self._batches[0][0] < now - self._window_s:
+                self._batches.popleft()
+
+    def snapshot(self) -> dict[str, float]:
+        snap = super().snapshot()
+        now = time.monotonic()
+        with self._lock:
+            sizes = [size for at, size in self._batches if at >= now - self._window_s]
+        snap["batch_size_mean"] = float(np.mean(sizes)) if sizes else 0.0
+        snap["batch_size_max"] = float(max(sizes, default=0))
+        snap["images_per_s"] = sum(sizes) / self._window_s
+        return snap
+
+
+@dataclass(frozen=True)
+class _Decoded:
+    frame: _Frame
+    channel: str
+    obs: ObservationMsg
+
+
+class EncoderService:
+    def __init__(self, settings: EncoderSettings) -> None:
+        self.settings = settings
+        self.keys = Keys(settings.zenoh.namespace)
+        self.ident = settings.ident or f"enc-{os.getpid()}"
+        self.encoder = LatentEncoder(
+            settings.checkpoint or DEFAULT_CHECKPOINT, settings.device, settings.threads or None
+        )
+        self.batcher = LatentBatcher(settings.max_batch, settings.max_wait_ms)
+        self.metrics = EncoderMetrics()
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._worker = threading.Thread(target=self._work, name="encoder-worker", daemon=True)
+
+    @property
+    def inbox_key(self) -> str:
+        return self.keys.encoder_inbox(self.ident)
+
+    def start(self) -> None:
+        self.session = open_session(self.settings.zenoh, role="encoder")
+        self._worker.start()
+        self._subscriber = self.session.declare_subscriber(self.inbox_key, self._on_frame)
+        self._metrics_publisher = MetricsPublisher(
+            self.session, self.keys, "encoder", self.ident, self.metrics, self.settings.metrics_period_s
+        )
+        # Announce last: a learner routes here only once this encoder can hear it.
+        self._token = announce(self.session, self.keys, "encoder", self.ident)
+        log.info(
+            "encoder %s serving %s with %s (max batch %d, max wait %.1f ms)",
+            self.ident,
+            self.inbox_key,
+            self.encoder.checkpoint,
+            self.settings.max_batch,
+            self.settings.max_wait_ms,
+        )
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        """Zenoh thread: copy and queue only; decoding and torch run on the worker."""
+        self.batcher.put(_Frame(str(sample.key_expr), sample.payload.to_bytes(), time.perf_counter()))
+
+    def _work(self) -> None:
+        while (batch := self.batcher.next_batch()) is not None:
+            if not batch:
+                continue
+            try:
+                self._encode(batch)
+            except Exception:  # a bug or a torch failure on one batch must not end the service
+                self.metrics.count("errors_internal")
+                log.exception("could not encode a batch of %d frames", len(batch))
+
+    def _decode(self, frame: _Frame) -> _Decoded | None:
+        try:
+            channel, env = self.keys.parse_env_key(frame.key)
+        except ValueError as exc:
+            self._refuse(None, f"frame on an unexpected key: {exc}", frame.payload)
+            return None
+        try:
+            obs = ObservationMsg.decode(frame.payload, IMAGE_SHAPE)
+            if obs.env != env:
+                raise BadMessage(f"frame of env {obs.env!r} arrived on the key of env {env!r}")
+        except BadMessage as exc:
+            self._refuse((channel, env), str(exc), frame.payload)
+            return None
+        return _Decoded(frame, channel, obs)
+
+    def _encode(self, batch: list[_Frame]) -> None:
+        decoded = [item for frame in batch if (item := self._decode(frame)) is not None]
+        if not decoded:
+            return
+        mu, logvar = self.encoder.encode(np.stack([item.obs.image for item in decoded]))
+        self.metrics.record_batch(len(decoded))
+        for row, item in enumerate(decoded):
+            obs = item.obs
+            latent = LatentMsg(
+                env=obs.env,
+                ep=obs.ep,
+                seq=obs.seq,
+                telemetry=obs.telemetry,
+                mu=tuple(mu[row].tolist()),
+                logvar=tuple(logvar[row].tolist()),
+                encoder=self.ident,
+            )
+            self._publisher(self.keys.latent(item.channel, obs.env)).put(latent.encode())
+            self.metrics.observe_ms("latency", (time.perf_counter() - item.frame.received_at) * 1e3)
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        if key not in self._publishers:
+            self._publishers[key] = self.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+        return self._publishers[key]
+
+    def _refuse(self, where: tuple[str, str] | None, reason: str, payload: bytes) -> None:
+        """Count, log and, when the env is known, tell its err key why (with the frame's ep/seq if readable)."""
+        self.metrics.count("errors_refused")
+        log.warning("refused a frame%s: %s", f" of {where[0]}/{where[1]}" if where else "", reason)
+        if where is None:
+            return
+        ep, seq = _episode_and_seq(payload)
+        try:
+            # The encoder cannot know who drives the env (frames come from the sim), so the refusal is addressed
+            # to no one in particular: whoever waits for this (ep, seq) takes it.
+            refusal = ErrorMsg(f"encoder {self.ident} refused the frame: {reason}", ep, seq, sender="")
+            self.session.put(self.keys.err(*where), refusal.encode())
+        except zenoh.ZError as exc:
+            log.warning("could not report the refusal on %s: %s", self.keys.err(*where), exc)
+
+    def stop(self) -> None:
+        self._token.undeclare()  # leave the roster first so learners route elsewhere
+        self._subscriber.undeclare()
+        self.batcher.close()
+        self._worker.join(timeout=10)
+        self._metrics_publisher.close()
+        for publisher in self._publishers.values():
+            publisher.undeclare()
+        self.session.close()
+        log.info("encoder %s stopped: %s", self.ident, self.metrics.snapshot())
+
+
+def _episode_and_seq(payload: bytes) -> tuple[int, int]:
+    """The (ep, seq) of a refused frame when its map can be read, else (0, 0), so the refusal names its step."""
+    try:
+        body = unpack(payload)
+    except BadMessage:
+        return 0, 0
+    ep, seq = body.get("ep"), body.get("seq")
+    valid = all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in (ep, seq))
+    return (ep, seq) if valid else (0, 0)
+
+
+def run(settings: EncoderSettings) -> None:
+    serve_until_signalled(EncoderService(settings))

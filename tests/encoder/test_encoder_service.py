@@ -1,0 +1,210 @@
+"""`swimm encoder` in-process against a real `swimm router` process: latents, batching and refusals.
+
+The frames are published by a test session exactly as the sim publishes
+them (an ObservationMsg on ``<ns>/<channel>/<env>/obs/<encoder id>``), so
+what is tested is the service's own routing, batching, codec and
+error handling over real Zenoh; the sim itself is covered elsewhere.
+"""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+import zenoh
+
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import CMVAE, make_checkpoint
+from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
+from services.keys import Keys
+from services.messages import PROTOCOL_VERSION, ErrorMsg, LatentMsg, ObservationMsg, image_to_fields
+from services.presence import Roster
+from services.settings import ZenohSettings
+from services.telemetry import Telemetry
+
+IDENT = "enc-test"
+BLOCK = zenoh.CongestionControl.BLOCK
+
+
+def telemetry(step: int) -> Telemetry:
+    """Distinct telemetry per step, so a pass-through mix-up would show."""
+    return Telemetry(
+        rover_pos=(float(step), 0.5, -4.0),
+        rover_quat=(1.0, 0.0, 0.0, 0.0),
+        rover_forward=(1.0, 0.0, 0.0),
+        rover_lin_vel=(0.1, 0.0, 0.0),
+        rover_ang_vel=(0.0, 0.0, 0.01),
+        target_pos=(6.0, 0.0, -4.0),
+        target_quat=(0.0, 0.0, 0.0, 1.0),
+        target_forward=(-1.0, 0.0, 0.0),
+        target_lin_vel=(0.0, 1.0, 0.0),
+        target_in_frustum=step % 2 == 0,
+        collided=False,
+        sim_time=0.02 * step,
+    )
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    torch.manual_seed(3)
+    path = tmp_path_factory.mktemp("encoder-service") / "cmvae.pt"
+    torch.save(make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
+    return path
+
+
+@pytest.fixture
+def start_service(
+    zenoh_router: str, zenoh_settings: Callable[[str], ZenohSettings], checkpoint: Path
+) -> Iterator[Callable[..., EncoderService]]:
+    started: list[EncoderService] = []
+
+    def start(**overrides) -> EncoderService:
+        settings = EncoderSettings(
+            zenoh=zenoh_settings(zenoh_router), checkpoint=str(checkpoint), ident=IDENT, threads=1, **overrides
+        )
+        service = EncoderService(settings)
+        service.start()
+        started.append(service)
+        return service
+
+    yield start
+    for service in started:
+        service.stop()
+
+
+class Feeder:
+    """The sim's side (publishes frames to the encoder) and the learner's (collects latents and refusals)."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys) -> None:
+        self.session, self.keys = session, keys
+        self.latents: queue.Queue[LatentMsg] = queue.Queue()
+        self.errors: queue.Queue[ErrorMsg] = queue.Queue()
+        self._subs = [
+            session.declare_subscriber(
+                f"{keys.namespace}/*/*/latent", lambda s: self.latents.put(LatentMsg.decode(s.payload.to_bytes()))
+            ),
+            session.declare_subscriber(
+                f"{keys.namespace}/*/*/err", lambda s: self.errors.put(ErrorMsg.decode(s.payload.to_bytes()))
+            ),
+        ]
+        self._encoders = Roster(session, keys, "encoder")
+
+    def send(self, env: str, payload: bytes, channel: str = "train") -> None:
+        self._encoders.wait_for(1, timeout_s=20)  # the encoder announces itself once it listens
+        self.session.put(self.keys.obs(channel, env, IDENT), payload, congestion_control=BLOCK)  # as the sim does
+
+    def frame(self, env: str, seq: int, image: np.ndarray) -> bytes:
+        return ObservationMsg(env=env, ep=1, seq=seq, telemetry=telemetry(seq), image=image).encode()
+
+    def take_latents(self, count: int, timeout_s: float = 20.0) -> list[LatentMsg]:
+        deadline = time.monotonic() + timeout_s
+        got: list[LatentMsg] = []
+        while len(got) < count:
+            try:
+                got.append(self.latents.get(timeout=max(deadline - time.monotonic(), 0.01)))
+            except queue.Empty:
+                raise AssertionError(f"{len(got)} of {count} latents within {timeout_s} s") from None
+        return got
+
+
+@pytest.fixture
+def feeder(zenoh_router: str, zenoh_session, namespace: str) -> Feeder:
+    return Feeder(zenoh_session(zenoh_router), Keys(namespace))
+
+
+def images(count: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, size=(count, 64, 64, 3), dtype=np.uint8)
+
+
+def test_latents_match_the_encoder_on_the_same_images(start_service, feeder: Feeder, checkpoint: Path) -> None:
+    start_service(max_wait_ms=5.0)
+    frames = images(12, seed=4)
+    for seq, image in enumerate(frames):
+        feeder.send(str(seq % 3), feeder.frame(str(seq % 3), seq, image), channel="eval" if seq % 2 else "train")
+    by_seq = {msg.seq: msg for msg in feeder.take_latents(len(frames))}
+    assert sorted(by_seq) == list(range(len(frames)))  # each frame encoded once
+    expected_mu, expected_logvar = LatentEncoder(checkpoint, threads=1).encode(frames)
+    for seq, msg in by_seq.items():
+        assert (msg.env, msg.ep, msg.encoder) == (str(seq % 3), 1, IDENT)
+        assert msg.telemetry == telemetry(seq)  # passed through unchanged
+        np.testing.assert_allclose(msg.mu, expected_mu[seq], rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(msg.logvar, expected_logvar[seq], rtol=1e-4, atol=1e-5)
+    assert feeder.latents.empty() and feeder.errors.empty()
+
+
+def test_frames_arriving_together_are_encoded_in_batches(start_service, feeder: Feeder) -> None:
+    start_service(max_batch=8, max_wait_ms=50.0, metrics_period_s=0.2)
+    published: queue.Queue[dict] = queue.Queue()
+    metrics_sub = feeder.session.declare_subscriber(
+        feeder.keys.metrics("encoder", IDENT), lambda s: published.put(msgpack.unpackb(s.payload.to_bytes()))
+    )
+    count = 48
+    for seq, image in enumerate(images(count, seed=5)):
+        feeder.send(str(seq % 16), feeder.frame(str(seq % 16), seq, image))
+    assert sorted(msg.seq for msg in feeder.take_latents(count)) == list(range(count))
+    snap: dict = {}
+    deadline = time.monotonic() + 10
+    while snap.get("images") != count and time.monotonic() < deadline:  # what <ns>/metrics/encoder/<id> says
+        snap = published.get(timeout=5)
+    metrics_sub.undeclare()
+    assert snap["images"] == count and (snap["role"], snap["id"]) == ("encoder", IDENT)
+    assert snap["batches"] < count and 1 < snap["batch_size_max"] <= 8  # batched, never above max_batch
+    assert snap["batch_size_mean"] == pytest.approx(count / snap["batches"])
+    assert snap["latency_p50_ms"] > 0 and snap["images_per_s"] > 0
+
+
+def test_bad_frames_are_refused_with_reasons_and_the_service_keeps_serving(start_service, feeder: Feeder) -> None:
+    service = start_service()
+    good = images(1, seed=6)[0]
+
+    def body(frame: np.ndarray, **overrides) -> bytes:
+        fields = {"v": PROTOCOL_VERSION, "env": "2", "ep": 4, "seq": 9, "t": 0.0, "telemetry": telemetry(9).to_dict()}
+        fields.update(image_to_fields(frame))
+        fields.update(overrides)
+        return msgpack.packb(fields, use_bin_type=True)
+
+    bad = {
+        "msgpack": b"\xc1\xff not msgpack",
+        "shape": body(images(1, seed=7)[0, :32]),  # a 32x64 frame
+        "dtype": body(good, dtype="float32"),
+        "bytes": body(good, image=good.tobytes()[:-5]),
+        "version": body(good, v=99),
+        "telemetry": body(good, telemetry={"rover_pos": [0, 0, 0]}),
+        "env": body(good, env="7"),  # a frame claiming another env than its key
+    }
+    feeder.send("2", feeder.frame("2", 9, good), channel="replay")  # not a channel: refused, with no err key to tell
+    for payload in bad.values():
+        feeder.send("2", payload)
+    reasons = [feeder.errors.get(timeout=10) for _ in bad]
+    for what, error in zip(bad, reasons, strict=True):
+        assert what in error.reason.lower(), (what, error.reason)
+        assert error.sender == "" and f"encoder {IDENT}" in error.reason  # for whoever drives the env
+    assert (reasons[1].ep, reasons[1].seq) == (4, 9)  # readable refusals name their step
+    feeder.send("2", feeder.frame("2", 10, good))
+    (latent,) = feeder.take_latents(1)
+    assert (latent.env, latent.seq) == ("2", 10)
+    snap = service.metrics.snapshot()
+    assert snap["errors_refused"] == len(bad) + 1 and snap["images"] == 1
+    assert feeder.errors.empty()
+
+
+def test_the_batcher_caps_batches_and_drains_before_closing() -> None:
+    batcher = LatentBatcher(max_batch=4, max_wait_ms=0.0)
+    for i in range(6):
+        batcher.put(_Frame(str(i), b"", 0.0))
+    batcher.close()
+    assert [len(b) for b in iter(batcher.next_batch, None)] == [4, 2]  # no wait needed once frames are queued
+    waiting = LatentBatcher(max_batch=4, max_wait_ms=30.0)
+    waiting.put(_Frame("a", b"", 0.0))
+    started = time.perf_counter()
+    assert len(waiting.next_batch()) == 1
+    assert time.perf_counter() - started >= 0.025  # a lone frame waited max_wait_ms for company
+    assert waiting.next_batch(idle_timeout_s=0.01) == []
+    with pytest.raises(ValueError, match="max_batch"):
+        LatentBatcher(max_batch=0, max_wait_ms=1.0)
