@@ -27,7 +27,9 @@ IMAGE_MODES = ("cmvae", "image")
 
 
 class TrackingEnv(gym.Env):
-    """Gymnasium env of the tracking task; ``info`` carries telemetry, cause, d, theta, azimuth, psi, episode, seed.
+    """Gymnasium env of the tracking task; ``info`` carries telemetry, cause, d, theta, azimuth, psi, ep (and seed).
+
+    The episode number is ``info["ep"]``, never ``"episode"``: SB3 reads ``info["episode"]`` as Monitor statistics.
 
     ``encoder`` is any object with ``encode(images uint8 (N, 64, 64, 3)) -> (mu, logvar)``; in cmvae mode without
     one, the default :class:`encoder_service.inference.LatentEncoder` checkpoint is loaded at the first reset.
@@ -71,9 +73,14 @@ class TrackingEnv(gym.Env):
         world_seed = episode_seed(self.base_seed, self.episode)
         telemetry, image = self.world.reset(world_seed)
         obs = self.task.reset(self._frame(telemetry, image), seed=world_seed)
-        info = self.task.info(telemetry) | {"episode": self.episode, "seed": world_seed}
-        log.debug("episode %d (seed %d) starts at d %.2f m, theta %.1f deg", self.episode, world_seed,
-                  info["d"], info["theta"])
+        info = self.task.info(telemetry) | {"ep": self.episode, "seed": world_seed}
+        log.debug(
+            "episode %d (seed %d) starts at d %.2f m, theta %.1f deg",
+            self.episode,
+            world_seed,
+            info["d"],
+            info["theta"],
+        )
         return obs, info
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
@@ -81,7 +88,7 @@ class TrackingEnv(gym.Env):
             raise RuntimeError("call reset() before step()")
         telemetry, image = self.world.step(self.task.to_sim_action(action), DiveMode.DEPTH_HOLD)
         obs, reward, terminated, info = self.task.step(action, self._frame(telemetry, image))
-        info |= {"episode": self.episode}
+        info |= {"ep": self.episode}
         return obs, reward, terminated, self.task.time_up, info
 
     def _frame(self, telemetry: Telemetry, image: np.ndarray | None) -> Frame:

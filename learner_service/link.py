@@ -88,6 +88,7 @@ class RemoteEnvLink:
         self.encoders = encoders
         self.step_timeout_s = step_timeout_s
         self.max_retries = max_retries
+        self.claimed = False  # set by a granted claim; only then does close() release
         self.ep = 0
         self.seq = 0
         self.duplicates_dropped = 0
@@ -135,11 +136,17 @@ class RemoteEnvLink:
 
     # --- control ---------------------------------------------------------------------------------
     def claim(self, timeout_s: float = 5.0) -> dict:
-        return control.request(
+        reply = control.request(
             self.session, self.keys.ctl(self.channel, self.env), "claim", timeout_s, holder=self.holder
         )
+        self.claimed = True
+        return reply
 
     def release(self) -> None:
+        """Give the env back; a link whose claim was refused holds nothing and sends nothing."""
+        if not self.claimed:
+            return
+        self.claimed = False
         try:
             control.request(self.session, self.keys.ctl(self.channel, self.env), "release", 2.0, holder=self.holder)
         except control.ControlError as exc:
@@ -155,10 +162,14 @@ class RemoteEnvLink:
         return rendezvous_choice(f"{self.channel}/{self.env}", members)
 
     # --- stepping ----------------------------------------------------------------------------------
-    def send_reset(self, ep: int, seed: int) -> None:
+    def send_reset(self, ep: int, seed: int, noise: bool | None = None) -> None:
+        """Start episode ``ep``; ``noise`` switches the sim's image noise (None: leave it as it is)."""
         self.ep, self.seq = ep, 0
-        self._pending = ("reset", seed)
-        self._send()
+        self._pending = ("reset", (seed, noise))
+        try:
+            self._send()
+        except control.ControlTimeout as exc:  # a busy or restarting sim: wait() re-sends it, like a step
+            log.warning("%s: reset unanswered (%s); will retry", self.name, exc)
 
     def send_action(self, action: tuple[float, float, float, float], dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
         self.seq += 1
@@ -170,6 +181,8 @@ class RemoteEnvLink:
         kind, args = self._pending
         route = self._route()
         if kind == "reset":
+            seed, noise = args
+            noise_field = {} if noise is None else {"noise": noise}
             control.request(
                 self.session,
                 self.keys.ctl(self.channel, self.env),
@@ -177,8 +190,9 @@ class RemoteEnvLink:
                 self.step_timeout_s,
                 holder=self.holder,
                 ep=self.ep,
-                seed=args,
+                seed=seed,
                 route=route,
+                **noise_field,
             )
         else:
             action, dive_mode = args
@@ -197,7 +211,8 @@ class RemoteEnvLink:
                 except queue.Empty:
                     break
                 if isinstance(item, ErrorMsg):
-                    if item.sender == self.holder and (item.ep, item.seq) == (self.ep, self.seq):
+                    # Addressed to us (the sim's refusals) or to whoever drives the env (an encoder's).
+                    if item.sender in (self.holder, "") and (item.ep, item.seq) == (self.ep, self.seq):
                         raise StepRefused(f"{self.name}: {item.reason}")
                     continue
                 if (item.ep, item.seq) == (self.ep, self.seq):

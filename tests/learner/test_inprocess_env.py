@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from stable_baselines3.common.monitor import Monitor
 
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.inprocess_env import TrackingEnv
+from learner_service.registry import make_model
 from learner_service.scripted import ScriptedTracker
 from learner_service.task import TaskSettings, TrackingTask, episode_seed
 from services.geometry import ALPHA_DEG, yaw_of
@@ -56,10 +58,10 @@ def test_episodes_count_up_from_one_with_their_seeds() -> None:
         assert env.observation_space.contains(obs)
         assert 4.0 <= info["d"] <= 8.0 and info["theta"] <= ALPHA_DEG  # the SPEC's reset distribution
         assert info["cause"] == "" and info["telemetry"].target_in_frustum
-        seen.append((info["episode"], info["seed"]))
+        seen.append((info["ep"], info["seed"]))
     assert seen == [(ep, episode_seed(BASE_SEED, ep)) for ep in (1, 2, 3)]
     _, info = env.reset(seed=5)
-    assert (info["episode"], info["seed"]) == (1, episode_seed(5, 1))
+    assert (info["ep"], info["seed"]) == (1, episode_seed(5, 1))
     env.close()
 
 
@@ -137,6 +139,22 @@ def test_cmvae_default_encoder_loads_lazily() -> None:
     else:
         with pytest.raises(FileNotFoundError, match="swimm train-encoder"):
             env.reset()
+    env.close()
+
+
+def test_sac_trains_on_the_env_through_sb3s_monitor() -> None:
+    """SB3 reads info["episode"] as Monitor statistics: the env's own info keys must leave it alone."""
+    env = Monitor(TrackingEnv(TaskSettings(obs="state", max_steps=50), base_seed=BASE_SEED))
+    model = make_model(
+        "sac",
+        env,
+        seed=BASE_SEED,
+        overrides={"device": "cpu", "learning_starts": 20, "gradient_steps": 2, "batch_size": 16},
+    )
+    model.learn(200)
+    assert 200 <= model.num_timesteps < 250  # train_freq is one episode: the last one runs to its end
+    assert len(model.ep_info_buffer) >= 4  # at most 50 steps each
+    assert all(set(episode) >= {"r", "l"} and episode["l"] <= 50 for episode in model.ep_info_buffer)
     env.close()
 
 

@@ -1,0 +1,269 @@
+"""`swimm learn`: train a learner on the tracking task, distributed (Zenoh) or in-process, into a run folder.
+
+    swimm learn --algo sac --obs cmvae --steps 200000 --envs 4 --seed 97 \\
+        --connect tcp/127.0.0.1:7447 --namespace swimm/default --run-dir runs/sac --backend zenoh
+
+The run folder holds everything a run leaves (see docs/learner.md): ``settings.json`` (what was asked and what
+was resolved), ``train.monitor.csv`` (one row per training episode with its ending), ``tensorboard/``,
+``checkpoints/``, ``best_model.zip`` + ``best_model.json`` + ``evaluations.csv`` (evaluation callback),
+``final_model.zip`` (+ its replay buffer), ``progress.json`` (live numbers), ``result.json`` (the run's
+totals) and ``summary.png`` (reward per episode and how episodes ended).
+
+SIGTERM or Ctrl-C ends training at the next step; the model, the plot and the totals are still written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import sys
+import threading
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+from tqdm.contrib.logging import logging_redirect_tqdm
+
+from learner_service.callbacks import (
+    CheckpointCallback,
+    EpisodeStatsCallback,
+    RolloutEvalCallback,
+    StopOnEvent,
+    TqdmProgressCallback,
+)
+from learner_service.checkpoints import FINAL_MODEL, load_for_resume, save_model
+from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
+from learner_service.learn_settings import LearnCommandSettings, default_run_dir
+from learner_service.progress import PROGRESS_FILE
+from learner_service.registry import SCRIPTED, load_hyperparams, make_model, merge_overrides, resolve_algorithm
+from learner_service.task import TaskSettings
+from services.lifecycle import stop_on_signals
+from services.settings import to_dict
+
+log = logging.getLogger(__name__)
+
+DEFAULT_STEPS = 1_000_000  # the SPEC's training length, for algorithms without a YAML of their own
+MONITOR_NAME = "train"  # VecMonitor writes train.monitor.csv (train-2.monitor.csv for a resumed run's next part)
+SETTINGS_FILE = "settings.json"
+RESULT_FILE = "result.json"
+SUMMARY_PLOT = "summary.png"
+
+
+@dataclass
+class RunResult:
+    """What `swimm learn` measured; written to result.json."""
+
+    num_timesteps: int
+    trained_steps: int
+    wall_s: float
+    env_steps_per_s: float
+    episodes: int
+    endings: dict[str, int]
+    stopped_early: bool
+    best_mean_return: float | None
+
+
+def resolve_steps(settings: LearnCommandSettings) -> int:
+    if settings.steps > 0:
+        return settings.steps
+    if ":" in settings.algo:
+        return DEFAULT_STEPS
+    return int(load_hyperparams(settings.algo).get("n_timesteps", DEFAULT_STEPS))
+
+
+def parse_hyperparams(text: str) -> dict[str, Any]:
+    """``--hyperparams``: a YAML mapping given inline or as a file path."""
+    if not text:
+        return {}
+    path = Path(text)
+    loaded = yaml.safe_load(path.read_text() if path.is_file() else text)
+    if not isinstance(loaded, dict):
+        raise ValueError(f"--hyperparams must be a YAML mapping (inline or a file), got {text!r}")
+    return loaded
+
+
+def check(settings: LearnCommandSettings) -> None:
+    """Refuse what could only fail later, before anything is started."""
+    check_backend(settings.backend)
+    settings.eval.check()
+    if settings.algo == SCRIPTED:
+        raise ValueError("the scripted baseline has nothing to learn; evaluate it with `swimm eval --algo scripted`")
+    _, defaults = resolve_algorithm(settings.algo)
+    train_freq = merge_overrides(defaults, parse_hyperparams(settings.hyperparams)).get("train_freq")
+    if settings.envs > 1 and isinstance(train_freq, list | tuple) and str(train_freq[-1]).startswith("episode"):
+        raise ValueError(
+            f"{settings.algo} trains every {train_freq[0]} episode(s), which stable-baselines3 allows with one env "
+            f"only; use --envs 1, or train every N steps: --hyperparams '{{train_freq: [N, step]}}'"
+        )
+    if settings.envs < 1 or settings.steps < 0 or settings.checkpoint_every < 0:
+        raise ValueError("envs must be >= 1, steps and checkpoint_every >= 0")
+    if settings.resume and not Path(settings.resume).is_file():
+        raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
+
+
+class Training:
+    """One run of `swimm learn`: envs, model and callbacks built from the settings, trained, saved, summarised."""
+
+    def __init__(self, settings: LearnCommandSettings, stop: threading.Event | None = None) -> None:
+        check(settings)
+        self.settings = settings
+        self.run_dir = Path(settings.run_dir) if settings.run_dir else default_run_dir(settings)
+        self.steps = resolve_steps(settings)
+        self.overrides = parse_hyperparams(settings.hyperparams)
+        self.stop = stop or threading.Event()
+        self.task = TaskSettings(obs=settings.obs, reward=settings.reward, max_steps=settings.max_steps)
+        self.eval_task = dataclasses.replace(self.task, max_steps=settings.eval.max_steps, early_termination=False)
+
+    def proxy_settings(self, channel: str) -> Any:
+        from learner_service.proxy_env import ProxySettings  # zenoh only for the distributed backend
+
+        return ProxySettings(
+            zenoh=self.settings.zenoh,
+            channel=channel,
+            envs=("0",),
+            step_timeout_s=self.settings.step_timeout_s,
+            max_retries=self.settings.max_retries,
+            role="learner",
+        )
+
+    def run(self) -> RunResult:
+        s = self.settings
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.write_settings()
+        log.info(
+            "run folder %s: %s %s, %d steps on %d %s env(s)", self.run_dir, s.algo, s.obs, self.steps, s.envs, s.backend
+        )
+        with ExitStack() as stack:
+            session = None
+            if s.backend == "zenoh":
+                from services.session import open_session
+
+                session = open_session(s.zenoh, role="learner")
+                stack.callback(session.close)
+            encoder = (
+                shared_encoder(self.task, checkpoint=s.encoder_checkpoint or None) if s.backend == "inprocess" else None
+            )
+            train_proxy = self.proxy_settings("train") if session is not None else None
+            env = make_vec_env(
+                s.backend,
+                self.task,
+                train_proxy,
+                s.envs,
+                s.seed,
+                monitor_path=self.next_monitor_path(),
+                encoder=encoder,
+                session=session,
+            )
+            stack.callback(env.close)
+            eval_env = None
+            if s.eval.enabled:
+                eval_proxy = self.proxy_settings("eval") if session is not None else None
+                eval_env = make_env(
+                    s.backend, self.eval_task, eval_proxy, s.eval.env, s.eval.seed, encoder=encoder, session=session
+                )
+                stack.callback(eval_env.close)
+            return self.train(env, eval_env)
+
+    def build_model(self, env: Any) -> Any:
+        s = self.settings
+        if s.threads > 0:
+            import torch
+
+            torch.set_num_threads(s.threads)
+        tensorboard = str(self.run_dir / "tensorboard")
+        if s.resume:
+            return load_for_resume(s.algo, s.resume, env, device=s.device, tensorboard_log=tensorboard)
+        return make_model(
+            s.algo, env, s.seed, overrides=self.overrides | {"device": s.device}, tensorboard_log=tensorboard
+        )
+
+    def train(self, env: Any, eval_env: Any) -> RunResult:
+        s = self.settings
+        model = self.build_model(env)
+        start_steps = model.num_timesteps
+        stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
+        callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]
+        evaluation = None
+        if eval_env is not None:
+            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir)
+            callbacks.append(evaluation)
+        if s.checkpoint_every:
+            callbacks.append(
+                CheckpointCallback(s.checkpoint_every, self.run_dir / "checkpoints", s.envs, s.save_replay_buffer)
+            )
+        callbacks.append(StopOnEvent(self.stop))
+        started = time.perf_counter()
+        try:
+            on_signal = stop_on_signals(
+                self.stop, "finishing the current step, then saving", second_ctrl_c_interrupts=True
+            )
+            with on_signal, logging_redirect_tqdm():  # log lines above the bar, not through it
+                model.learn(
+                    self.steps,
+                    callback=callbacks,
+                    reset_num_timesteps=not s.resume,
+                    tb_log_name=s.algo.rsplit(":", 1)[-1].upper(),
+                )
+        finally:
+            save_model(model, self.run_dir / FINAL_MODEL, s.save_replay_buffer)
+            self.plot_summary()
+        wall = time.perf_counter() - started
+        best = evaluation.best_mean_return if evaluation is not None and evaluation.evaluations else None
+        result = RunResult(
+            num_timesteps=int(model.num_timesteps),
+            trained_steps=int(model.num_timesteps - start_steps),
+            wall_s=round(wall, 2),
+            env_steps_per_s=round((model.num_timesteps - start_steps) / wall, 2),
+            episodes=stats.episodes,
+            endings=dict(stats.endings),
+            stopped_early=self.stop.is_set(),
+            best_mean_return=best,
+        )
+        (self.run_dir / RESULT_FILE).write_text(json.dumps(dataclasses.asdict(result), indent=1))
+        log.info(
+            "trained %d steps in %.1f s (%.1f env-steps/s), %d episodes, endings %s; run folder %s",
+            result.trained_steps,
+            wall,
+            result.env_steps_per_s,
+            result.episodes,
+            result.endings,
+            self.run_dir,
+        )
+        return result
+
+    def next_monitor_path(self) -> Path:
+        """train, then train-2, train-3... so a run resumed in the same folder keeps the earlier episodes."""
+        part = 1 + len(self.monitor_files())
+        return self.run_dir / (MONITOR_NAME if part == 1 else f"{MONITOR_NAME}-{part}")
+
+    def monitor_files(self) -> list[Path]:
+        return sorted(self.run_dir.glob(f"{MONITOR_NAME}*.monitor.csv"))
+
+    def write_settings(self) -> None:
+        resolved = {"run_dir": str(self.run_dir), "steps": self.steps, "hyperparams": self.overrides}
+        data = {"settings": to_dict(self.settings), "resolved": resolved, "argv": sys.argv}
+        (self.run_dir / SETTINGS_FILE).write_text(json.dumps(data, indent=1, default=str))
+
+    def plot_summary(self) -> None:
+        """summary.png from the monitor CSV; a run that finished no episode has nothing to plot (logged)."""
+        from eval_service.plots import plot_training, read_monitor
+
+        monitors = self.monitor_files()
+        try:
+            episodes = read_monitor(monitors)
+        except (OSError, ValueError) as exc:
+            log.warning("no summary plot: cannot read the monitor files %s (%s)", monitors, exc)
+            return
+        if episodes.empty:
+            log.warning("no summary plot: no training episode finished")
+            return
+        plot_training(episodes, self.run_dir / SUMMARY_PLOT)
+
+
+def run(settings: LearnCommandSettings) -> int:
+    Training(settings).run()
+    return 0

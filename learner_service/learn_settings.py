@@ -1,0 +1,66 @@
+"""Settings of `swimm learn` (and of the learner `swimm up` starts): plain dataclasses, nothing heavy imported.
+
+They live apart from :mod:`learner_service.command` so that `swimm up` (in services/, which must not import
+torch) can take every learner flag and hand them on, without loading stable-baselines3 itself.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from services.settings import ZenohSettings
+
+EVAL_UNITS = ("episodes", "steps")
+
+
+@dataclass
+class EvalSettings:
+    """When and how the evaluation callback runs (flags ``--eval-*`` of `swimm learn`)."""
+
+    enabled: bool = True
+    episodes: int = 5  # deterministic episodes per evaluation
+    min_steps: int = 500_000  # no evaluation before this many training steps (the reference: 5e5)
+    every: int = 10  # evaluate every this many training episodes (or steps, see unit) once min_steps have run
+    unit: str = "episodes"  # episodes | steps
+    seed: int = 113  # base seed of the evaluation episodes: every evaluation plays the same episodes
+    max_steps: int = 3000  # length of an evaluation episode (no early termination: the SPEC's evaluation)
+    env: str = "0"  # distributed: the id of the eval-channel env the learner claims for its evaluations
+
+    def check(self) -> None:
+        if self.unit not in EVAL_UNITS:
+            raise ValueError(f"eval unit must be one of {EVAL_UNITS}, got {self.unit!r}")
+        if self.episodes < 1 or self.every < 1 or self.min_steps < 0 or self.max_steps < 1:
+            raise ValueError("eval episodes, every and max_steps must be >= 1 and min_steps >= 0")
+
+
+@dataclass
+class LearnCommandSettings:
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
+    algo: str = "sac"  # sac | ppo | td3 | package.module:Class
+    obs: str = "cmvae"  # cmvae | image | state
+    reward: str = "swimm2"  # swimm2 | swimm1
+    max_steps: int = 3000  # time limit of a training episode (truncation)
+    steps: int = 0  # training env steps (more when resuming); 0 = the algorithm's n_timesteps (1e6)
+    envs: int = 1  # parallel envs (train channel ids 0..envs-1 when distributed)
+    seed: int = 97  # model seed and base seed of env 0 (env i: seed + i)
+    backend: str = "zenoh"  # zenoh (a running sim/encoder) | inprocess (World in this process)
+    run_dir: str = ""  # default runs/<algo>-<obs>-<UTC time>
+    resume: str = ""  # a saved model (.zip) to go on training; its replay buffer is loaded if beside it
+    hyperparams: str = ""  # YAML mapping or file over the algorithm's defaults, e.g. "{gradient_steps: 32}"
+    checkpoint_every: int = 50_000  # env steps between checkpoints; 0 = none
+    save_replay_buffer: bool = True  # with checkpoints (newest only) and the final model, so resume keeps it
+    eval: EvalSettings = field(default_factory=EvalSettings)  # flags --eval-*
+    encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
+    step_timeout_s: float = 2.0  # distributed: wait per try before re-sending a step
+    max_retries: int = 10  # distributed: re-sends before a step fails naming the missing service
+    device: str = "auto"  # torch device of the learner
+    threads: int = 1  # torch CPU threads; 1 leaves the other cores to the sim and encoder; 0 = torch's default
+    log_interval_s: float = 30.0  # seconds between progress lines in the log
+    progress_bar: bool = True  # tqdm bar (only when stderr is a terminal)
+
+
+def default_run_dir(settings: LearnCommandSettings) -> Path:
+    algo = settings.algo.rsplit(":", 1)[-1].lower()
+    return Path("runs") / f"{algo}-{settings.obs}-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}"

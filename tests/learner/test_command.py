@@ -1,0 +1,181 @@
+"""`swimm learn` end to end on the in-process backend (real world, real SAC, tiny step counts): the run folder,
+resuming, stopping, and the command line's refusals."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections import Counter
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+from stable_baselines3 import SAC
+
+from encoder_service.model import CMVAE, make_checkpoint
+from learner_service.callbacks import BEST_MODEL, BEST_MODEL_SCORE
+from learner_service.checkpoints import FINAL_MODEL, load_for_resume, replay_buffer_path
+from learner_service.command import LearnCommandSettings, RunResult, Training, check
+from learner_service.envs import make_vec_env
+from learner_service.learn_settings import EvalSettings
+from learner_service.task import TaskSettings
+from services import cli
+from services import settings as settings_mod
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*Box observation space (minimum|maximum) value is")
+
+TINY_SAC = "{learning_starts: 50, gradient_steps: 1, batch_size: 32, buffer_size: 2000}"
+STEPS = 200
+
+
+def tiny_settings(run_dir: Path, **changes) -> LearnCommandSettings:
+    settings = LearnCommandSettings(
+        algo="sac",
+        obs="state",
+        backend="inprocess",
+        steps=STEPS,
+        seed=97,
+        max_steps=40,
+        run_dir=str(run_dir),
+        hyperparams=TINY_SAC,
+        checkpoint_every=100,
+        eval=EvalSettings(episodes=1, min_steps=100, every=2, max_steps=20),
+        log_interval_s=3600,
+        progress_bar=False,
+    )
+    for name, value in changes.items():
+        setattr(settings, name, value)
+    return settings
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory) -> tuple[Path, RunResult]:
+    run_dir = tmp_path_factory.mktemp("learn") / "run"
+    return run_dir, Training(tiny_settings(run_dir)).run()
+
+
+def monitor_endings(path: Path) -> Counter:
+    episodes = pd.read_csv(path, skiprows=1)
+    return Counter(episodes["cause"].fillna("").replace("", "time_limit"))
+
+
+def test_run_folder_holds_the_run(first_run) -> None:
+    run_dir, result = first_run
+    assert STEPS <= result.num_timesteps < STEPS + 40  # SAC trains per episode, so it may finish the last one
+    for name in ("settings.json", "train.monitor.csv", "progress.json", "result.json", "summary.png", FINAL_MODEL):
+        assert (run_dir / name).is_file(), name
+    assert (run_dir / "summary.png").read_bytes()[:4] == b"\x89PNG"
+    assert list((run_dir / "tensorboard").rglob("events.out.tfevents.*"))
+    assert (run_dir / "checkpoints" / "model_100_steps.zip").is_file()
+    assert replay_buffer_path(run_dir / FINAL_MODEL).is_file()
+
+    # The monitor CSV (written by SB3's VecMonitor from the env's infos) and the callback's counts agree.
+    episodes = pd.read_csv(run_dir / "train.monitor.csv", skiprows=1)
+    assert len(episodes) == result.episodes
+    assert monitor_endings(run_dir / "train.monitor.csv") == Counter({k: v for k, v in result.endings.items() if v})
+    assert episodes["l"].sum() <= result.num_timesteps
+
+    saved = json.loads((run_dir / "settings.json").read_text())
+    assert saved["settings"]["algo"] == "sac" and saved["resolved"]["steps"] == STEPS
+    assert json.loads((run_dir / "result.json").read_text())["num_timesteps"] == result.num_timesteps
+    assert json.loads((run_dir / "progress.json").read_text())["finished"] is True
+
+    # Evaluations ran only past eval.min_steps, and the best one's model was kept.
+    score = json.loads((run_dir / BEST_MODEL_SCORE).read_text())
+    assert (run_dir / BEST_MODEL).is_file() and score["num_timesteps"] >= 100
+    evaluations = pd.read_csv(run_dir / "evaluations.csv")
+    assert (evaluations["num_timesteps"] >= 100).all()
+    assert score["mean_return"] == pytest.approx(evaluations["mean_return"].max())
+
+
+def test_resume_continues_the_step_count_with_the_replay_buffer(first_run) -> None:
+    run_dir, first = first_run
+    env = make_vec_env("inprocess", TaskSettings(obs="state", max_steps=40), n_envs=1, base_seed=97)
+    reloaded = load_for_resume("sac", run_dir / FINAL_MODEL, env)
+    assert reloaded.num_timesteps == first.num_timesteps
+    assert reloaded.replay_buffer.size() == first.num_timesteps  # every transition so far (buffer holds 2000)
+    env.close()
+
+    resumed = Training(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60)).run()
+    assert resumed.num_timesteps == first.num_timesteps + resumed.trained_steps
+    assert resumed.trained_steps >= 60
+    assert (run_dir / "train-2.monitor.csv").is_file()  # the first part's episodes stay in train.monitor.csv
+    assert len(pd.read_csv(run_dir / "train-2.monitor.csv", skiprows=1)) == resumed.episodes
+
+
+def test_stop_request_still_saves_the_run(tmp_path: Path) -> None:
+    stop = threading.Event()
+    stop.set()  # as a SIGTERM before the first step would
+    result = Training(tiny_settings(tmp_path / "run"), stop=stop).run()
+    assert result.stopped_early and result.num_timesteps == 1
+    assert (tmp_path / "run" / FINAL_MODEL).is_file()
+    assert not (tmp_path / "run" / "summary.png").exists()  # no episode finished, so nothing to plot
+
+
+def test_flags_reach_the_settings() -> None:
+    parser = cli.build_parser("learn")
+    args = parser.parse_args(
+        [
+            "learn",
+            "--algo",
+            "td3",
+            "--obs",
+            "state",
+            "--steps",
+            "5",
+            "--envs",
+            "3",
+            "--backend",
+            "inprocess",
+            "--eval-min-steps",
+            "7",
+            "--eval-unit",
+            "steps",
+            "--connect",
+            "tcp/10.0.0.1:7447",
+            "--namespace",
+            "swimm/x",
+        ]
+    )
+    settings = settings_mod.load(LearnCommandSettings, args, environ={})
+    assert (settings.algo, settings.obs, settings.steps, settings.envs, settings.backend) == (
+        "td3",
+        "state",
+        5,
+        3,
+        "inprocess",
+    )
+    assert (settings.eval.min_steps, settings.eval.unit) == (7, "steps")
+    assert settings.zenoh.connect == ["tcp/10.0.0.1:7447"] and settings.zenoh.namespace == "swimm/x"
+
+
+def test_refusals_name_what_to_change(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="train_freq"):
+        check(LearnCommandSettings(envs=2))  # SAC's tuned train_freq is one episode
+    check(LearnCommandSettings(envs=2, hyperparams="{train_freq: [64, step]}"))
+    with pytest.raises(ValueError, match="backend"):
+        check(LearnCommandSettings(backend="carrier-pigeon"))
+    assert cli.main(["learn", "--algo", "scripted", "--run-dir", str(tmp_path / "x")]) == 1
+    assert not (tmp_path / "x").exists()
+
+
+def test_any_sb3_api_class_trains_by_import_path(tmp_path: Path) -> None:
+    settings = tiny_settings(tmp_path / "run", algo="stable_baselines3:A2C", hyperparams="{n_steps: 8}", steps=64)
+    settings.eval.min_steps, settings.eval.unit, settings.eval.every = 32, "steps", 16
+    result = Training(settings).run()
+    assert result.num_timesteps == 64  # on-policy: 8 rollouts of 8 steps, exactly
+    assert result.best_mean_return is not None and (tmp_path / "run" / BEST_MODEL).is_file()
+    assert json.loads((tmp_path / "run" / "settings.json").read_text())["settings"]["algo"] == "stable_baselines3:A2C"
+
+
+def test_inprocess_cmvae_trains_on_latents_of_a_given_encoder(tmp_path: Path) -> None:
+    checkpoint = tmp_path / "tiny_cmvae.pt"  # untrained: the wiring (render, encode, learn) is under test
+    torch.save(make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), checkpoint)
+    settings = tiny_settings(tmp_path / "run", obs="cmvae", encoder_checkpoint=str(checkpoint), steps=60)
+    settings.eval.enabled = False
+    result = Training(settings).run()
+    episodes = pd.read_csv(tmp_path / "run" / "train.monitor.csv", skiprows=1)
+    assert result.num_timesteps >= 60 and result.episodes == len(episodes)
+    saved = SAC.load(tmp_path / "run" / FINAL_MODEL)
+    assert saved.observation_space.shape == (30,)  # 10 latents + 10 previous (surge, yaw) actions
