@@ -32,7 +32,17 @@ SMOOTHNESS_WEIGHTS = np.array([0.25, 0.20, 0.15, 0.10, 0.08, 0.06, 0.05, 0.04, 0
 SURGE, YAW = 0, 1
 
 SUMMARY_ROW_FIELDS = (
-    "label", "episode", "return", "A", "D", "left_view", "distance_exceeded", "collided", "S_D", "S_A", "first_cause",
+    "label",
+    "episode",
+    "return",
+    "A",
+    "D",
+    "left_view",
+    "distance_exceeded",
+    "collided",
+    "S_D",
+    "S_A",
+    "first_cause",
 )
 
 

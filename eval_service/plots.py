@@ -13,6 +13,7 @@ import logging
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -52,8 +53,12 @@ def plot_returns(episodes_df: pd.DataFrame, path: PathLike) -> Path:
     return _save(returns_figure(episodes_df), path)
 
 
-def plot_metrics(summary: Mapping[str, Mapping[str, float]], path: PathLike,
-                 reference: Mapping[str, float] | None = None, reference_label: str = "reference") -> Path:
+def plot_metrics(
+    summary: Mapping[str, Mapping[str, float]],
+    path: PathLike,
+    reference: Mapping[str, float] | None = None,
+    reference_label: str = "reference",
+) -> Path:
     """Grouped bars: one panel per behaviour metric, one bar per label, the reference (e.g. paper SAC) beside."""
     return _save(metrics_figure(summary, reference, reference_label), path)
 
@@ -79,9 +84,7 @@ def returns_figure(episodes_df: pd.DataFrame) -> Figure:
         violated = episodes_df[_flags(episodes_df[column])]
         if violated.empty:
             continue
-        colour, marker = CAUSE_STYLES[cause]
-        ax.scatter(violated["episode"], violated["return"], color=colour, marker=marker, s=45, zorder=3,
-                   label=f"{cause} violated ({len(violated)})")
+        _mark_violations(ax, violated["episode"], violated["return"], cause, f"{len(violated)}", s=45, zorder=3)
     ax.set_title("Return per evaluation episode (markers: episodes with a violation)")
     ax.set_xlabel("episode")
     ax.set_ylabel("return (sum of per-step rewards in [-1, 1])")
@@ -91,8 +94,11 @@ def returns_figure(episodes_df: pd.DataFrame) -> Figure:
     return fig
 
 
-def metrics_figure(summary: Mapping[str, Mapping[str, float]], reference: Mapping[str, float] | None = None,
-                   reference_label: str = "reference") -> Figure:
+def metrics_figure(
+    summary: Mapping[str, Mapping[str, float]],
+    reference: Mapping[str, float] | None = None,
+    reference_label: str = "reference",
+) -> Figure:
     """One panel per metric (their scales differ by 1e4); a missing value leaves its bar out."""
     if not summary:
         raise ValueError("metrics figure needs at least one label")
@@ -110,7 +116,7 @@ def metrics_figure(summary: Mapping[str, Mapping[str, float]], reference: Mappin
         bars = [(label, summary[label].get(metric), colours[label], "") for label in labels]
         bars.append((reference_label, reference.get(metric), "white", "//"))
         _metric_panel(ax, metric, [bar for bar in bars if bar[1] is not None])
-    for ax in axes[len(metrics):]:
+    for ax in axes[len(metrics) :]:
         ax.set_visible(False)
     handles = [Patch(color=colours[label], label=label) for label in labels]
     if reference:
@@ -135,15 +141,40 @@ def trajectory_figure(steps_df: pd.DataFrame, label: str, episode: int, arrow_ev
     ax.plot(rows["rover_x"], rows["rover_y"], color="tab:blue", linewidth=1.2, label="rover")
     ax.plot(rows["target_x"], rows["target_y"], color="tab:green", linewidth=1.2, label="dolphin")
     first, last = rows.iloc[0], rows.iloc[-1]
-    ax.scatter([first["rover_x"], first["target_x"]], [first["rover_y"], first["target_y"]], marker="o", s=60,
-               facecolor="none", edgecolor="black", zorder=3, label="start")
-    ax.scatter([last["rover_x"], last["target_x"]], [last["rover_y"], last["target_y"]], marker="s", s=50,
-               color="black", zorder=3, label="end")
+    ax.scatter(
+        [first["rover_x"], first["target_x"]],
+        [first["rover_y"], first["target_y"]],
+        marker="o",
+        s=60,
+        facecolor="none",
+        edgecolor="black",
+        zorder=3,
+        label="start",
+    )
+    ax.scatter(
+        [last["rover_x"], last["target_x"]],
+        [last["rover_y"], last["target_y"]],
+        marker="s",
+        s=50,
+        color="black",
+        zorder=3,
+        label="end",
+    )
     arrows = rows.iloc[::arrow_every]
     yaw = np.radians(arrows["rover_yaw"].to_numpy(dtype=float))
-    ax.quiver(arrows["rover_x"], arrows["rover_y"], np.cos(yaw), np.sin(yaw), color="tab:blue", angles="xy",
-              scale_units="inches", scale=3.0, width=0.004, zorder=4,
-              label=f"rover heading (every {arrow_every} steps)")
+    ax.quiver(
+        arrows["rover_x"],
+        arrows["rover_y"],
+        np.cos(yaw),
+        np.sin(yaw),
+        color="tab:blue",
+        angles="xy",
+        scale_units="inches",
+        scale=3.0,
+        width=0.004,
+        zorder=4,
+        label=f"rover heading (every {arrow_every} steps)",
+    )
     _mark_violating_steps(ax, rows)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_title(f"{label}, episode {episode}: paths seen from above ({len(rows)} steps)")
@@ -169,8 +200,13 @@ def training_figure(monitor: pd.DataFrame | PathLike | Sequence[PathLike], windo
     fig = Figure(figsize=(9, 6.5))
     top, bottom = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [2, 1]})
     top.scatter(steps, rewards, s=6, alpha=0.35, color="tab:blue", label="episode reward")
-    top.plot(steps, pd.Series(rewards).rolling(window, min_periods=1).mean(), color="tab:red", linewidth=1.5,
-             label=f"rolling mean ({window} episodes)")
+    top.plot(
+        steps,
+        pd.Series(rewards).rolling(window, min_periods=1).mean(),
+        color="tab:red",
+        linewidth=1.5,
+        label=f"rolling mean ({window} episodes)",
+    )
     top.set_title(f"Training: reward per episode ({len(episodes)} episodes, {int(steps[-1])} steps)")
     top.set_ylabel("episode reward (sum of per-step rewards)")
     top.grid(alpha=0.3)
@@ -222,23 +258,30 @@ def _metric_panel(ax: Axes, metric: str, bars: list[tuple[str, float, str, str]]
 
 def _mark_violating_steps(ax: Axes, rows: pd.DataFrame) -> None:
     """Dots on the rover's path where the target was out of view, too far or touching."""
-    conditions = {"visibility": ("in_frustum", False), "distance": ("distance_exceeded", True),
-                  "collision": ("collided", True)}
+    conditions = {
+        "visibility": ("in_frustum", False),
+        "distance": ("distance_exceeded", True),
+        "collision": ("collided", True),
+    }
     for cause, (column, bad_when) in conditions.items():
         if column not in rows:
             continue
         bad = rows[_flags(rows[column]) == bad_when]
         if not bad.empty:
-            colour, marker = CAUSE_STYLES[cause]
-            ax.scatter(bad["rover_x"], bad["rover_y"], color=colour, marker=marker, s=10, alpha=0.6,
-                       label=f"{cause} violated ({len(bad)} steps)")
+            _mark_violations(ax, bad["rover_x"], bad["rover_y"], cause, f"{len(bad)} steps", s=10, alpha=0.6)
+
+
+def _mark_violations(ax: Axes, x: pd.Series, y: pd.Series, cause: str, count: str, **style: Any) -> None:
+    """Scatter the points where ``cause`` was violated in its colour and marker, counted in the legend."""
+    colour, marker = CAUSE_STYLES[cause]
+    ax.scatter(x, y, color=colour, marker=marker, label=f"{cause} violated ({count})", **style)
 
 
 def _causes(episodes: pd.DataFrame) -> pd.Series:
     if "cause" not in episodes:
         log.info("monitor table has no 'cause' column; counting every episode as reaching the time limit")
         return pd.Series(TIME_LIMIT, index=episodes.index)
-    causes = episodes["cause"].fillna("").astype(str).str.strip()
+    causes = episodes["cause"].astype(object).fillna("").astype(str).str.strip()
     return causes.where(causes != "", TIME_LIMIT)
 
 
@@ -251,8 +294,17 @@ def _cause_bars(ax: Axes, steps: np.ndarray, causes: pd.Series, max_bins: int = 
     below = np.zeros(bins)
     for cause in order:
         counts, _ = np.histogram(steps[(causes == cause).to_numpy()], bins=edges)
-        ax.bar(edges[:-1], counts, width=np.diff(edges), bottom=below, align="edge", edgecolor="white",
-               linewidth=0.4, color=CAUSE_COLOURS.get(cause) or next(fallback), label=cause)
+        ax.bar(
+            edges[:-1],
+            counts,
+            width=np.diff(edges),
+            bottom=below,
+            align="edge",
+            edgecolor="white",
+            linewidth=0.4,
+            color=CAUSE_COLOURS.get(cause) or next(fallback),
+            label=cause,
+        )
         below += counts
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from eval_service.metrics import SUMMARY_ROW_FIELDS, EpisodeMetrics, smoothness, summarise
-from services.geometry import ALPHA_DEG
+from services.geometry import ALPHA_DEG, MAX_D, OPT_D
 
 
 def test_the_papers_worked_example_with_surge_first() -> None:
@@ -60,7 +60,10 @@ def test_a_clean_episode_has_no_violation() -> None:
         metrics.add(7.0, 5.0, True, False, (0.2, -0.2), 0.9)
     row = metrics.row()
     assert (row["left_view"], row["distance_exceeded"], row["collided"], row["first_cause"]) == (
-        False, False, False, ""
+        False,
+        False,
+        False,
+        "",
     )
     assert row["S_D"] == 0.0 and row["S_A"] == 0.0
     assert row["D"] == pytest.approx(0.25)
@@ -71,14 +74,46 @@ def test_a_clean_episode_has_no_violation() -> None:
 
 def test_summary_over_episodes() -> None:
     rows = [
-        {"return": 100.0, "A": 0.1, "D": 0.2, "left_view": True, "distance_exceeded": False, "collided": False,
-         "S_D": 0.01, "S_A": 0.02},
-        {"return": 300.0, "A": 0.3, "D": 0.4, "left_view": True, "distance_exceeded": True, "collided": False,
-         "S_D": 0.03, "S_A": 0.04},
-        {"return": -100.0, "A": 0.2, "D": 0.0, "left_view": False, "distance_exceeded": False, "collided": True,
-         "S_D": 0.05, "S_A": 0.06},
-        {"return": 100.0, "A": 0.2, "D": 0.2, "left_view": False, "distance_exceeded": False, "collided": False,
-         "S_D": 0.01, "S_A": 0.0},
+        {
+            "return": 100.0,
+            "A": 0.1,
+            "D": 0.2,
+            "left_view": True,
+            "distance_exceeded": False,
+            "collided": False,
+            "S_D": 0.01,
+            "S_A": 0.02,
+        },
+        {
+            "return": 300.0,
+            "A": 0.3,
+            "D": 0.4,
+            "left_view": True,
+            "distance_exceeded": True,
+            "collided": False,
+            "S_D": 0.03,
+            "S_A": 0.04,
+        },
+        {
+            "return": -100.0,
+            "A": 0.2,
+            "D": 0.0,
+            "left_view": False,
+            "distance_exceeded": False,
+            "collided": True,
+            "S_D": 0.05,
+            "S_A": 0.06,
+        },
+        {
+            "return": 100.0,
+            "A": 0.2,
+            "D": 0.2,
+            "left_view": False,
+            "distance_exceeded": False,
+            "collided": False,
+            "S_D": 0.01,
+            "S_A": 0.0,
+        },
     ]
     summary = summarise(rows)
     assert summary["episodes"] == 4
@@ -99,3 +134,17 @@ def test_summary_accepts_accumulators_and_refuses_nothing() -> None:
     assert summarise([metrics])["mean_return"] == pytest.approx(2.0)
     with pytest.raises(ValueError, match="no episodes"):
         summarise([])
+
+
+def test_boundaries_of_the_violation_flags_and_the_azimuth_cap() -> None:
+    # D' is |d - opt_d| >= max_d (the SPEC's threshold counts), on either side of opt_d; A caps |theta| at alpha.
+    at_far_edge = EpisodeMetrics("edge", 1)
+    at_far_edge.add(OPT_D + MAX_D, -ALPHA_DEG, True, False, (0.0, 0.0), 0.0)
+    row = at_far_edge.row()
+    assert row["distance_exceeded"] is True and row["first_cause"] == "distance"
+    assert row["A"] == pytest.approx(1.0) and row["D"] == pytest.approx(1.0)
+    just_inside = EpisodeMetrics("inside", 1)
+    just_inside.add(OPT_D - MAX_D + 1e-9, -3 * ALPHA_DEG, True, False, (0.0, 0.0), 0.0)
+    row = just_inside.row()
+    assert row["distance_exceeded"] is False and row["first_cause"] == ""
+    assert row["A"] == pytest.approx(1.0)  # a negative azimuth error counts by its size, capped

@@ -14,8 +14,16 @@ from matplotlib.quiver import Quiver
 
 from eval_service import plots
 
-PAPER_SAC = {"A": 2.67e-2, "D": 2.35e-1, "A'": 0.0, "D'": 0.0, "C'": 0.0, "S_D": 8.08e-2, "S_A": 1.86e-1,
-             "mean_return": 2.40e3}
+PAPER_SAC = {
+    "A": 2.67e-2,
+    "D": 2.35e-1,
+    "A'": 0.0,
+    "D'": 0.0,
+    "C'": 0.0,
+    "S_D": 8.08e-2,
+    "S_A": 1.86e-1,
+    "mean_return": 2.40e3,
+}
 
 
 def _episodes() -> pd.DataFrame:
@@ -23,23 +31,43 @@ def _episodes() -> pd.DataFrame:
     rows = []
     for label, offset in (("sac", 2000.0), ("td3", 1500.0)):
         for episode in range(6):
-            rows.append({"label": label, "episode": episode, "return": offset - 100.0 * episode, "A": 0.05, "D": 0.2,
-                         "left_view": label == "td3" and episode == 4,
-                         "distance_exceeded": episode == 5,
-                         "collided": label == "sac" and episode == 1,
-                         "S_D": 0.1, "S_A": 0.2, "first_cause": ""})
+            rows.append(
+                {
+                    "label": label,
+                    "episode": episode,
+                    "return": offset - 100.0 * episode,
+                    "A": 0.05,
+                    "D": 0.2,
+                    "left_view": label == "td3" and episode == 4,
+                    "distance_exceeded": episode == 5,
+                    "collided": label == "sac" and episode == 1,
+                    "S_D": 0.1,
+                    "S_A": 0.2,
+                    "first_cause": "",
+                }
+            )
     return pd.DataFrame(rows)
 
 
 def _steps(count: int = 250) -> pd.DataFrame:
     """One episode on a circle of radius 8 m, plus rows of another episode that must be ignored."""
     angle = np.arange(count) * 0.01
-    episode = pd.DataFrame({
-        "label": "sac", "episode": 2, "step": np.arange(count),
-        "rover_x": 8 * np.cos(angle), "rover_y": 8 * np.sin(angle), "rover_yaw": np.degrees(angle) + 90.0,
-        "target_x": 8 * np.cos(angle + 0.75), "target_y": 8 * np.sin(angle + 0.75), "target_yaw": 0.0,
-        "in_frustum": np.arange(count) % 50 != 0, "distance_exceeded": False, "collided": False,
-    })
+    episode = pd.DataFrame(
+        {
+            "label": "sac",
+            "episode": 2,
+            "step": np.arange(count),
+            "rover_x": 8 * np.cos(angle),
+            "rover_y": 8 * np.sin(angle),
+            "rover_yaw": np.degrees(angle) + 90.0,
+            "target_x": 8 * np.cos(angle + 0.75),
+            "target_y": 8 * np.sin(angle + 0.75),
+            "target_yaw": 0.0,
+            "in_frustum": np.arange(count) % 50 != 0,
+            "distance_exceeded": False,
+            "collided": False,
+        }
+    )
     other = episode.assign(episode=3, rover_x=100.0)
     return pd.concat([other, episode.iloc[::-1]], ignore_index=True)  # reversed: the plot must sort by step
 
@@ -147,17 +175,18 @@ def test_trajectory_of_unknown_episode_raises():
 
 
 def _write_monitor(path: Path, t_start: float, rewards: list[float], lengths: list[int], causes: list[str]) -> Path:
-    frame = pd.DataFrame({"r": rewards, "l": lengths, "t": np.arange(1, len(rewards) + 1, dtype=float),
-                          "cause": causes})
+    frame = pd.DataFrame(
+        {"r": rewards, "l": lengths, "t": np.arange(1, len(rewards) + 1, dtype=float), "cause": causes}
+    )
     path.write_text("#" + json.dumps({"t_start": t_start, "env_id": "swimm"}) + "\n" + frame.to_csv(index=False))
     return path
 
 
 def _monitors(tmp_path: Path) -> list[Path]:
-    first = _write_monitor(tmp_path / "0.monitor.csv", 1000.0, [10.0, 20.0, 30.0], [100, 200, 300],
-                           ["distance", "", "visibility"])
-    second = _write_monitor(tmp_path / "1.monitor.csv", 1001.5, [15.0, 25.0], [150, 3000],
-                            ["collision", ""])
+    first = _write_monitor(
+        tmp_path / "0.monitor.csv", 1000.0, [10.0, 20.0, 30.0], [100, 200, 300], ["distance", "", "visibility"]
+    )
+    second = _write_monitor(tmp_path / "1.monitor.csv", 1001.5, [15.0, 25.0], [150, 3000], ["collision", ""])
     return [first, second]
 
 

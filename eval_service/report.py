@@ -1,0 +1,77 @@
+"""The run folder of one evaluation: per-step CSV, per-episode CSV, JSON summary and figures.
+
+<out>/steps.csv       one row per step (evaluator.STEP_FIELDS), written as the steps happen
+<out>/episodes.csv    one row per episode (metrics.SUMMARY_ROW_FIELDS + seed, steps)
+<out>/summary.json    Table 12 per label, the paper's SAC beside it, and how the run was made
+<out>/returns.png     return per episode, violations marked by cause (the paper's Figures 13-14)
+<out>/metrics.png     metrics per label beside the paper's SAC (Figure 16)
+<out>/trajectory-<label>.png  rover and dolphin from above in the chosen episode, one per label
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from eval_service import plots
+from eval_service.evaluator import STEP_FIELDS
+from eval_service.metrics import SUMMARY_ROW_FIELDS
+
+log = logging.getLogger(__name__)
+
+#: The paper's best (SAC, 100 evaluation episodes; the SPEC's "Paper's best results").
+PAPER_SAC = {"mean_return": 2.40e3, "A": 2.67e-2, "D": 2.35e-1, "A'": 0.0, "D'": 0.0, "C'": 0.0,
+             "S_A": 1.86e-1, "S_D": 8.08e-2}  # fmt: skip
+PAPER_LABEL = "paper SAC"
+EPISODE_FIELDS = (*SUMMARY_ROW_FIELDS, "seed", "steps")
+
+
+class RunFolder:
+    """Writes one evaluation's files; the step CSV streams, everything else is written by :meth:`finish`."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.mkdir(parents=True, exist_ok=True)
+        self._steps_file = (self.path / "steps.csv").open("w", newline="")
+        self._steps = csv.DictWriter(self._steps_file, fieldnames=STEP_FIELDS)
+        self._steps.writeheader()
+        self.episodes: list[dict[str, Any]] = []
+
+    def write_step(self, row: dict[str, Any]) -> None:
+        self._steps.writerow(row)
+
+    def add_episode(self, row: dict[str, Any]) -> None:
+        self.episodes.append(row)
+        self._steps_file.flush()  # a watcher (or a crash) sees whole episodes
+
+    def finish(self, summaries: dict[str, dict[str, float]], about: dict[str, Any],
+               trajectory_episode: int | None = 1) -> Path:  # fmt: skip
+        """Close the step CSV, write episodes.csv, summary.json and the figures (the trajectory of episode
+        ``trajectory_episode``; None: no figures); returns summary.json's path."""
+        self._steps_file.close()
+        episodes = pd.DataFrame(self.episodes, columns=list(EPISODE_FIELDS))
+        episodes.to_csv(self.path / "episodes.csv", index=False)
+        summary_path = self.path / "summary.json"
+        summary = {"labels": summaries, PAPER_LABEL: PAPER_SAC, **about}
+        summary_path.write_text(json.dumps(summary, indent=1, default=str))
+        if trajectory_episode is not None and not episodes.empty:
+            self._figures(episodes, summaries, trajectory_episode)
+        log.info("evaluation written to %s", self.path)
+        return summary_path
+
+    def _figures(self, episodes: pd.DataFrame, summaries: dict[str, dict[str, float]], trajectory_episode: int) -> None:
+        plots.plot_returns(episodes, self.path / "returns.png")
+        plots.plot_metrics(summaries, self.path / "metrics.png", PAPER_SAC, PAPER_LABEL)
+        steps = pd.read_csv(self.path / "steps.csv")
+        episode = min(max(1, trajectory_episode), int(episodes["episode"].max()))
+        for label in summaries:
+            plots.plot_trajectory(steps, label, episode, self.path / f"trajectory-{_file_safe(label)}.png")
+
+
+def _file_safe(label: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in label)

@@ -1,0 +1,128 @@
+"""`swimm eval --watch RUN_DIR`: score every new best model a training run saves, beside the training.
+
+The learner's evaluation callback saves ``best_model.zip`` and then, atomically, ``best_model.json`` (its
+score and step count). The watcher polls the JSON: a new ``num_timesteps`` there means a complete new zip.
+It copies the zip first (the learner may overwrite it at any time), evaluates the copy on its own claimed eval
+env (released between evaluations), writes one run folder per checkpoint and publishes each summary on the
+metrics key. It stops when the run writes ``result.json`` (training over) and the last best model is scored,
+or on SIGTERM / Ctrl-C.
+
+The algorithm and observation mode come from the run's ``settings.json`` (a policy must be evaluated on what
+it was trained on); ``--algo`` overrides the algorithm for runs without one.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import shutil
+import signal
+import threading
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from eval_service.evaluator import Contender
+from eval_service.live import LiveFeed
+from eval_service.publish import ResultPublisher
+
+log = logging.getLogger(__name__)
+
+BEST_MODEL = "best_model.zip"  # learner_service.callbacks.BEST_MODEL (not imported: that pulls in SB3 callbacks)
+BEST_MODEL_SCORE = "best_model.json"
+RUN_SETTINGS = "settings.json"
+RUN_FINISHED = "result.json"
+WATCH_TABLE = "watch.csv"
+
+
+def best_model_version(run_dir: Path) -> int | None:
+    """The ``num_timesteps`` of the saved best model, or None while there is none (or its JSON is unreadable)."""
+    try:
+        return int(json.loads((run_dir / BEST_MODEL_SCORE).read_text())["num_timesteps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def run_settings(run_dir: Path) -> dict[str, Any]:
+    """The training run's own settings (algo, obs, reward), from its settings.json; {} if it has none yet."""
+    try:
+        return dict(json.loads((run_dir / RUN_SETTINGS).read_text()).get("settings", {}))
+    except (OSError, ValueError):
+        return {}
+
+
+class BestModelWatcher:
+    """Yields a private copy of each new best model of ``run_dir``, once per saved version."""
+
+    def __init__(self, run_dir: Path, copies: Path) -> None:
+        self.run_dir = run_dir
+        self.copies = copies
+        self.seen: int | None = None
+
+    def poll(self) -> tuple[int, Path] | None:
+        version = best_model_version(self.run_dir)
+        if version is None or version == self.seen:
+            return None
+        self.copies.mkdir(parents=True, exist_ok=True)
+        copy = self.copies / f"best-{version}.zip"
+        shutil.copyfile(self.run_dir / BEST_MODEL, copy)
+        if best_model_version(self.run_dir) != version:  # overwritten while copying: take the newer one next poll
+            copy.unlink()
+            return None
+        self.seen = version
+        return version, copy
+
+    @property
+    def finished(self) -> bool:
+        return (self.run_dir / RUN_FINISHED).is_file()
+
+
+def watch(settings: Any, run_dir: Path, out: Path, feed: LiveFeed | None, publisher: ResultPublisher | None,
+          stop: threading.Event | None = None) -> int:  # fmt: skip
+    """Evaluate each new best model until the run finishes (or ``stop`` is set); returns how many were scored."""
+    from eval_service.command import evaluate  # the command module imports this one lazily
+
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"nothing to watch: {run_dir} is not a run folder of `swimm learn`")
+    stop = stop or _stop_on_signals()
+    watcher = BestModelWatcher(run_dir, out / "checkpoints")
+    scored = 0
+    log.info("watching %s for new best models (every %.1f s)", run_dir, settings.watch_interval_s)
+    while not stop.is_set():
+        finished = watcher.finished  # read before polling, so the last model saved before result.json is scored
+        found = watcher.poll()
+        if found is not None:
+            version, copy = found
+            trained = run_settings(run_dir)
+            algo = trained.get("algo") or (settings.algo[0] if settings.algo else "sac")
+            obs = trained.get("obs", settings.obs)
+            reward = trained.get("reward", settings.reward)
+            evaluated = replace(settings, obs=obs, reward=reward)
+            entry = Contender(f"{algo}@{version}", algo, str(copy))
+            summaries = evaluate(evaluated, out / f"step-{version}", [entry], feed, publisher,
+                                 about={"watched_run": str(run_dir), "num_timesteps": version})  # fmt: skip
+            _append(out / WATCH_TABLE, version, summaries[entry.label])
+            scored += 1
+        elif finished:
+            log.info("%s finished training; %d best models scored", run_dir, scored)
+            break
+        stop.wait(settings.watch_interval_s)
+    return scored
+
+
+def _append(path: Path, version: int, summary: dict[str, float]) -> None:
+    new = not path.is_file()
+    with path.open("a", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=["num_timesteps", *summary])
+        if new:
+            writer.writeheader()
+        writer.writerow({"num_timesteps": version, **summary})
+
+
+def _stop_on_signals() -> threading.Event:
+    """An event SIGTERM sets (the CLI turns Ctrl-C into a clean exit already); main thread only."""
+    stop = threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    return stop

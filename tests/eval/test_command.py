@@ -1,0 +1,231 @@
+"""`swimm eval` pieces on the in-process backend: contenders, the run folder, the live view, the watch loop.
+
+Everything runs for real: MuJoCo worlds, an SB3 SAC checkpoint saved and loaded from disk, the HTTP server.
+The checks recompute the numbers the evaluator wrote by a different route (from the per-step CSV's raw
+columns: theta, d, the actions, the frustum flag) rather than comparing against stored values.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import urllib.parse
+import urllib.request
+from dataclasses import replace
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pandas as pd
+import pytest
+
+from eval_service import command, watch
+from eval_service.attach import NoEvalEnv, free_env_ids
+from eval_service.command import EvalCommandSettings, contenders, evaluate
+from eval_service.live import LiveFeed, LiveView, tap_frames
+from eval_service.metrics import SMOOTHNESS_WEIGHTS
+from learner_service.inprocess_env import TrackingEnv
+from learner_service.registry import make_model
+from learner_service.task import TaskSettings
+from services.cli import main as swimm
+from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+from services.settings import ZenohSettings
+from sim_service.settings import WorldSettings
+
+STEPS = 60
+EPISODES = 2
+
+
+def settings(tmp_path: Path, **overrides) -> EvalCommandSettings:
+    base = EvalCommandSettings(backend="inprocess", obs="state", episodes=EPISODES, steps=STEPS, seed=131,
+                               progress_bar=False, figures=False, out=str(tmp_path / "out"))  # fmt: skip
+    return replace(base, **overrides)
+
+
+@pytest.fixture(scope="module")
+def sac_checkpoint(tmp_path_factory) -> Path:
+    """An untrained SAC on the state observation, saved like `swimm learn` saves: a real checkpoint to load."""
+    env = TrackingEnv(TaskSettings(obs="state"), WorldSettings(render=False))
+    model = make_model("sac", env, seed=5, overrides={"buffer_size": 1000})
+    path = tmp_path_factory.mktemp("ckpt") / "best_model.zip"
+    model.save(path)
+    env.close()
+    return path
+
+
+def test_contenders_pair_algorithms_with_checkpoints_in_order() -> None:
+    entries = contenders(EvalCommandSettings(algo=["sac", "scripted", "td3"], checkpoint=["a/s.zip", "b/t.zip"]))
+    assert [(e.label, e.algo, e.checkpoint) for e in entries] == [
+        ("sac", "sac", "a/s.zip"), ("scripted", "scripted", None), ("td3", "td3", "b/t.zip")
+    ]  # fmt: skip
+    same_algo = contenders(EvalCommandSettings(checkpoint=["run1/best_model.zip", "run2/best_model.zip"]))
+    assert [e.label for e in same_algo] == ["sac:run1/best_model", "sac:run2/best_model"]
+    assert [e.algo for e in contenders(EvalCommandSettings())] == ["scripted"]
+    assert [e.label for e in contenders(EvalCommandSettings(algo=["scripted"], label=["baseline"]))] == ["baseline"]
+
+
+@pytest.mark.parametrize(
+    ("given", "message"),
+    [
+        ({"algo": ["sac"]}, "needs a --checkpoint"),
+        ({"algo": ["scripted"], "checkpoint": ["x.zip"]}, "without an --algo"),
+        ({"algo": ["nope"], "checkpoint": ["x.zip"]}, "unknown algorithm"),
+        ({"algo": ["scripted", "sac"], "checkpoint": ["x.zip"], "label": ["same", "same"]}, "distinct"),
+    ],
+)
+def test_contenders_refuse_what_cannot_pair(given, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        contenders(EvalCommandSettings(**given))
+
+
+def test_settings_are_checked_before_anything_starts(tmp_path) -> None:
+    for bad in ({"noise": "maybe"}, {"backend": "carrier-pigeon"}, {"obs": "sonar"}, {"episodes": 0}):
+        with pytest.raises(ValueError):
+            command.check(settings(tmp_path, **bad))
+
+
+def test_no_live_sim_and_no_free_env_are_clear_errors() -> None:
+    zenoh = ZenohSettings(connect=["tcp/10.0.0.1:7447"], namespace="swimm/x")
+    with pytest.raises(NoEvalEnv, match=r"no live sim serves swimm/x/eval/\* \(connected to tcp/10.0.0.1:7447\)"):
+        free_env_ids([], zenoh)
+    held = [{"env": "0", "holder": "eval-abc"}, {"env": "1", "holder": "eval-def"}]
+    with pytest.raises(NoEvalEnv, match="eval/0 by eval-abc, eval/1 by eval-def"):
+        free_env_ids(held, zenoh)
+    free = [{"env": env, "holder": None} for env in ("2", "10", "9")]
+    assert free_env_ids([*held, *free], zenoh) == ["10", "9", "2"]  # eval/0 stays for a learner's own evaluation
+
+
+def _recomputed_episode(steps: pd.DataFrame) -> dict[str, float]:
+    """Table 12 terms of one episode straight from the raw per-step columns, with the SPEC's formulas."""
+    actions = steps[["surge", "yaw_cmd"]].to_numpy()
+    smooth = np.zeros(2)
+    for t in range(1, len(actions)):
+        previous = actions[max(0, t - 10) : t][::-1]
+        smooth += 0.5 * (np.abs(actions[t] - previous) * SMOOTHNESS_WEIGHTS[: len(previous), None]).sum(axis=0)
+    return {
+        "return": steps["reward"].sum(),
+        "A": np.minimum(steps["theta"].abs(), ALPHA_DEG).mean() / ALPHA_DEG,
+        "D": (steps["d"] - OPT_D).abs().mean() / MAX_D,
+        "S_D": smooth[0] / len(actions),
+        "S_A": smooth[1] / len(actions),
+        "left_view": not steps["in_frustum"].all(),
+    }
+
+
+def test_evaluation_run_folder_holds_consistent_numbers(tmp_path, sac_checkpoint) -> None:
+    given = settings(tmp_path, algo=["scripted", "sac"], checkpoint=[str(sac_checkpoint)], figures=True)
+    summaries = evaluate(given, Path(given.out))
+    out = Path(given.out)
+    for name in ("steps.csv", "episodes.csv", "summary.json", "returns.png", "metrics.png",
+                 "trajectory-scripted.png", "trajectory-sac.png"):  # fmt: skip
+        assert (out / name).is_file(), name
+    steps = pd.read_csv(out / "steps.csv", keep_default_na=False)
+    episodes = pd.read_csv(out / "episodes.csv")
+    assert len(steps) == 2 * EPISODES * STEPS
+    assert list(summaries) == ["scripted", "sac"]
+    # the same seeds for every contender: identical episode seeds and identical starting poses
+    seeds = episodes.pivot(index="episode", columns="label", values="seed")
+    assert (seeds["scripted"] == seeds["sac"]).all() and seeds["scripted"].nunique() == EPISODES
+    for (label, episode), rows in steps.groupby(["label", "episode"]):
+        row = episodes[(episodes["label"] == label) & (episodes["episode"] == episode)].iloc[0]
+        assert rows["step"].tolist() == list(range(1, STEPS + 1))  # no early termination in evaluation
+        for name, value in _recomputed_episode(rows).items():
+            assert row[name] == pytest.approx(value, rel=1e-9, abs=1e-12), (label, episode, name)
+    for label, summary in summaries.items():
+        mine = episodes[episodes["label"] == label]
+        assert summary["mean_return"] == pytest.approx(mine["return"].mean())
+        assert summary["A'"] == pytest.approx(mine["left_view"].mean())
+    written = json.loads((out / "summary.json").read_text())
+    assert written["labels"] == json.loads(json.dumps(summaries))
+    assert written["paper SAC"]["mean_return"] == 2.40e3
+    # deterministic: the scripted baseline plays its episodes again identically
+    again = evaluate(replace(given, algo=["scripted"], checkpoint=[], out=str(tmp_path / "again")), tmp_path / "again")
+    assert again["scripted"] == summaries["scripted"]
+
+
+def test_cli_prints_the_table_beside_the_paper(tmp_path, capsys) -> None:
+    out = tmp_path / "cli"
+    code = swimm(["eval", "--backend", "inprocess", "--obs", "state", "--algo", "scripted", "--episodes", "1",
+                  "--steps", "20", "--out", str(out), "--no-progress-bar", "--no-figures"])  # fmt: skip
+    assert code == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())["labels"]["scripted"]
+    assert f"{summary['mean_return']:11.3g}" in printed.splitlines()[1]
+    assert printed.splitlines()[2].startswith("paper SAC")
+
+
+def _get(url: str) -> tuple[str, bytes]:
+    with urllib.request.urlopen(url, timeout=10) as reply:
+        return reply.headers["Content-Type"], reply.read()
+
+
+def test_live_view_serves_the_latest_frame_and_episode_metrics(tmp_path) -> None:
+    feed = LiveFeed()
+    given = settings(tmp_path, episodes=1, steps=30)
+    with LiveView(feed) as view:
+        evaluate(given, Path(given.out), feed=feed)
+        kind, page = _get(view.url)
+        assert kind.startswith("text/html") and b"/api/state" in page
+        (source,) = json.loads(_get(view.url + "api/sources")[1])
+        assert source == "scripted @ inprocess"
+        query = "?source=" + urllib.parse.quote(source)
+        state = json.loads(_get(view.url + "api/state" + query)[1])
+        kind, png = _get(view.url + "frame.png" + query)
+    steps = pd.read_csv(Path(given.out) / "steps.csv")
+    assert state["frame"] == 30 and state["has_image"] is True
+    assert state["step"]["step"] == 30 and state["step"]["d"] == pytest.approx(steps["d"].iloc[-1])
+    assert state["episode"]["A"] == pytest.approx(steps["A"].mean())
+    assert state["episode"]["S_A"] == pytest.approx(steps["S_A"].mean())
+    assert kind == "image/png"
+    (tmp_path / "frame.png").write_bytes(png)
+    image = matplotlib.image.imread(tmp_path / "frame.png")
+    assert image.shape == (64, 64, 3) and image.std() > 0.01  # a rendered underwater frame, not a blank
+
+
+def test_watch_scores_each_new_best_model_once_and_stops_when_training_ends(tmp_path, sac_checkpoint) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "settings.json").write_text(json.dumps({"settings": {"algo": "sac", "obs": "state", "reward": "swimm2"}}))
+    (run / watch.BEST_MODEL).write_bytes(sac_checkpoint.read_bytes())
+    (run / watch.BEST_MODEL_SCORE).write_text(json.dumps({"num_timesteps": 1234, "mean_return": 1.0}))
+    (run / watch.RUN_FINISHED).write_text("{}")
+    given = settings(tmp_path, obs="cmvae", episodes=1, steps=20, watch=str(run), watch_interval_s=0.05)
+    out = tmp_path / "watched"
+    scored = watch.watch(given, run, out, None, None, stop=threading.Event())
+    assert scored == 1
+    table = pd.read_csv(out / watch.WATCH_TABLE)
+    assert table["num_timesteps"].tolist() == [1234]
+    summary = json.loads((out / "step-1234" / "summary.json").read_text())
+    assert summary["num_timesteps"] == 1234 and summary["settings"]["obs"] == "state"  # the run's obs, not ours
+    assert table["mean_return"].iloc[0] == pytest.approx(summary["labels"]["sac@1234"]["mean_return"])
+    assert (out / "checkpoints" / "best-1234.zip").read_bytes() == sac_checkpoint.read_bytes()
+
+
+def test_watcher_waits_for_a_best_model_and_takes_each_version_once(tmp_path) -> None:
+    run, copies = tmp_path / "run", tmp_path / "copies"
+    run.mkdir()
+    watcher = watch.BestModelWatcher(run, copies)
+    assert watcher.poll() is None and not watcher.finished  # nothing saved yet
+    (run / watch.BEST_MODEL).write_bytes(b"first")
+    (run / watch.BEST_MODEL_SCORE).write_text("{not json")  # half-written JSON is ignored until whole
+    assert watcher.poll() is None
+    (run / watch.BEST_MODEL_SCORE).write_text(json.dumps({"num_timesteps": 10}))
+    assert watcher.poll() == (10, copies / "best-10.zip")
+    assert watcher.poll() is None
+    (run / watch.BEST_MODEL).write_bytes(b"second")
+    (run / watch.BEST_MODEL_SCORE).write_text(json.dumps({"num_timesteps": 20}))
+    assert watcher.poll() == (20, copies / "best-20.zip")
+    assert (copies / "best-10.zip").read_bytes() == b"first" and (copies / "best-20.zip").read_bytes() == b"second"
+
+
+def test_noise_on_renders_the_same_episode_through_image_noise_in_process(tmp_path) -> None:
+    frames = {}
+    for noise in ("off", "on"):
+        with command.evaluation_env(settings(tmp_path, noise=noise), render=True) as env:
+            frame = tap_frames(env)
+            env.reset(seed=113)
+            env.step(np.zeros(2, np.float32))
+            frames[noise] = (frame().astype(np.int16), env.world.settings.noise.enabled)
+    (clean, clean_enabled), (noisy, noisy_enabled) = frames["off"], frames["on"]
+    assert not clean_enabled and noisy_enabled
+    assert np.abs(noisy - clean).mean() > 1.0  # same seed and action, visibly different pixels
