@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import uuid
 from dataclasses import dataclass
 
 import pytest
@@ -16,14 +14,11 @@ from services.procs import ProcessGroup
 from services.session import open_session
 from services.settings import ZenohSettings
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 
 @pytest.fixture
-def group(tmp_path):
-    """Processes started by the test; all stopped at teardown. Logs under tmp_path/logs."""
-    with ProcessGroup(tmp_path / "logs") as processes:
-        yield processes
+def group(processes: ProcessGroup) -> ProcessGroup:
+    """The test's process group (tests/conftest.py's ``processes``), under the name these tests use."""
+    return processes
 
 
 @dataclass
@@ -49,11 +44,6 @@ class Client:
 
     def roster(self, role: str) -> Roster:
         return Roster(self.session, self.keys, role)
-
-
-@pytest.fixture
-def namespace():
-    return f"swimm/test-{uuid.uuid4().hex[:8]}"
 
 
 @pytest.fixture

@@ -1,0 +1,157 @@
+"""Training benchmark: SB3 env-steps/s through the distributed pipeline vs the same training in one process.
+
+Both halves train the same algorithm with its shipped settings (``learner_service/hyperparams/<algo>.yaml``), the
+same seed and cmvae observations for the same number of steps, in one invocation:
+
+- in-process: a TrackingEnv (World + LatentEncoder in the learner's process);
+- distributed: `swimm router`, `swimm sim` and `swimm encoder` as separate processes, the learner stepping a
+  ProxyVecEnv, so every step is action -> router -> sim -> router -> encoder -> router -> learner.
+
+Since the ProxyEnv reproduces the in-process env bit for bit, the two runs see the same episodes and do the same
+gradient steps: the ratio isolates the cost of the transport and the process hops. The rate counts every
+env step of ``model.learn`` including the gradient steps between episodes (end to end), excluding only the
+start of the processes and the building of the model.
+
+CPU threads: torch runs with one thread in the learner and in the encoder. In lock step only one process
+works at a time, and the idle-spinning threads of a two-thread torch pool steal the core the next process in
+the chain needs (measured on the 2-core machine: a batch-1 encode took 11-28 ms with two threads under load,
+1.1-1.7 ms with one).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from stable_baselines3.common.callbacks import BaseCallback
+
+from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
+from encoder_service.model import CMVAE, make_checkpoint
+from learner_service.envs import make_vec_env
+from learner_service.proxy_env import ProxySettings
+from learner_service.registry import make_model
+from learner_service.task import TaskSettings
+from services.procs import ProcessGroup
+from services.settings import ZenohSettings
+
+log = logging.getLogger(__name__)
+
+NAMESPACE = "swimm/bench-train"
+SEED = 97  # the SPEC's first training seed
+TORCH_THREADS = 1  # see the module docstring
+CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def encoder_checkpoint(folder: Path) -> Path:
+    """The shipped CMVAE, or an untrained one of the same shape (encoding costs the same whatever the weights)."""
+    if DEFAULT_CHECKPOINT.is_file():
+        return DEFAULT_CHECKPOINT
+    log.warning("no shipped CMVAE at %s; timing an untrained one of the same architecture", DEFAULT_CHECKPOINT)
+    torch.manual_seed(0)
+    path = folder / "untrained-cmvae.pt"
+    torch.save(make_checkpoint(CMVAE(), beta=8.0, epoch=0, val_loss=float("nan"), metrics={}), path)
+    return path
+
+
+class RolloutClock(BaseCallback):
+    """Wall time spent collecting rollouts (env steps and the policy's actions), the rest of learn() being training."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.rollout_s = 0.0
+        self._started = 0.0
+
+    def _on_rollout_start(self) -> None:
+        self._started = time.perf_counter()
+
+    def _on_rollout_end(self) -> None:
+        self.rollout_s += time.perf_counter() - self._started
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def process_cpu_s(pid: int) -> float:
+    """User + system CPU seconds a process (all its threads) has used so far, from Linux's /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
+
+
+@dataclass(frozen=True)
+class TrainingRun:
+    steps: int
+    seconds: float
+    rollout_seconds: float
+    episodes: list[tuple[float, int]]  # (return, length) of each finished episode, from the VecMonitor
+    cpu_ms_per_step: dict[str, float]  # per process: where the time goes, robust to other load on the machine
+
+    @property
+    def steps_per_s(self) -> float:
+        return self.steps / self.seconds
+
+    @property
+    def rollout_steps_per_s(self) -> float:
+        return self.steps / self.rollout_seconds
+
+
+def train(algo: str, vec_env, steps: int, services: dict[str, int]) -> TrainingRun:
+    """Time ``model.learn(steps)`` and the CPU it costs the learner and the ``services`` (name: pid).
+
+    SAC trains per episode, so it may run a little past ``steps``.
+    """
+    model = make_model(algo, vec_env, seed=SEED, overrides={"device": "cpu", "verbose": 0, "stats_window_size": 10**6})
+    clock = RolloutClock()
+    cpu_before = {name: process_cpu_s(pid) for name, pid in services.items()}
+    learner_cpu, started = time.process_time(), time.perf_counter()
+    model.learn(total_timesteps=steps, callback=clock)
+    elapsed, learner_cpu = time.perf_counter() - started, time.process_time() - learner_cpu
+    cpu = {"learner": learner_cpu} | {name: process_cpu_s(pid) - cpu_before[name] for name, pid in services.items()}
+    episodes = [(round(float(info["r"]), 4), int(info["l"])) for info in model.ep_info_buffer]
+    cpu_ms = {name: round(seconds * 1e3 / model.num_timesteps, 3) for name, seconds in cpu.items()}
+    return TrainingRun(model.num_timesteps, elapsed, clock.rollout_s, episodes, cpu_ms)
+
+
+def run(steps: int = 1500, algo: str = "sac") -> dict:
+    torch.set_num_threads(TORCH_THREADS)
+    task = TaskSettings(obs="cmvae")
+    with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
+        checkpoint = encoder_checkpoint(Path(tmp))
+        endpoint = group.start_router()
+        common = ("--connect", endpoint, "--namespace", NAMESPACE)
+        group.start("sim", "sim", *common, "--eval-envs", "0")
+        group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS))
+        proxy = ProxySettings(zenoh=ZenohSettings(connect=[endpoint], namespace=NAMESPACE))
+        # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
+        distributed_env = make_vec_env("zenoh", task, proxy, base_seed=SEED)
+        try:
+            inprocess_env = make_vec_env("inprocess", task, base_seed=SEED, encoder=LatentEncoder(checkpoint))
+            try:
+                inprocess = train(algo, inprocess_env, steps, services={})
+            finally:
+                inprocess_env.close()
+            distributed = train(algo, distributed_env, steps, {s.name: s.process.pid for s in group.services})
+        finally:
+            distributed_env.close()
+        group.check_alive()
+    return {
+        "algo": algo,
+        "inprocess_steps_per_s": round(inprocess.steps_per_s, 1),
+        "distributed_steps_per_s": round(distributed.steps_per_s, 1),
+        "ratio": round(distributed.steps_per_s / inprocess.steps_per_s, 3),
+        # The same rates over the rollouts alone (env steps and actions, without the gradient steps between them).
+        "inprocess_rollout_steps_per_s": round(inprocess.rollout_steps_per_s, 1),
+        "distributed_rollout_steps_per_s": round(distributed.rollout_steps_per_s, 1),
+        "rollout_ratio": round(distributed.rollout_steps_per_s / inprocess.rollout_steps_per_s, 3),
+        "training_share": round(1 - distributed.rollout_seconds / distributed.seconds, 3),  # of the distributed run
+        # CPU milliseconds per env step of each process over the whole run (the learner's includes its training).
+        "inprocess_cpu_ms_per_step": inprocess.cpu_ms_per_step["learner"],
+        "distributed_cpu_ms_per_step": distributed.cpu_ms_per_step,
+        "steps": distributed.steps,
+        "episodes": len(distributed.episodes),
+        "same_episodes": distributed.episodes == inprocess.episodes,  # the same seed gave the same training run
+    }

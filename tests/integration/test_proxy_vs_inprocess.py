@@ -1,0 +1,82 @@
+"""The same seeds and actions give the same run over Zenoh (router, sim, encoder processes) as in one process.
+
+Each run goes through several episodes (early endings and time-limit truncations both) with a fixed action
+sequence, and records everything the learner sees: observations, rewards, terminated/truncated and the
+termination cause. In cmvae mode the latent comes from a `swimm encoder` process on one side and from a
+LatentEncoder on the same checkpoint on the other, so the whole step path action -> sim -> encoder -> latent
+is compared bit for bit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import CMVAE, make_checkpoint
+from learner_service.inprocess_env import TrackingEnv
+from learner_service.proxy_env import ProxyEnv, ProxySettings
+from learner_service.task import TaskSettings
+from tests.integration.conftest import start_sim
+
+pytestmark = pytest.mark.slow
+
+BASE_SEED = 101
+STEPS = 300
+MAX_STEPS = 100  # short time limit, so the fixed actions meet truncations as well as early terminations
+
+
+def fixed_actions() -> np.ndarray:
+    """Gentle noise, a hard spin that loses the dolphin, then full ahead: early endings and a time-limit truncation."""
+    rng = np.random.default_rng(11)
+    actions = np.clip(rng.normal([0.2, 0.0], [0.3, 0.3], (STEPS, 2)), -1, 1)
+    actions[60:120, 1] = 1.0
+    actions[200:260] = (1.0, 0.0)
+    return actions.astype(np.float32)
+
+
+def record_run(env) -> list[tuple]:
+    """(obs, reward, terminated, truncated, cause, ep) per step, resetting after each episode ends."""
+    obs, info = env.reset()
+    rows: list[tuple] = [(obs, 0.0, False, False, info["cause"], info["ep"])]
+    for action in fixed_actions():
+        obs, reward, terminated, truncated, info = env.step(action)
+        rows.append((obs, reward, terminated, truncated, info["cause"], info["ep"]))
+        if terminated or truncated:
+            obs, info = env.reset()
+            rows.append((obs, 0.0, False, False, info["cause"], info["ep"]))
+    env.close()
+    return rows
+
+
+def assert_same_runs(remote: list[tuple], local: list[tuple]) -> None:
+    assert len(remote) == len(local)
+    for step, (got, want) in enumerate(zip(remote, local, strict=True)):
+        np.testing.assert_array_equal(got[0], want[0], err_msg=f"observation differs at row {step}")
+        assert got[1:] == want[1:], f"row {step}: reward/terminated/truncated/cause/ep differ"
+    assert any(row[2] and row[4] for row in local), "the fixed actions should end an episode early, with its cause"
+    assert any(row[3] and not row[2] for row in local), "the fixed actions should reach the time limit"
+
+
+def test_state_mode_over_zenoh_equals_in_process(group, namespace, zenoh_settings) -> None:
+    endpoint = group.start_router()
+    start_sim(group, endpoint, namespace, "--eval-envs", "0")
+    task = TaskSettings(obs="state", max_steps=MAX_STEPS)
+    remote = record_run(ProxyEnv(task, ProxySettings(zenoh=zenoh_settings(endpoint)), base_seed=BASE_SEED))
+    local = record_run(TrackingEnv(task, base_seed=BASE_SEED))
+    assert_same_runs(remote, local)
+
+
+def test_cmvae_mode_over_zenoh_equals_in_process(group, namespace, zenoh_settings, tmp_path) -> None:
+    torch.manual_seed(0)
+    checkpoint = tmp_path / "tiny-cmvae.pt"
+    torch.save(make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), checkpoint)
+    endpoint = group.start_router()
+    start_sim(group, endpoint, namespace, "--eval-envs", "0")
+    group.start("encoder", "encoder", "--connect", endpoint, "--namespace", namespace, "--checkpoint", str(checkpoint))
+    task = TaskSettings(obs="cmvae", max_steps=MAX_STEPS)
+    remote = record_run(ProxyEnv(task, ProxySettings(zenoh=zenoh_settings(endpoint)), base_seed=BASE_SEED))
+    local = record_run(TrackingEnv(task, base_seed=BASE_SEED, encoder=LatentEncoder(checkpoint)))
+    assert_same_runs(remote, local)
+    assert np.abs(np.array([row[0][:10] for row in local])).max() > 0  # real latents, not zeros

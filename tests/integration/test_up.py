@@ -1,0 +1,103 @@
+"""`swimm up` as a real process tree: router, sim, encoder and learner processes talking over Zenoh, training SAC
+for a few hundred steps, leaving a run folder, and stopping every process it started (also on SIGTERM)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+
+from encoder_service.model import CMVAE, make_checkpoint
+from services import cli
+from services.procs import Service
+
+TINY_SAC = "{learning_starts: 50, gradient_steps: 1, batch_size: 32, buffer_size: 2000}"
+
+
+def up_args(run_dir: Path, namespace: str, *extra: str) -> list[str]:
+    return ["--port", "0", "--namespace", namespace, "--run-dir", str(run_dir), "--hyperparams", TINY_SAC,
+            "--max-steps", "100", "--log-interval-s", "5", *extra]  # fmt: skip
+
+
+def wait_exit(service: Service, timeout_s: float) -> int:
+    try:
+        return service.process.wait(timeout=timeout_s)
+    except Exception:
+        pytest.fail(f"swimm up did not finish within {timeout_s} s; its log ends:\n{service.log_tail(60)}")
+
+
+def started_pids(service: Service) -> dict[str, int]:
+    """The processes `swimm up` says it started, by name, from its own log."""
+    return {name: int(pid) for name, pid in re.findall(r"started (\S+) \(pid (\d+)\)", service.log_path.read_text())}
+
+
+def is_running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def assert_all_stopped(service: Service, expected: set[str]) -> None:
+    pids = started_pids(service)
+    assert set(pids) == expected, service.log_tail(60)
+    assert not [name for name, pid in pids.items() if is_running(pid)]
+
+
+@pytest.mark.slow
+def test_up_trains_on_cmvae_and_leaves_a_run_folder(spawn, namespace, tmp_path) -> None:
+    checkpoint = tmp_path / "tiny_cmvae.pt"  # an untrained CMVAE: the pipeline, not the policy, is under test
+    torch.save(make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), checkpoint)
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--steps", "300", "--encoder-checkpoint", str(checkpoint)))
+    assert wait_exit(up, 150) == 0, up.log_tail(60)
+
+    assert_all_stopped(up, {"router", "sim", "encoder", "learner"})
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["num_timesteps"] >= 300 and not result["stopped_early"]
+    episodes = pd.read_csv(run_dir / "train.monitor.csv", skiprows=1)
+    assert len(episodes) == result["episodes"] > 0
+    assert (run_dir / "summary.png").read_bytes()[:4] == b"\x89PNG"
+    for name in ("final_model.zip", "settings.json", "learn.yaml", "logs/sim.log", "logs/encoder.log"):
+        assert (run_dir / name).is_file(), name
+    assert list((run_dir / "tensorboard").rglob("events.out.tfevents.*"))
+    learner_log = (run_dir / "logs" / "learner.log").read_text()
+    assert "1 zenoh env(s), obs cmvae" in learner_log  # it trained through the services, on latents
+
+
+@pytest.mark.slow
+def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tmp_path) -> None:
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "1000000"))
+    deadline = time.monotonic() + 100
+    while time.monotonic() < deadline:
+        progress = run_dir / "progress.json"
+        if progress.is_file() and json.loads(progress.read_text())["num_timesteps"] >= 100:
+            break
+        assert up.alive, up.log_tail(60)
+        time.sleep(0.5)
+    else:
+        pytest.fail(f"no training progress within 100 s:\n{up.log_tail(60)}")
+
+    up.process.send_signal(signal.SIGTERM)
+    assert wait_exit(up, 90) == 0, up.log_tail(60)
+    assert_all_stopped(up, {"router", "sim", "learner"})  # state observations: no encoder
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["stopped_early"] and 100 <= result["num_timesteps"] < 1_000_000
+    assert (run_dir / "final_model.zip").is_file() and (run_dir / "train.monitor.csv").is_file()
+
+
+def test_up_without_the_cmvae_says_what_to_do(tmp_path, capfd) -> None:
+    missing = tmp_path / "nope.pt"
+    assert cli.main(["up", "--encoder-checkpoint", str(missing), "--run-dir", str(tmp_path / "run")]) == 1
+    message = capfd.readouterr().err
+    assert "--obs state" in message and str(missing) in message
+    assert not (tmp_path / "run").exists()  # nothing was started
