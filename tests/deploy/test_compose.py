@@ -1,0 +1,200 @@
+"""deploy/docker-compose.yml end to end: images built here without a registry, training, scaling, a killed encoder.
+
+The images are built on a debootstrapped base (tests/deploy/docker_stack.py). The stack runs router, sim,
+one encoder and the learner; the test watches the step pipeline from outside, through the router's
+published port, recording every latent's (env, ep, seq, sim clock, encoder). It scales the encoders to 3
+while training runs, kills the container of an encoder that is serving envs, and checks that training
+goes on: those envs move to live encoders, and every episode seen is whole (seq 0, 1, 2, ... with no gap)
+with the sim's clock at seq * physics_dt at each step, so no step was lost or applied twice.
+Then the eval profile attaches to the same live sim and writes its report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import threading
+import time
+from collections import defaultdict
+
+import pytest
+import torch
+
+from encoder_service.model import CMVAE, make_checkpoint
+from services.keys import Keys
+from services.messages import LatentMsg
+from services.presence import Roster
+from services.procs import free_tcp_port
+from services.session import open_session
+from services.settings import ZenohSettings
+from sim_service.settings import WorldSettings
+from tests.deploy.docker_stack import (
+    SIM_TAG,
+    TORCH_TAG,
+    ComposeProject,
+    Images,
+    base_image_unavailable_reason,
+    docker_unavailable_reason,
+)
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.docker,
+    # Not yet run end to end (the images build here; the compose run itself is unverified): opt in until it is.
+    pytest.mark.skipif(os.environ.get("SWIMM_TEST_COMPOSE") != "1", reason="set SWIMM_TEST_COMPOSE=1 to run"),
+]
+ENVS = 2
+STEPS_BEFORE_SCALING = 150
+STEPS_AFTER_KILL = 300
+
+
+class LatentLog:
+    """Every latent on ``<ns>/train/*/latent``, as seen by an outside observer."""
+
+    def __init__(self, session, keys: Keys) -> None:
+        self.rows: list[tuple[str, int, int, float, str]] = []
+        self._lock = threading.Lock()
+        self._sub = session.declare_subscriber(f"{keys.namespace}/train/*/latent", self._on_latent)
+
+    def _on_latent(self, sample) -> None:
+        msg = LatentMsg.decode(sample.payload.to_bytes())
+        with self._lock:
+            self.rows.append((msg.env, msg.ep, msg.seq, msg.telemetry.sim_time, msg.encoder))
+
+    def snapshot(self) -> list[tuple[str, int, int, float, str]]:
+        with self._lock:
+            return list(self.rows)
+
+    def steps(self) -> int:
+        return len({row[:3] for row in self.snapshot()})
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def wait_until(condition, timeout_s: float, what: str, stack: ComposeProject) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}\n{stack.logs()}")
+        time.sleep(1.0)
+
+
+@pytest.fixture(scope="module")
+def images() -> Images:
+    reason = docker_unavailable_reason() or base_image_unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    built = Images()
+    built.build()
+    return built
+
+
+@pytest.fixture(scope="module")
+def stack(images: Images, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("compose")
+    (folder / "models").mkdir()
+    (folder / "runs").mkdir()
+    torch.manual_seed(0)  # an untrained CMVAE: the test is about the pipeline, not the latents' meaning
+    checkpoint = make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={})
+    torch.save(checkpoint, folder / "models" / "cmvae.pt")
+    port = free_tcp_port()
+    project = ComposeProject(
+        {
+            "SWIMM_SIM_IMAGE": SIM_TAG,
+            "SWIMM_TORCH_IMAGE": TORCH_TAG,
+            "SWIMM_ROUTER_PORT": str(port),
+            "SWIMM_NAMESPACE": f"swimm/compose-{time.time_ns() % 10**8}",
+            "SWIMM_MODELS": str(folder / "models"),
+            "SWIMM_RUNS": str(folder / "runs"),
+            "SWIMM_ENCODER_CHECKPOINT": "/models/cmvae.pt",
+            "SWIMM_ENVS": str(ENVS),
+            "SWIMM_STEPS": "100000",
+            # Small and frequent: updates and checkpoints show up within the test's minutes on a CPU.
+            "SWIMM_HYPERPARAMS": "{learning_starts: 100, gradient_steps: 8, batch_size: 64}",
+            "SWIMM_CHECKPOINT_EVERY": "200",
+        },
+        folder=folder,
+        endpoint=f"tcp/127.0.0.1:{port}",
+    )
+    try:
+        project("up", "-d", "--no-build", "router")
+        yield project
+    finally:
+        project.down()
+
+
+def test_training_goes_on_when_encoders_scale_and_one_is_killed(stack: ComposeProject) -> None:
+    keys = Keys(stack.env["SWIMM_NAMESPACE"])
+    session = open_session(ZenohSettings(connect=[stack.endpoint], namespace=keys.namespace), role="observer")
+    latents = LatentLog(session, keys)
+    encoders = Roster(session, keys, "encoder")
+    try:
+        started = time.monotonic()
+        stack("up", "-d", "--no-build", "sim", "encoder", "learner")
+        wait_until(lambda: latents.steps() >= STEPS_BEFORE_SCALING, 300, "training steps through one encoder", stack)
+        progress = stack.folder / "runs" / "train" / "progress.json"
+        wait_until(progress.exists, 120, "the learner's progress.json", stack)
+        first_steps_s = time.monotonic() - started
+
+        stack("up", "-d", "--no-build", "--no-recreate", "--scale", "encoder=3", "encoder")
+        wait_until(lambda: len(encoders.members()) == 3, 180, "three live encoders", stack)
+        for container in stack.containers("encoder"):
+            wait_until(lambda c=container: stack.health(c) == "healthy", 120, f"{container[:12]} healthy", stack)
+
+        # Kill an encoder that is serving envs right now (its id is enc-<container host name>).
+        recent = latents.snapshot()[-ENVS * 5 :]
+        victim = recent[-1][4]
+        victim_envs = {row[0] for row in recent if row[4] == victim}
+        container = next(c for c in stack.containers("encoder") if victim == f"enc-{c[:12]}")
+        steps_at_kill, rows_at_kill = latents.steps(), len(latents.snapshot())
+        killed_at = time.monotonic()
+        subprocess.run(["docker", "kill", container], check=True, capture_output=True)
+        wait_until(lambda: latents.steps() >= steps_at_kill + STEPS_AFTER_KILL, 300, "steps after the kill", stack)
+        recovered_s = time.monotonic() - killed_at
+        assert victim not in encoders.members() and len(encoders.members()) == 2
+        for name in ("learner", "sim"):
+            assert all(stack.health(c) == "healthy" for c in stack.containers(name)), stack.logs()
+    finally:
+        latents.close()
+        session.close()
+
+    rows = latents.snapshot()
+    late = rows[rows_at_kill:][-ENVS * 50 :]  # the last steps: every env steps, none through the dead encoder
+    assert {row[0] for row in late} == {str(i) for i in range(ENVS)}
+    assert victim not in {row[4] for row in late}
+    assert victim_envs <= {row[0] for row in late}  # the victim's envs moved to live encoders
+    check_no_step_lost_or_repeated(rows)
+    report = {"first_steps_s": round(first_steps_s, 1), "recovered_s": round(recovered_s, 1), "steps": len(rows)}
+    (stack.folder / "compose-timings.json").write_text(json.dumps(report))
+
+
+def check_no_step_lost_or_repeated(rows: list[tuple[str, int, int, float, str]]) -> None:
+    """Each (env, ep) seen: seqs 0..n without a gap, and the sim's clock at seq * dt (applied once each).
+
+    A latent may arrive twice (a re-sent step is answered from the sim's cache and encoded again); both
+    copies then carry the same clock. Episodes already running when the observer joined are skipped.
+    """
+    dt = WorldSettings().physics_dt
+    clocks: dict[tuple[str, int], dict[int, set[int]]] = defaultdict(lambda: defaultdict(set))
+    for env, ep, seq, sim_time, _ in rows:
+        clocks[(env, ep)][seq].add(round(sim_time / dt))
+    whole = [key for key, seqs in clocks.items() if 0 in seqs]
+    assert len(whole) >= ENVS
+    for key in whole:
+        seqs = clocks[key]
+        assert sorted(seqs) == list(range(max(seqs) + 1)), f"{key}: a step is missing"
+        assert all(ticks == {seq} for seq, ticks in seqs.items()), f"{key}: a step was applied twice"
+
+
+def test_the_eval_profile_attaches_to_the_live_sim_and_reports(stack: ComposeProject) -> None:
+    saved = (stack.folder / "runs" / "train" / "checkpoints").glob("*.zip")
+    checkpoints = sorted(saved, key=lambda path: path.stat().st_mtime)
+    assert checkpoints, "the learner wrote no checkpoint"
+    policy = "/runs/train/checkpoints/" + checkpoints[-1].name
+    eval_env = {**stack.env, "SWIMM_EVAL_CHECKPOINT": policy, "SWIMM_EVAL_EPISODES": "1", "SWIMM_EVAL_STEPS": "200"}
+    evaluation = ComposeProject(eval_env, stack.name, stack.folder)
+    evaluation("--profile", "eval", "run", "--rm", "--no-deps", "eval", timeout_s=600)
+    summary = json.loads((stack.folder / "runs" / "eval" / "summary.json").read_text())
+    assert summary, f"eval wrote an empty report:\n{stack.logs()}"
