@@ -102,7 +102,7 @@ def test_router_listens_where_the_variable_says_and_drains_on_sigterm(spawn, pro
     router.process.send_signal(signal.SIGTERM)
     assert router.process.wait(timeout=10) == 0
     log = router.log_tail()
-    assert f"listen=['tcp/127.0.0.1:{port}']" in log
+    assert f"listen=tcp/127.0.0.1:{port}" in log
     assert "router stopped" in log
 
 
