@@ -89,7 +89,9 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
                     f"{role} could not reach a Zenoh router at {describe_endpoints(config)} within "
                     f"{settings.startup_timeout_s:.0f} s ({attempt} attempts): {exc}. Is `swimm router` running?"
                 ) from None
-            log.info("%s waiting for a Zenoh router at %s (attempt %d): %s", role, describe_endpoints(config), attempt, exc)
+            log.info(
+                "%s waiting for a Zenoh router at %s (attempt %d): %s", role, describe_endpoints(config), attempt, exc
+            )
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
 

@@ -10,8 +10,9 @@ Naming: field ``max_wait_ms`` is flag ``--max-wait-ms`` and variable
 ``metadata={"flatten": True}`` (used for the Zenoh settings every command
 shares), in which case its fields keep their own names (``--connect``).
 A field marked ``metadata={"positional": True}`` is an optional positional
-argument instead of a flag (``swimm bench sim``); ``metadata={"help": ...}``
-puts a sentence before the default in ``--help``.
+argument instead of a flag (``swimm bench sim``). ``--help`` describes a flag by
+``metadata={"help": ...}`` or else by the comment at the end of the field's line, so the comment
+that documents a field in the source is also what the user reads.
 A YAML file (``--config FILE``) holds the same names as nested maps.
 """
 
@@ -19,7 +20,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
+import inspect
 import os
+import re
 import types
 import typing
 from pathlib import Path
@@ -98,6 +102,28 @@ def _parse_text(kind: Any, text: str) -> Any:
     return base(text)
 
 
+_FIELD_COMMENT = re.compile(r"^\s+(\w+)\s*:[^#]*#\s*(.+?)\s*$")
+
+
+@functools.cache
+def field_comments(cls: type) -> dict[str, str]:
+    """The trailing ``# comment`` of each one-line field of a dataclass, by field name ({} without source)."""
+    try:
+        source = inspect.getsource(cls)
+    except (OSError, TypeError):
+        return {}
+    names = {f.name for f in dataclasses.fields(cls)}
+    found = (_FIELD_COMMENT.match(line) for line in source.splitlines())
+    return {m.group(1): m.group(2) for m in found if m and m.group(1) in names}
+
+
+def _owner(cls: type, path: tuple[str, ...]) -> type:
+    """The dataclass that declares the leaf at ``path``."""
+    for attr in path[:-1]:
+        cls = typing.get_type_hints(cls)[attr]
+    return cls
+
+
 def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
     """Add one flag per leaf field of ``cls``; unset flags stay None so lower layers show through."""
     group = parser.add_argument_group(cls.__name__)
@@ -106,8 +132,9 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         base, _ = _base_type(leaf.kind)
         metadata = field_metadata(cls, leaf.path)
         help_text = f"(default: {leaf.default!r}; env {ENV_PREFIX}{leaf.name.upper()})"
-        if metadata.get("help"):
-            help_text = f"{metadata['help']} {help_text}"
+        description = metadata.get("help") or field_comments(_owner(cls, leaf.path)).get(leaf.path[-1])
+        if description:
+            help_text = f"{description} {help_text}"
         if metadata.get("positional"):
             group.add_argument(leaf.name, nargs="?", type=base, default=None, help=help_text)
         elif base is bool:
@@ -125,10 +152,8 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
 
 
 def field_metadata(cls: type, path: tuple[str, ...]) -> typing.Mapping[str, Any]:
-    """The dataclass field metadata of a leaf (``flatten``, ``positional``)."""
-    for attr in path[:-1]:
-        cls = typing.get_type_hints(cls)[attr]
-    return {f.name: f.metadata for f in dataclasses.fields(cls)}[path[-1]]
+    """The dataclass field metadata of a leaf (``flatten``, ``positional``, ``help``)."""
+    return {f.name: f.metadata for f in dataclasses.fields(_owner(cls, path))}[path[-1]]
 
 
 def _set(target: Any, path: tuple[str, ...], value: Any) -> None:

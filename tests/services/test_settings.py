@@ -14,7 +14,7 @@ from services.settings import ZenohSettings
 
 @dataclasses.dataclass
 class Noise:
-    fog: float = 0.0
+    fog: float = 0.0  # density of the fog
     blur: bool = False
 
 
@@ -127,6 +127,16 @@ def test_boolean_flags_have_a_negative_form():
 def test_optional_fields_accept_none_from_variables():
     assert _load(environ={"SWIMM_CHECKPOINT": "runs/a/best.zip"}).checkpoint == "runs/a/best.zip"
     assert _load(environ={"SWIMM_CHECKPOINT": "none"}).checkpoint is None
+
+
+def test_help_describes_flags_by_their_field_comment_or_help_metadata():
+    parser = argparse.ArgumentParser()
+    settings_mod.add_arguments(parser, Example)
+    helps = {action.dest: action.help for action in parser._actions}
+    assert helps["noise_fog"] == "density of the fog (default: 0.0; env SWIMM_NOISE_FOG)"  # nested class's comment
+    assert helps["noise_blur"] == "(default: False; env SWIMM_NOISE_BLUR)"  # no comment: the default alone
+    assert helps["connect"].startswith("endpoints to connect to;")  # metadata wins where a field spans lines
+    assert helps["zenoh_config"].startswith("a Zenoh JSON5 config file;")
 
 
 def test_positional_field_is_an_optional_argument():
