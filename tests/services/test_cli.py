@@ -44,7 +44,7 @@ def test_a_sub_commands_help_lists_its_settings_as_flags_with_defaults_and_varia
         "--log-level",
         "endpoints to listen on; none: the --zenoh-config file's, else tcp/127.0.0.1:7447",
         "(default: []; env SWIMM_LISTEN)",
-        "a Zenoh JSON5 config file; endpoints given as flags override its own (default: None; env SWIMM_ZENOH_CONFIG)",
+        "e.g. deploy/zenoh/router-tls-acl.json5 (default: None; env SWIMM_ZENOH_CONFIG)",
     ):
         assert text in shown
 
