@@ -6,13 +6,21 @@
 #   sudo deploy/make-base-image.sh swimm-base:bookworm [SUITE] [MIRROR]
 #   docker build -f deploy/Dockerfile.sim --build-arg BASE_IMAGE=swimm-base:bookworm -t swimm-sim .
 #
-# Needs root, debootstrap and a Debian mirror (default deb.debian.org; pass a local one when offline).
+# Needs root, debootstrap and a Debian mirror: by default the one this host's apt already uses (its first
+# Debian source), so a host behind a local mirror or proxy builds the same way; pass another as MIRROR.
 # Debian bookworm's python3 is 3.11, the version swimm is tested with.
 set -euo pipefail
 
 tag=${1:?usage: make-base-image.sh TAG [SUITE] [MIRROR]}
 suite=${2:-bookworm}
-mirror=${3:-http://deb.debian.org/debian}
+
+# The first Debian archive URI in this host's apt sources (deb822 .sources files or one-line .list files).
+host_mirror() {
+  cat /etc/apt/sources.list.d/*.sources 2>/dev/null | sed -n 's/^URIs:[[:space:]]*\([^[:space:]]*\).*/\1/p' | grep -v security | head -n 1 || true
+  cat /etc/apt/sources.list /etc/apt/sources.list.d/*.list 2>/dev/null | awk '$1 == "deb" && $2 !~ /security/ {print $2; exit}' || true
+}
+mirror=${3:-$(host_mirror | head -n 1)}
+[ -n "$mirror" ] || { echo "no Debian mirror in this host's apt sources: pass one as MIRROR" >&2; exit 2; }
 
 root=$(mktemp -d)
 trap 'rm -rf "$root"' EXIT

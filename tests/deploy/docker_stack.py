@@ -64,14 +64,14 @@ def base_image_unavailable_reason() -> str | None:
 
 
 def torch_index_url() -> str:
-    """PyTorch's CPU-only index (small) when this machine can reach it, else PyPI's default (CUDA) torch."""
+    """PyTorch's CPU-only index (small) when this machine can reach it, else "" for pip's own index (CUDA torch)."""
     if url := os.environ.get("SWIMM_TEST_TORCH_INDEX_URL"):
         return url
     try:
         socket.getaddrinfo("download.pytorch.org", 443)
         return CPU_TORCH_INDEX
     except OSError:
-        return "https://pypi.org/simple"
+        return ""
 
 
 def extra_ca_certs() -> str:
