@@ -90,6 +90,7 @@ def check(settings: LearnCommandSettings) -> None:
     """Refuse what could only fail later, before anything is started."""
     check_backend(settings.backend)
     settings.eval.check()
+    settings.demo.check()
     if settings.algo == SCRIPTED:
         raise ValueError("the scripted baseline has nothing to learn; evaluate it with `swimm eval --algo scripted`")
     _, defaults = resolve_algorithm(settings.algo)
@@ -184,6 +185,10 @@ class Training:
     def train(self, env: Any, eval_env: Any) -> RunResult:
         s = self.settings
         model = self.build_model(env)
+        if s.demo.steps and not s.resume:
+            from learner_service.demonstrations import demonstrate
+
+            demonstrate(model, env, s.demo, s.seed)
         start_steps = model.num_timesteps
         stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]

@@ -36,6 +36,23 @@ class EvalSettings:
 
 
 @dataclass
+class DemoSettings:
+    """Flags ``--demo-*`` of `swimm learn`."""
+
+    steps: int = 0  # env steps the scripted tracker plays before training (0: no demonstrations)
+    noise: float = 0.3  # std of the Gaussian noise on the tracker's actions while it plays (see demonstrations.py)
+    bc_epochs: int = 20  # epochs fitting the policy to the tracker's actions (0: fill the replay buffer only)
+    bc_batch_size: int = 256
+    bc_learning_rate: float = 1e-3
+
+    def check(self) -> None:
+        if self.steps < 0 or self.noise < 0 or self.bc_epochs < 0:
+            raise ValueError("demo steps, noise and bc_epochs must be >= 0")
+        if self.bc_batch_size < 1 or self.bc_learning_rate <= 0:
+            raise ValueError("demo bc_batch_size must be >= 1 and bc_learning_rate > 0")
+
+
+@dataclass
 class LearnCommandSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
     algo: str = "sac"  # sac | ppo | td3 | package.module:Class
@@ -52,6 +69,7 @@ class LearnCommandSettings:
     checkpoint_every: int = 50_000  # env steps between checkpoints; 0 = none
     save_replay_buffer: bool = True  # with checkpoints (newest only) and the final model, so resume keeps it
     eval: EvalSettings = field(default_factory=EvalSettings)  # flags --eval-*
+    demo: DemoSettings = field(default_factory=DemoSettings)  # flags --demo-*: the scripted tracker's head start
     encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
     step_timeout_s: float = 2.0  # distributed: wait per try before re-sending a step
     max_retries: int = 10  # distributed: re-sends before a step fails naming the missing service

@@ -41,6 +41,8 @@ from tests.deploy.docker_stack import (
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.docker,
+    # The first run on a machine builds the images (the torch image's pip install alone takes minutes).
+    pytest.mark.timeout(2400),
     # Not yet run end to end (the images build here; the compose run itself is unverified): opt in until it is.
     pytest.mark.skipif(os.environ.get("SWIMM_TEST_COMPOSE") != "1", reason="set SWIMM_TEST_COMPOSE=1 to run"),
 ]

@@ -1,0 +1,101 @@
+"""Demonstrations from the scripted tracker: the replay buffer, behaviour cloning, and `swimm learn --demo-steps`.
+
+Real worlds and real SB3 models on state observations (no rendering), small step counts.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from learner_service.command import Training
+from learner_service.demonstrations import clone_actions, innermost, play_tracker
+from learner_service.envs import make_vec_env
+from learner_service.learn_settings import DemoSettings
+from learner_service.registry import make_model
+from learner_service.scripted import ScriptedTracker
+from learner_service.task import TaskSettings
+from tests.learner.test_command import tiny_settings
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*Box observation space (minimum|maximum) value is")
+
+TASK = TaskSettings(obs="state", max_steps=120)
+DEMO_STEPS = 300
+
+
+@pytest.fixture(scope="module")
+def played(tmp_path_factory):
+    """A SAC model and two envs whose replay buffer holds DEMO_STEPS noisy tracker steps (with a monitor CSV)."""
+    monitor = tmp_path_factory.mktemp("demo") / "train"
+    env = make_vec_env("inprocess", TASK, n_envs=2, base_seed=97, monitor_path=monitor)
+    model = make_model("sac", env, seed=97, overrides={"device": "cpu", "buffer_size": 1000})
+    demos = play_tracker(model, env, DemoSettings(steps=DEMO_STEPS, noise=0.3), seed=5)
+    yield model, env, demos, monitor
+    env.close()
+
+
+def test_every_tracker_step_lands_in_the_replay_buffer_with_its_noisy_action(played) -> None:
+    model, env, demos, _ = played
+    buffer = model.replay_buffer
+    stored = buffer.size() * env.num_envs  # the buffer counts rows of n_envs transitions
+    assert stored == DEMO_STEPS == len(demos.actions)
+    taken = buffer.actions[: buffer.size()].reshape(-1, 2)
+    clean = demos.actions
+    # the stored actions are the tracker's plus noise of std 0.3 (clipped to [-1, 1]), not the clean ones
+    difference = taken - clean
+    assert 0.2 < difference.std() < 0.35
+    assert np.abs(taken).max() <= 1.0
+    # the observations are the learner's own: state vector (12) + ActPrev (20)
+    assert demos.observations.shape == (DEMO_STEPS, 32)
+    np.testing.assert_array_equal(buffer.observations[: buffer.size()].reshape(-1, 32), demos.observations)
+
+
+def test_the_clean_targets_are_what_the_tracker_does_on_the_same_episode(played) -> None:
+    _, _, demos, _ = played
+    fresh = make_vec_env("inprocess", TASK, n_envs=2, base_seed=97)  # same seeds: the same first episodes
+    try:
+        fresh.reset()
+        first = [ScriptedTracker().act(None, info) for info in innermost(fresh).reset_infos]
+    finally:
+        fresh.close()
+    np.testing.assert_allclose(demos.actions[:2], np.stack(first), rtol=0, atol=1e-6)
+    assert not np.allclose(demos.actions[0], demos.actions[2])  # the targets follow the episode
+
+
+def test_demonstrations_stay_out_of_the_training_monitor(played) -> None:
+    _, _, demos, monitor = played
+    assert demos.returns, "a 120-step time limit over 300 steps on 2 envs ends episodes"
+    episodes = pd.read_csv(f"{monitor}.monitor.csv", skiprows=1)
+    assert episodes.empty
+
+
+def test_cloning_fits_the_policy_to_the_tracker(played) -> None:
+    model, _, demos, _ = played
+
+    def action_mse() -> float:
+        predicted, _ = model.predict(demos.observations, deterministic=True)
+        return float(np.mean((predicted - demos.actions) ** 2))
+
+    before = action_mse()
+    losses = clone_actions(model, demos, DemoSettings(bc_epochs=40, bc_batch_size=64), seed=0)
+    after = action_mse()
+    assert len(losses) == 40 and losses[-1] < losses[0] / 3
+    assert after < before / 3, (before, after)
+
+
+def test_bad_demo_settings_are_refused() -> None:
+    with pytest.raises(ValueError, match="demo steps, noise and bc_epochs must be >= 0"):
+        DemoSettings(steps=-1).check()
+    with pytest.raises(ValueError, match="bc_learning_rate"):
+        DemoSettings(bc_learning_rate=0.0).check()
+
+
+def test_learn_with_demonstrations_starts_from_a_filled_buffer(tmp_path) -> None:
+    settings = tiny_settings(tmp_path / "run", demo=DemoSettings(steps=150, bc_epochs=2))
+    settings.eval.enabled = False
+    training = Training(settings)
+    result = training.run()
+    assert result.trained_steps >= 200  # the demonstrations do not count as training steps
+    episodes = pd.read_csv(tmp_path / "run" / "train.monitor.csv", skiprows=1)
+    assert episodes["l"].sum() <= result.trained_steps  # the monitor holds training episodes only
