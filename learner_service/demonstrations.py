@@ -70,7 +70,7 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> 
     running = np.zeros(env.num_envs)
     model._last_obs = obs  # what OffPolicyAlgorithm._store_transition pairs with the next observation
     with tqdm(total=settings.steps, desc="demonstrations", unit="step", disable=None) as bar:
-        for _ in range(0, settings.steps, env.num_envs):
+        for played in range(env.num_envs, settings.steps + env.num_envs, env.num_envs):
             clean = np.stack([tracker.act(None, info) for info in infos])
             taken = np.clip(clean + rng.normal(0.0, settings.noise, clean.shape), -1.0, 1.0).astype(np.float32)
             next_obs, rewards, dones, step_infos = env.step(taken)
@@ -86,6 +86,8 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> 
             infos = [env.reset_infos[i] if dones[i] else info for i, info in enumerate(step_infos)]
             obs = next_obs
             bar.update(env.num_envs)
+            if bar.disable and played % max(settings.steps // 10, 1) < env.num_envs:  # no bar: a line per tenth
+                log.info("demonstrations: %d/%d steps, %d episodes ended", played, settings.steps, len(returns))
     return Demonstrations(_concat(observations), np.concatenate(actions), returns)
 
 
