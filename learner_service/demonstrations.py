@@ -8,7 +8,11 @@ tracker plays ``steps`` env steps on the training envs and two things are kept o
   off-policy learner's replay buffer, so its critic starts from episodes that track instead of episodes that
   lose the dolphin within a second;
 - the learner's policy is fitted to the tracker's actions from the learner's own observations by regression
-  (behaviour cloning), so its first episodes already follow the dolphin.
+  (behaviour cloning), so its first episodes already follow the dolphin;
+- an off-policy learner's critic then trains alone on that buffer for ``critic_steps`` gradient steps, the
+  actor held still. Otherwise the first actor updates follow a random critic and undo the cloning within an
+  episode or two (measured: after 30k demonstration steps and cloning, SAC's first 110 training episodes lost
+  the dolphin after 90 steps on average).
 
 Then the learner trains as usual. Ground truth is used at training time only, like the reward; the trained
 policy acts on its observation alone.
@@ -30,6 +34,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from tqdm import tqdm
 
@@ -138,12 +143,33 @@ def _rows(observations: Any, rows: np.ndarray) -> Any:
     return observations[rows]
 
 
+def train_critic(model: Any, gradient_steps: int) -> None:
+    """The off-policy learner's own ``train`` with every actor parameter frozen: the critic (and an automatic
+    entropy coefficient) learn the value of the cloned policy from the buffer while the policy stays as cloned.
+
+    An actor parameter without ``requires_grad`` gets no gradient, and its optimizer skips it.
+    """
+    frozen = [p for p in model.actor.parameters() if p.requires_grad]
+    for parameter in frozen:
+        parameter.requires_grad_(False)
+    if getattr(model, "_logger", None) is None:
+        model._logger = Logger(folder=None, output_formats=[])  # train() records its losses; learn() sets the real one
+    try:
+        model.train(gradient_steps=gradient_steps, batch_size=model.batch_size)
+    finally:
+        for parameter in frozen:
+            parameter.requires_grad_(True)
+    log.info("critic trained for %d gradient steps with the cloned actor held", gradient_steps)
+
+
 def demonstrate(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> Demonstrations:
-    """Play the tracker, fill the buffer, clone its actions: the whole head start, logged."""
+    """Play the tracker, fill the buffer, clone its actions, train the critic: the whole head start, logged."""
     demos = play_tracker(model, env, settings, seed)
     mean = f"{np.mean(demos.returns):.1f}" if demos.returns else "n/a"
     log.info("tracker played %d steps, %d episodes ended (mean return %s)", len(demos.actions), len(demos.returns),
              mean)  # fmt: skip
     if settings.bc_epochs:
         clone_actions(model, demos, settings, seed)
+    if settings.critic_steps and hasattr(model, "replay_buffer") and hasattr(model, "actor"):
+        train_critic(model, settings.critic_steps)
     return demos

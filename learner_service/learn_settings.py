@@ -44,10 +44,11 @@ class DemoSettings:
     bc_epochs: int = 20  # epochs fitting the policy to the tracker's actions (0: fill the replay buffer only)
     bc_batch_size: int = 256
     bc_learning_rate: float = 1e-3
+    critic_steps: int = 5000  # off-policy: gradient steps on the critic alone after cloning, the actor held
 
     def check(self) -> None:
-        if self.steps < 0 or self.noise < 0 or self.bc_epochs < 0:
-            raise ValueError("demo steps, noise and bc_epochs must be >= 0")
+        if min(self.steps, self.noise, self.bc_epochs, self.critic_steps) < 0:
+            raise ValueError("demo steps, noise, bc_epochs and critic_steps must be >= 0")
         if self.bc_batch_size < 1 or self.bc_learning_rate <= 0:
             raise ValueError("demo bc_batch_size must be >= 1 and bc_learning_rate > 0")
 

@@ -19,9 +19,8 @@ from typing import Any, Literal
 import gymnasium as gym
 import numpy as np
 
-from services.geometry import ALPHA_DEG, MAX_D, OPT_D, relative_geometry
+from services.geometry import ALPHA_DEG, MAX_D, OPT_D, quat_to_euler, relative_geometry
 from services.telemetry import Telemetry
-from sim_service.rotations import quat_to_euler  # numpy only: no MuJoCo import on the learner side
 
 ObsMode = Literal["cmvae", "image", "state"]
 RewardVersion = Literal["swimm2", "swimm1"]

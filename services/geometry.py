@@ -31,6 +31,18 @@ class RelativeGeometry:
     psi: float  # target yaw relative to the rover, degrees in (-180, 180]
 
 
+def quat_to_euler(quat) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) in radians of a (w, x, y, z) quaternion: the inverse of the sim's ``euler_to_matrix``.
+
+    It lives in the shared core because the learner's state observation needs it where MuJoCo is not installed.
+    """
+    w, x, y, z = quat
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
 def yaw_of(forward: tuple[float, float, float]) -> float:
     """Heading in degrees of a forward vector projected on the horizontal plane."""
     return math.degrees(math.atan2(forward[1], forward[0]))

@@ -33,8 +33,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from services.geometry import ALPHA_DEG, relative_geometry
-from sim_service.rotations import quat_to_euler
+from services.geometry import ALPHA_DEG, quat_to_euler, relative_geometry
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 

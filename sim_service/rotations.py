@@ -32,15 +32,6 @@ def matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
     return -quat if quat[0] < 0 else quat
 
 
-def quat_to_euler(quat) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) in radians of a (w, x, y, z) quaternion, the inverse of :func:`euler_to_matrix`."""
-    w, x, y, z = quat
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
-
-
 def clamp(value: float, low: float, high: float) -> float:
     """``value`` limited to [low, high], for scalars (np.clip's array machinery costs microseconds per call)."""
     return low if value < low else high if value > high else value

@@ -8,9 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from learner_service.command import Training
-from learner_service.demonstrations import clone_actions, innermost, play_tracker
+from learner_service.demonstrations import clone_actions, innermost, play_tracker, train_critic
 from learner_service.envs import make_vec_env
 from learner_service.learn_settings import DemoSettings
 from learner_service.registry import make_model
@@ -84,15 +85,25 @@ def test_cloning_fits_the_policy_to_the_tracker(played) -> None:
     assert after < before / 3, (before, after)
 
 
+def test_critic_training_leaves_the_actor_as_cloned(played) -> None:
+    model, _, _, _ = played
+    actor = {name: value.clone() for name, value in model.actor.state_dict().items()}
+    critic = {name: value.clone() for name, value in model.critic.state_dict().items()}
+    train_critic(model, gradient_steps=20)
+    assert all(torch.equal(actor[name], value) for name, value in model.actor.state_dict().items())
+    assert any(not torch.equal(critic[name], value) for name, value in model.critic.state_dict().items())
+    assert all(p.requires_grad for p in model.actor.parameters())  # unfrozen again for training
+
+
 def test_bad_demo_settings_are_refused() -> None:
-    with pytest.raises(ValueError, match="demo steps, noise and bc_epochs must be >= 0"):
+    with pytest.raises(ValueError, match="demo steps, noise, bc_epochs and critic_steps must be >= 0"):
         DemoSettings(steps=-1).check()
     with pytest.raises(ValueError, match="bc_learning_rate"):
         DemoSettings(bc_learning_rate=0.0).check()
 
 
 def test_learn_with_demonstrations_starts_from_a_filled_buffer(tmp_path) -> None:
-    settings = tiny_settings(tmp_path / "run", demo=DemoSettings(steps=150, bc_epochs=2))
+    settings = tiny_settings(tmp_path / "run", demo=DemoSettings(steps=150, bc_epochs=2, critic_steps=10))
     settings.eval.enabled = False
     training = Training(settings)
     result = training.run()
