@@ -114,7 +114,7 @@ def stack(images: Images, tmp_path_factory):
             "SWIMM_ENVS": str(ENVS),
             "SWIMM_STEPS": "100000",
             # Small and frequent: updates and checkpoints show up within the test's minutes on a CPU.
-            "SWIMM_HYPERPARAMS": "{learning_starts: 100, gradient_steps: 8, batch_size: 64}",
+            "SWIMM_HYPERPARAMS": "{learning_starts: 100, train_freq: [16, step], gradient_steps: 8, batch_size: 64}",
             "SWIMM_CHECKPOINT_EVERY": "200",
         },
         folder=folder,
