@@ -12,7 +12,6 @@ Then the eval profile attaches to the same live sim and writes its report.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import threading
 import time
@@ -43,8 +42,6 @@ pytestmark = [
     pytest.mark.docker,
     # The first run on a machine builds the images (the torch image's pip install alone takes minutes).
     pytest.mark.timeout(2400),
-    # Not yet run end to end (the images build here; the compose run itself is unverified): opt in until it is.
-    pytest.mark.skipif(os.environ.get("SWIMM_TEST_COMPOSE") != "1", reason="set SWIMM_TEST_COMPOSE=1 to run"),
 ]
 ENVS = 2
 STEPS_BEFORE_SCALING = 150
