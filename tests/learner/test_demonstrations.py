@@ -5,6 +5,8 @@ Real worlds and real SB3 models on state observations (no rendering), small step
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -110,3 +112,16 @@ def test_learn_with_demonstrations_starts_from_a_filled_buffer(tmp_path) -> None
     assert result.trained_steps >= 200  # the demonstrations do not count as training steps
     episodes = pd.read_csv(tmp_path / "run" / "train.monitor.csv", skiprows=1)
     assert episodes["l"].sum() <= result.trained_steps  # the monitor holds training episodes only
+
+
+def test_the_shipped_policys_recipe_loads_as_swimm_up_settings() -> None:
+    from learner_service.command import check, parse_hyperparams
+    from services import settings as settings_mod
+    from services.up import UpSettings
+
+    recipe = Path(__file__).resolve().parents[2] / "learner_service" / "models" / "sac_cmvae.yaml"
+    up = settings_mod.load(UpSettings, None, recipe, environ={})
+    check(up.learn)
+    assert (up.learn.algo, up.learn.obs, up.learn.backend) == ("sac", "cmvae", "zenoh")
+    assert up.learn.demo.steps > 0 and up.learn.demo.critic_steps > 0
+    assert parse_hyperparams(up.learn.hyperparams)["policy_kwargs"]["log_std_init"] == -4.0
