@@ -12,8 +12,8 @@ plays every contender on it in turn, from the same seed, so all of them meet the
 
 Contenders: each ``--algo`` in order; every algorithm but ``scripted`` takes the next ``--checkpoint``.
 One ``--algo`` (default ``sac``) with several checkpoints applies to all of them. ``--label`` names them.
-With no checkpoint, ``sac`` means the shipped policy (:data:`SHIPPED_POLICY`, trained on cmvae observations),
-so a bare ``swimm eval`` evaluates it.
+With no checkpoint and cmvae observations, ``sac`` means the shipped policy (:data:`SHIPPED_POLICY`, trained on
+cmvae), so a bare ``swimm eval`` evaluates it; in other observation modes the default contender is ``scripted``.
 """
 
 from __future__ import annotations
@@ -102,7 +102,7 @@ def task_settings(settings: EvalCommandSettings) -> TaskSettings:
 def contenders(settings: EvalCommandSettings) -> list[Contender]:
     """Pair algorithms with checkpoints (see the module docstring) and give each a unique label."""
     checkpoints = list(settings.checkpoint)
-    shipped = SHIPPED_POLICY.is_file()
+    shipped = settings.obs == "cmvae" and SHIPPED_POLICY.is_file()  # the shipped policy reads latents only
     algos = list(settings.algo) or (["sac"] if checkpoints or shipped else [SCRIPTED])
     if shipped and not checkpoints and algos.count("sac") == 1:
         checkpoints = [str(SHIPPED_POLICY)]

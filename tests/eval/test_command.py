@@ -21,7 +21,7 @@ import pytest
 
 from eval_service import command, watch
 from eval_service.attach import NoEvalEnv, free_env_ids
-from eval_service.command import EvalCommandSettings, contenders, evaluate
+from eval_service.command import SHIPPED_POLICY, EvalCommandSettings, contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
 from eval_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.inprocess_env import TrackingEnv
@@ -60,14 +60,20 @@ def test_contenders_pair_algorithms_with_checkpoints_in_order() -> None:
     ]  # fmt: skip
     same_algo = contenders(EvalCommandSettings(checkpoint=["run1/best_model.zip", "run2/best_model.zip"]))
     assert [e.label for e in same_algo] == ["sac:run1/best_model", "sac:run2/best_model"]
-    assert [e.algo for e in contenders(EvalCommandSettings())] == ["scripted"]
+    # no checkpoint: the shipped policy on cmvae (what a bare `swimm eval` plays), the scripted baseline elsewhere
+    assert [(e.algo, e.checkpoint) for e in contenders(EvalCommandSettings())] == [("sac", str(SHIPPED_POLICY))]
+    assert [(e.algo, e.checkpoint) for e in contenders(EvalCommandSettings(algo=["scripted", "sac"]))] == [
+        ("scripted", None), ("sac", str(SHIPPED_POLICY))
+    ]  # fmt: skip
+    assert [e.algo for e in contenders(EvalCommandSettings(obs="state"))] == ["scripted"]
     assert [e.label for e in contenders(EvalCommandSettings(algo=["scripted"], label=["baseline"]))] == ["baseline"]
 
 
 @pytest.mark.parametrize(
     ("given", "message"),
     [
-        ({"algo": ["sac"]}, "needs a --checkpoint"),
+        ({"algo": ["td3"]}, "needs a --checkpoint"),
+        ({"algo": ["sac"], "obs": "state"}, "needs a --checkpoint"),  # the shipped policy is for cmvae only
         ({"algo": ["scripted"], "checkpoint": ["x.zip"]}, "without an --algo"),
         ({"algo": ["nope"], "checkpoint": ["x.zip"]}, "unknown algorithm"),
         ({"algo": ["scripted", "sac"], "checkpoint": ["x.zip"], "label": ["same", "same"]}, "distinct"),

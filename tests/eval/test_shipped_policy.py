@@ -1,0 +1,28 @@
+"""The shipped policy (learner_service/models/sac_cmvae.zip) still tracks: a bare `swimm eval`'s contender,
+on the real world with the shipped CMVAE in one process, against the scripted baseline on the same episode.
+
+A short episode, so it guards the artefacts (a policy and an encoder that no longer fit each other, an
+observation layout that changed under them) rather than measuring them; docs/eval_report.md measures.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from eval_service.command import SHIPPED_POLICY, EvalCommandSettings, evaluate
+
+STEPS = 400
+
+pytestmark = pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="no shipped policy in this checkout")
+
+
+def test_the_shipped_policy_follows_the_dolphin_from_the_camera_alone(tmp_path) -> None:
+    given = EvalCommandSettings(backend="inprocess", obs="cmvae", algo=["scripted", "sac"], episodes=1, steps=STEPS,
+                                seed=113, progress_bar=False, figures=False, out=str(tmp_path))  # fmt: skip
+    summaries = evaluate(given, Path(given.out))
+    shipped, baseline = summaries["sac"], summaries["scripted"]
+    assert shipped["A'"] == shipped["D'"] == shipped["C'"] == 0.0  # kept it in view, in the band, no contact
+    assert shipped["mean_return"] > 0.6 * STEPS
+    assert shipped["mean_return"] > 0.7 * baseline["mean_return"]
