@@ -68,9 +68,15 @@ def plot_trajectory(steps_df: pd.DataFrame, label: str, episode: int, path: Path
     return _save(trajectory_figure(steps_df, label, episode, arrow_every), path)
 
 
-def plot_training(monitor: pd.DataFrame | PathLike | Sequence[PathLike], path: PathLike, window: int = 20) -> Path:
-    """Learning curve (reward per episode against training steps) and how episodes ended along the run."""
-    return _save(training_figure(monitor, window), path)
+def plot_training(
+    monitor: pd.DataFrame | PathLike | Sequence[PathLike],
+    path: PathLike,
+    window: int = 20,
+    evaluations: pd.DataFrame | None = None,
+) -> Path:
+    """Learning curve (reward per episode against training steps) and how episodes ended along the run;
+    ``evaluations`` (a run folder's evaluations.csv) adds the evaluation callback's mean returns."""
+    return _save(training_figure(monitor, window, evaluations), path)
 
 
 def returns_figure(episodes_df: pd.DataFrame) -> Figure:
@@ -186,8 +192,12 @@ def trajectory_figure(steps_df: pd.DataFrame, label: str, episode: int, arrow_ev
     return fig
 
 
-def training_figure(monitor: pd.DataFrame | PathLike | Sequence[PathLike], window: int = 20) -> Figure:
-    """Reward per episode with a rolling mean above, stacked counts of how episodes ended below."""
+def training_figure(
+    monitor: pd.DataFrame | PathLike | Sequence[PathLike], window: int = 20, evaluations: pd.DataFrame | None = None
+) -> Figure:
+    """Reward per episode with a rolling mean above (and each evaluation's mean and sd of its deterministic
+    episodes, where given: training episodes are stochastic, so the two differ), stacked counts of how
+    episodes ended below."""
     episodes = monitor.copy() if isinstance(monitor, pd.DataFrame) else read_monitor(monitor)
     _require(episodes, MONITOR_COLUMNS, "monitor table")
     if episodes.empty:
@@ -207,6 +217,10 @@ def training_figure(monitor: pd.DataFrame | PathLike | Sequence[PathLike], windo
         linewidth=1.5,
         label=f"rolling mean ({window} episodes)",
     )
+    if evaluations is not None and not evaluations.empty:
+        _require(evaluations, ("num_timesteps", "mean_return", "std_return"), "evaluations table")
+        x, y, sd = (evaluations[c].to_numpy(dtype=float) for c in ("num_timesteps", "mean_return", "std_return"))
+        top.errorbar(x, y, yerr=sd, fmt="D", color="black", markersize=5, capsize=3, label="evaluation (mean, sd)")
     top.set_title(f"Training: reward per episode ({len(episodes)} episodes, {int(steps[-1])} steps)")
     top.set_ylabel("episode reward (sum of per-step rewards)")
     top.grid(alpha=0.3)

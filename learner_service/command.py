@@ -29,6 +29,7 @@ import yaml
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from learner_service.callbacks import (
+    EVALUATIONS_CSV,
     CheckpointCallback,
     EpisodeStatsCallback,
     RolloutEvalCallback,
@@ -255,6 +256,8 @@ class Training:
 
     def plot_summary(self) -> None:
         """summary.png from the monitor CSV; a run that finished no episode has nothing to plot (logged)."""
+        import pandas as pd
+
         from eval_service.plots import plot_training, read_monitor
 
         monitors = self.monitor_files()
@@ -266,7 +269,9 @@ class Training:
         if episodes.empty:
             log.warning("no summary plot: no training episode finished")
             return
-        plot_training(episodes, self.run_dir / SUMMARY_PLOT)
+        evaluations_csv = self.run_dir / EVALUATIONS_CSV
+        evaluations = pd.read_csv(evaluations_csv) if evaluations_csv.is_file() else None
+        plot_training(episodes, self.run_dir / SUMMARY_PLOT, evaluations=evaluations)
 
 
 def run(settings: LearnCommandSettings) -> int:

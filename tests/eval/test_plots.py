@@ -212,6 +212,19 @@ def test_training_figure_rolling_mean_and_stacked_causes(tmp_path):
     assert {text.get_text() for text in bottom.get_legend().get_texts()} == set(counts)
 
 
+def test_training_figure_shows_each_evaluation_with_its_spread(tmp_path):
+    evaluations = pd.DataFrame({"num_timesteps": [200, 3000], "mean_return": [12.0, 40.0], "std_return": [1.0, 5.0]})
+    top, _ = plots.training_figure(_monitors(tmp_path), window=2, evaluations=evaluations).axes
+    (points,) = [c for c in top.containers if c.get_label() == "evaluation (mean, sd)"]
+    line, _, (bars,) = points
+    np.testing.assert_allclose(line.get_xdata(), [200, 3000])
+    np.testing.assert_allclose(line.get_ydata(), [12.0, 40.0])
+    spans = [segment[:, 1] for segment in bars.get_segments()]
+    np.testing.assert_allclose(spans, [[11.0, 13.0], [35.0, 45.0]])
+    with pytest.raises(ValueError, match="evaluations table"):
+        plots.training_figure(_monitors(tmp_path), evaluations=pd.DataFrame({"steps": [1]}))
+
+
 def test_training_figure_from_dataframe_without_cause():
     frame = pd.DataFrame({"r": np.linspace(-100, 100, 30), "l": 1000})
     top, bottom = plots.training_figure(frame, window=10).axes
