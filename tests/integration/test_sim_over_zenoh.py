@@ -9,6 +9,7 @@ import time
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 
 from services.messages import MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg
 from services.procs import free_tcp_port, wait_for_port
@@ -99,7 +100,8 @@ def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, con
     )
 
     def refused(payload: bytes) -> str:
-        client.session.put(keys.action("train", "0"), payload)
+        # BLOCK: a put drops under congestion by default, and an 8 MB payload goes out in many fragments
+        client.session.put(keys.action("train", "0"), payload, congestion_control=zenoh.CongestionControl.BLOCK)
         return errors.get(timeout=10).reason
 
     def action_body(**overrides):
