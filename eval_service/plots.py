@@ -147,25 +147,10 @@ def trajectory_figure(steps_df: pd.DataFrame, label: str, episode: int, arrow_ev
     ax.plot(rows["rover_x"], rows["rover_y"], color="tab:blue", linewidth=1.2, label="rover")
     ax.plot(rows["target_x"], rows["target_y"], color="tab:green", linewidth=1.2, label="dolphin")
     first, last = rows.iloc[0], rows.iloc[-1]
-    ax.scatter(
-        [first["rover_x"], first["target_x"]],
-        [first["rover_y"], first["target_y"]],
-        marker="o",
-        s=60,
-        facecolor="none",
-        edgecolor="black",
-        zorder=3,
-        label="start",
-    )
-    ax.scatter(
-        [last["rover_x"], last["target_x"]],
-        [last["rover_y"], last["target_y"]],
-        marker="s",
-        s=50,
-        color="black",
-        zorder=3,
-        label="end",
-    )
+    ends = (("start", first, {"marker": "o", "s": 60, "facecolor": "none", "edgecolor": "black"}),
+            ("end", last, {"marker": "s", "s": 50, "color": "black"}))  # fmt: skip
+    for name, row, style in ends:
+        ax.scatter([row["rover_x"], row["target_x"]], [row["rover_y"], row["target_y"]], zorder=3, label=name, **style)
     arrows = rows.iloc[::arrow_every]
     yaw = np.radians(arrows["rover_yaw"].to_numpy(dtype=float))
     ax.quiver(
