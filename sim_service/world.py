@@ -21,6 +21,7 @@ from __future__ import annotations
 import importlib
 import importlib.util
 import math
+import os
 from pathlib import Path
 
 import cv2
@@ -61,6 +62,18 @@ def load_triton_before_rendering() -> None:
         importlib.import_module("triton")
 
 
+def use_render_threads(threads: int) -> None:
+    """Tell Mesa's software rasteriser (llvmpipe) how many threads to draw with; -1 leaves its default.
+
+    Mesa reads ``LP_NUM_THREADS`` once, when a process makes its first GL context, and by default starts one
+    rasteriser thread per core. A 64 px frame is too small to share out: handing it to those threads and
+    waiting for them costs more than drawing it, so 0 (draw on the calling thread) renders twice as fast on
+    a CPU (0.17 against 0.39 ms per frame measured on 2 cores). A GPU's EGL driver ignores the variable.
+    """
+    if threads >= 0:
+        os.environ["LP_NUM_THREADS"] = str(threads)
+
+
 def yaw_matrix(yaw: float) -> np.ndarray:
     return euler_to_matrix(0.0, 0.0, yaw)
 
@@ -93,6 +106,7 @@ class World:
 
     def _make_renderer(self) -> mujoco.Renderer:
         load_triton_before_rendering()
+        use_render_threads(self.settings.render_threads)
         pixels = self.settings.image_size * self.settings.render_scale
         self.model.vis.global_.offwidth = max(pixels, 1)
         self.model.vis.global_.offheight = max(pixels, 1)

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -180,6 +183,24 @@ def test_render_scale_downsamples_to_the_image_size():
         assert image.shape == (64, 64, 3)
     finally:
         world.close()
+
+
+def test_render_threads_change_speed_not_pixels(camera_world):
+    """Frames drawn by llvmpipe's worker threads (Mesa's default) equal those drawn on the stepping thread.
+
+    Mesa reads the thread count once per process, so the threaded frame comes from a child process.
+    """
+    script = (
+        "import sys; from sim_service.settings import WorldSettings; from sim_service.world import World; "
+        "w = World(WorldSettings(render_threads=-1)); w.reset(4); "
+        "sys.stdout.buffer.write(w.step((0, 0, 1, 1))[1].tobytes())"
+    )
+    environment = {**os.environ, "LP_NUM_THREADS": "2"}
+    threaded = subprocess.run([sys.executable, "-c", script], capture_output=True, check=True, env=environment).stdout
+    camera_world.reset(4)
+    _, image = camera_world.step((0.0, 0.0, 1.0, 1.0))
+    assert os.environ["LP_NUM_THREADS"] == "0"
+    assert threaded == image.tobytes()
 
 
 # --- image noise ---------------------------------------------------------------------------------
