@@ -52,6 +52,7 @@ class TrainEncoderSettings:
     val_fraction: float = 0.1
     seed: int = 0
     resume: bool = False  # continue from <out>/last.pt
+    init: str = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
     tensorboard: bool = True
@@ -163,6 +164,15 @@ def _save(checkpoint: dict[str, Any], path: Path) -> None:
     os.replace(partial, path)
 
 
+def _load_weights(model: CMVAE, path: str, n_z: int) -> None:
+    """Copy a checkpoint's weights (float32 or the shipped float16) into ``model``."""
+    checkpoint = read_checkpoint(path)
+    if checkpoint["config"]["n_z"] != n_z:
+        raise ValueError(f"--init {path} has n_z={checkpoint['config']['n_z']}, settings say {n_z}")
+    model.load_state_dict({name: tensor.float() for name, tensor in checkpoint["state_dict"].items()})
+    log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
+
+
 def _seed_everything(seed: int) -> None:
     np.random.seed(seed)
     torch.manual_seed(seed)
@@ -209,6 +219,8 @@ def run(settings: TrainEncoderSettings) -> int:
         log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, start_epoch, best_val)
     elif settings.resume:
         log.warning("--resume given but %s does not exist; starting afresh", last_path)
+    if settings.init and start_epoch == 0:
+        _load_weights(model, settings.init, settings.n_z)
 
     writer = None
     if settings.tensorboard:

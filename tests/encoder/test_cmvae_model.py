@@ -15,6 +15,7 @@ from encoder_service.model import (
     images_to_tensor,
     label_errors,
     normalise_labels,
+    state_errors,
     tensor_to_images,
 )
 from services.geometry import ALPHA_DEG
@@ -118,6 +119,16 @@ def test_psi_error_wraps_around_the_circle() -> None:
         np.array([[3.0, 10.0, 179.0], [5.0, -5.0, -90.0]]), np.array([[2.5, 12.0, -179.0], [5.0, 5.0, 90.0]])
     )
     np.testing.assert_allclose(errors, [[0.5, 2.0, 2.0], [0.0, 10.0, 180.0]], atol=1e-9)
+
+
+def test_state_loss_takes_psi_the_short_way_round() -> None:
+    """psi = 179 deg predicted as -179 costs as little as 2 deg does; d and theta errors are not wrapped."""
+    true = torch.from_numpy(normalise_labels(np.array([[2.0, 0.0, 179.0], [6.0, 30.0, -90.0]])))
+    predicted = torch.from_numpy(normalise_labels(np.array([[10.0, 0.0, -179.0], [6.0, -30.0, 90.0]])))
+    errors = state_errors(predicted, true)
+    np.testing.assert_allclose(errors[:, 2].abs().numpy() * 180.0, [2.0, 180.0], atol=1e-3)
+    np.testing.assert_allclose(errors[:, :2].numpy(), (predicted - true)[:, :2].numpy())
+    assert errors[0, 0].item() == pytest.approx(2.0)  # d from 2 to 10 m spans the whole normalised range
 
 
 def test_images_become_channels_last_floats_in_minus_one_one_and_back(frames: np.ndarray) -> None:

@@ -10,6 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from encoder_service.inference import DEFAULT_CHECKPOINT
+from encoder_service.model import CMVAE
 from encoder_service.train import EarlyStopping, TrainEncoderSettings, run
 
 
@@ -77,6 +79,19 @@ def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run(
     assert b["val_loss"] == pytest.approx(a["val_loss"], rel=1e-5)
     for name, tensor in a["state_dict"].items():
         torch.testing.assert_close(b["state_dict"][name], tensor, rtol=1e-5, atol=1e-6)
+
+
+def test_init_starts_from_a_checkpoints_weights(dataset_dir: Path, tmp_path: Path) -> None:
+    """--init loads the shipped float16 file; with lr 0 the learned weights stay exactly the shipped ones."""
+    out = tmp_path / "fine-tune"
+    run(_settings(dataset_dir, out, epochs=1, lr=0.0, init=str(DEFAULT_CHECKPOINT)))
+    shipped = torch.load(DEFAULT_CHECKPOINT, weights_only=True)["state_dict"]
+    tuned = torch.load(out / "last.pt", weights_only=True)
+    assert tuned["epoch"] == 1  # a fine-tune counts its own epochs
+    for name, _ in CMVAE().named_parameters():  # buffers (batch-norm statistics) do move in training mode
+        torch.testing.assert_close(tuned["state_dict"][name], shipped[name].float(), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="n_z"):
+        run(_settings(dataset_dir, tmp_path / "wrong", epochs=1, n_z=8, init=str(DEFAULT_CHECKPOINT)))
 
 
 def test_early_stopping_ends_the_run_once_patience_runs_out(dataset_dir: Path, tmp_path: Path) -> None:
