@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from encoder_service.data import CMVAEDataset, count_batches, iter_batches, prefetch, split_indices
+from encoder_service.data import Batch, CMVAEDataset, count_batches, iter_batches, prefetch, split_indices
 from encoder_service.model import (
     CMVAE,
     LABEL_NAMES,
@@ -53,6 +53,7 @@ class TrainEncoderSettings:
     seed: int = 0
     resume: bool = False  # continue from <out>/last.pt
     init: str = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
+    mirror: float = 0.5  # share of training frames flipped left-right (theta and psi change sign); 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
     tensorboard: bool = True
@@ -94,6 +95,21 @@ def _mean(totals: dict[str, float], count: int) -> dict[str, float]:
     return {key: value / max(count, 1) for key, value in totals.items()}
 
 
+def mirror_batch(batch: Batch, flip: np.ndarray) -> Batch:
+    """Flip the frames picked by ``flip`` left-right and negate their theta and psi.
+
+    A mirrored frame is another true frame: the world reflected in the rover's vertical forward plane,
+    where the target sits at -theta and faces -psi (the dolphin and the scene's lighting are
+    left-right symmetric). It doubles what the encoder sees of each pose, and pairs every view of a
+    dolphin facing left with one facing right, the cue z[2] has to find.
+    """
+    images = batch.images.copy()
+    labels = batch.labels.copy()
+    images[flip] = images[flip, :, ::-1]
+    labels[flip, 1:] *= -1.0
+    return Batch(images=images, labels=labels, indices=batch.indices)
+
+
 def _train_epoch(
     model: CMVAE,
     optimiser: torch.optim.Optimizer,
@@ -110,6 +126,7 @@ def _train_epoch(
         dataset, indices, settings.batch_size, (settings.seed, epoch), settings.max_batches_per_epoch
     )
     n_batches = count_batches(len(indices), settings.batch_size, settings.max_batches_per_epoch)
+    flips = np.random.default_rng((settings.seed, epoch, 1))
     with tqdm(
         prefetch(batches),
         total=n_batches,
@@ -119,6 +136,8 @@ def _train_epoch(
         dynamic_ncols=True,
     ) as bar:
         for batch in bar:
+            if settings.mirror > 0:
+                batch = mirror_batch(batch, flips.random(len(batch.indices)) < settings.mirror)
             images = images_to_tensor(batch.images, device)
             labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
             loss = cmvae_loss(model(images), images, labels, settings.beta)

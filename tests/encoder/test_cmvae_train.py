@@ -7,12 +7,14 @@ import math
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
+from encoder_service.data import Batch
 from encoder_service.inference import DEFAULT_CHECKPOINT
 from encoder_service.model import CMVAE
-from encoder_service.train import EarlyStopping, TrainEncoderSettings, run
+from encoder_service.train import EarlyStopping, TrainEncoderSettings, mirror_batch, run
 
 
 @pytest.fixture(scope="module")
@@ -92,6 +94,36 @@ def test_init_starts_from_a_checkpoints_weights(dataset_dir: Path, tmp_path: Pat
         torch.testing.assert_close(tuned["state_dict"][name], shipped[name].float(), rtol=0, atol=0)
     with pytest.raises(ValueError, match="n_z"):
         run(_settings(dataset_dir, tmp_path / "wrong", epochs=1, n_z=8, init=str(DEFAULT_CHECKPOINT)))
+
+
+def test_a_mirrored_frame_is_the_frame_of_the_mirrored_pose() -> None:
+    """Flipping a frame and negating theta and psi gives what the camera sees of the reflected scene."""
+    from sim_service.world import World
+
+    world = World()
+    try:
+        rover = np.array([0.0, 0.0, -4.0])  # at the origin facing +x: the mirror plane is y = 0
+
+        def frame(theta_deg: float, psi_deg: float, d: float = 4.0) -> np.ndarray:
+            bearing = math.radians(theta_deg)
+            target = rover + d * np.array([math.cos(bearing), math.sin(bearing), 0.0])
+            return world.place(rover, 0.0, target, math.radians(psi_deg))[1]
+
+        for theta, psi in ((20.0, 60.0), (-30.0, 150.0)):
+            batch = Batch(
+                images=frame(theta, psi)[None],
+                labels=np.array([[4.0, theta, psi]], np.float32),
+                indices=np.zeros(1, np.int64),
+            )
+            mirrored = mirror_batch(batch, np.array([True]))
+            np.testing.assert_allclose(mirrored.labels, [[4.0, -theta, -psi]])
+            truth = frame(-theta, -psi).astype(int)
+            flipped_error = np.abs(mirrored.images[0].astype(int) - truth).mean()
+            unflipped_error = np.abs(batch.images[0].astype(int) - truth).mean()
+            assert flipped_error < 0.5 and flipped_error < 0.2 * unflipped_error  # the sun is a little off-axis
+            assert np.array_equal(mirror_batch(batch, np.array([False])).images, batch.images)
+    finally:
+        world.close()
 
 
 def test_early_stopping_ends_the_run_once_patience_runs_out(dataset_dir: Path, tmp_path: Path) -> None:
