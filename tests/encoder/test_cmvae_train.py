@@ -14,7 +14,13 @@ import torch
 from encoder_service.data import Batch
 from encoder_service.inference import DEFAULT_CHECKPOINT
 from encoder_service.model import CMVAE
-from encoder_service.train import EarlyStopping, TrainEncoderSettings, mirror_batch, run
+from encoder_service.train import (
+    EarlyStopping,
+    TrainEncoderSettings,
+    mirror_batch,
+    recalibrate_batch_norm,
+    run,
+)
 
 
 @pytest.fixture(scope="module")
@@ -124,6 +130,35 @@ def test_a_mirrored_frame_is_the_frame_of_the_mirrored_pose() -> None:
             assert np.array_equal(mirror_batch(batch, np.array([False])).images, batch.images)
     finally:
         world.close()
+
+
+def test_batch_norm_statistics_are_re_estimated_at_the_final_weights(dataset_dir: Path) -> None:
+    """After recalibration, eval mode (running statistics) answers as train mode (this batch's) does."""
+    from encoder_service.data import CMVAEDataset
+    from encoder_service.model import images_to_tensor
+
+    dataset = CMVAEDataset(dataset_dir)
+    rows = np.arange(len(dataset))
+    images = images_to_tensor(dataset.read(rows).images)
+    torch.manual_seed(0)
+    model = CMVAE()
+    for layer in model.modules():
+        if isinstance(layer, torch.nn.BatchNorm2d):
+            layer.running_mean.fill_(3.0)  # statistics of weights long gone
+    settings = TrainEncoderSettings(batch_size=len(rows), bn_batches=1)
+
+    def eval_vs_train_gap() -> float:
+        with torch.no_grad():
+            model.eval()
+            evaluated = model(images).mu
+            model.train()
+            trained = model(images, sample=False).mu
+        return float((evaluated - trained).abs().max())
+
+    assert eval_vs_train_gap() > 0.1
+    recalibrate_batch_norm(model, dataset, rows, settings, epoch=0, device=torch.device("cpu"))
+    assert eval_vs_train_gap() < 1e-2  # the stored variance is unbiased, the batch's is not: not exactly 0
+    assert all(layer.momentum == 0.1 for layer in model.modules() if isinstance(layer, torch.nn.BatchNorm2d))
 
 
 def test_early_stopping_ends_the_run_once_patience_runs_out(dataset_dir: Path, tmp_path: Path) -> None:
