@@ -77,8 +77,13 @@ def encoder_checkpoint(learn: LearnCommandSettings) -> Path | None:
 
 
 def check_port_free(port: int) -> None:
-    """Refuse a busy port at once: a router of another run there would otherwise be joined by mistake."""
+    """Refuse a busy port at once: a router of another run there would otherwise be joined by mistake.
+
+    SO_REUSEADDR lets the probe bind past the TIME_WAIT connections a just-stopped run leaves for a minute
+    (the router rebinds past them too), while a live listener still refuses it.
+    """
     with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind(("127.0.0.1", port))
         except OSError:
