@@ -273,7 +273,7 @@ def run(settings: TrainEncoderSettings) -> int:
         from torch.utils.tensorboard import SummaryWriter  # imported late: tensorboard is slow to import
 
         writer = SummaryWriter(log_dir=str(out / "tb"))
-    epochs_run, stopped_early, metrics = 0, False, {}
+    epochs_run, stopped_early, interrupted, metrics = 0, False, False, {}
     history: list[dict[str, float]] = []  # this invocation's epochs (a resumed run lists only its own)
     try:
         for epoch in range(start_epoch, settings.epochs):
@@ -327,6 +327,9 @@ def run(settings: TrainEncoderSettings) -> int:
                     settings.patience,
                 )
                 break
+    except KeyboardInterrupt:  # Ctrl-C: best.pt and last.pt already hold the finished epochs; say so and summarise
+        interrupted = True
+        log.warning("interrupted during epoch %d; --resume goes on from %s", start_epoch + epochs_run + 1, last_path)
     finally:
         if writer is not None:
             writer.close()
@@ -341,6 +344,7 @@ def run(settings: TrainEncoderSettings) -> int:
         "epochs_run": epochs_run,
         "last_epoch": start_epoch + epochs_run,
         "stopped_early": stopped_early,
+        "interrupted": interrupted,
         "best_epoch": best_epoch,
         "best_val_loss": best_val,
         "last_val_metrics": metrics,
@@ -349,4 +353,4 @@ def run(settings: TrainEncoderSettings) -> int:
     }
     (out / "train_summary.json").write_text(json.dumps(summary, indent=2))
     log.info("done: best validation loss %.5f at epoch %d; %s", best_val, best_epoch, best_path)
-    return 0
+    return 130 if interrupted else 0

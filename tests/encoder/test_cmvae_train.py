@@ -5,6 +5,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +163,27 @@ def test_batch_norm_statistics_are_re_estimated_at_the_final_weights(dataset_dir
     recalibrate_batch_norm(model, dataset, rows, settings, epoch=0, device=torch.device("cpu"))
     assert eval_vs_train_gap() < 1e-2  # the stored variance is unbiased, the batch's is not: not exactly 0
     assert all(layer.momentum == 0.1 for layer in model.modules() if isinstance(layer, torch.nn.BatchNorm2d))
+
+
+def test_ctrl_c_keeps_the_finished_epochs_and_writes_the_summary(dataset_dir: Path, tmp_path: Path) -> None:
+    """SIGINT to a running `swimm train-encoder`: exit 130, checkpoints kept, a summary that says it stopped."""
+    out = tmp_path / "interrupted"
+    command = [sys.executable, "-m", "services.cli", "train-encoder", "--dataset", str(dataset_dir), "--out", str(out)]
+    command += ["--epochs", "1000", "--val-fraction", "0.25", "--device", "cpu", "--no-tensorboard"]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "last.pt").is_file():
+            assert process.poll() is None and time.monotonic() < deadline, process.stderr.read().decode()[-2000:]
+            time.sleep(0.1)
+        process.send_signal(signal.SIGINT)
+        assert process.wait(timeout=60) == 130
+    finally:
+        process.kill()
+    summary = _summary(out)
+    assert summary["interrupted"] is True and summary["stopped_early"] is False
+    assert summary["epochs_run"] >= 1 and summary["best_epoch"] >= 1
+    assert torch.load(out / "best.pt", weights_only=True)["epoch"] == summary["best_epoch"]
 
 
 def test_early_stopping_ends_the_run_once_patience_runs_out(dataset_dir: Path, tmp_path: Path) -> None:

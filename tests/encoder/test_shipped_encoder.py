@@ -33,6 +33,7 @@ def test_the_shipped_cmvae_scores_its_documented_errors_on_fresh_frames(tmp_path
     encoder = LatentEncoder(DEFAULT_CHECKPOINT)
     mu, _ = encoder.encode(batch.images)
     predicted = np.stack(encoder.decode_state(mu), axis=1)
-    measured = dict(zip(("d_m", "theta_deg", "psi_deg"), label_errors(predicted, batch.labels).mean(axis=0)))
+    errors = label_errors(predicted, batch.labels).mean(axis=0)
+    measured = dict(zip(("d_m", "theta_deg", "psi_deg"), errors, strict=True))
     for name, tolerance in TOLERANCE.items():
         assert measured[name] == pytest.approx(documented["mae"][name], abs=tolerance), (name, measured)
