@@ -162,6 +162,27 @@ def train_critic(model: Any, gradient_steps: int) -> None:
     log.info("critic trained for %d gradient steps with the cloned actor held", gradient_steps)
 
 
+def keep_cloning(model: Any, demos: Demonstrations, settings: DemoSettings, seed: int) -> Any:
+    """Add ``bc_weight`` times the cloning loss on a demonstration minibatch to every actor update from now on.
+
+    The learner's own ``train`` stays untouched: a hook on the actor's optimizer adds the cloning gradient to
+    the one the learner's loss left, just before each step (the TD3+BC idea). Measured on the CMVAE that learns
+    psi: without it, SAC's first 64 updates after the critic's warm-up undo the cloned policy (docs/encoder.md).
+    Returns the hook's handle (``.remove()`` ends it).
+    """
+    policy = model.policy
+    targets = torch.as_tensor(demos.actions, dtype=torch.float32, device=policy.device)
+    rng = np.random.default_rng(seed)
+
+    def add_cloning_gradient(optimizer: torch.optim.Optimizer, args: Any, kwargs: Any) -> None:
+        rows = rng.integers(len(targets), size=settings.bc_batch_size)
+        obs_tensor, _ = policy.obs_to_tensor(_rows(demos.observations, rows))
+        predicted = policy._predict(obs_tensor, deterministic=True)
+        (settings.bc_weight * torch.nn.functional.mse_loss(predicted, targets[rows])).backward()
+
+    return model.actor.optimizer.register_step_pre_hook(add_cloning_gradient)
+
+
 def demonstrate(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> Demonstrations:
     """Play the tracker, fill the buffer, clone its actions, train the critic: the whole head start, logged."""
     demos = play_tracker(model, env, settings, seed)
@@ -172,4 +193,7 @@ def demonstrate(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> D
         clone_actions(model, demos, settings, seed)
     if settings.critic_steps and hasattr(model, "replay_buffer") and hasattr(model, "actor"):
         train_critic(model, settings.critic_steps)
+    if settings.bc_weight > 0 and hasattr(model, "actor"):
+        keep_cloning(model, demos, settings, seed)
+        log.info("actor updates keep a cloning loss of weight %g", settings.bc_weight)
     return demos

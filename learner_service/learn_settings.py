@@ -45,10 +45,11 @@ class DemoSettings:
     bc_batch_size: int = 256
     bc_learning_rate: float = 1e-3
     critic_steps: int = 5000  # off-policy: gradient steps on the critic alone after cloning, the actor held
+    bc_weight: float = 0.0  # off-policy: weight of a cloning loss added to every actor update while training (0: off)
 
     def check(self) -> None:
-        if min(self.steps, self.noise, self.bc_epochs, self.critic_steps) < 0:
-            raise ValueError("demo steps, noise, bc_epochs and critic_steps must be >= 0")
+        if min(self.steps, self.noise, self.bc_epochs, self.critic_steps, self.bc_weight) < 0:
+            raise ValueError("demo steps, noise, bc_epochs, critic_steps and bc_weight must be >= 0")
         if self.bc_batch_size < 1 or self.bc_learning_rate <= 0:
             raise ValueError("demo bc_batch_size must be >= 1 and bc_learning_rate > 0")
 

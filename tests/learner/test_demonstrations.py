@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from learner_service.command import Training
-from learner_service.demonstrations import clone_actions, innermost, play_tracker, train_critic
+from learner_service.demonstrations import clone_actions, innermost, keep_cloning, play_tracker, train_critic
 from learner_service.envs import make_vec_env
 from learner_service.learn_settings import DemoSettings
 from learner_service.registry import make_model
@@ -97,9 +97,43 @@ def test_critic_training_leaves_the_actor_as_cloned(played) -> None:
     assert all(p.requires_grad for p in model.actor.parameters())  # unfrozen again for training
 
 
+def test_a_kept_cloning_loss_holds_the_actor_near_the_tracker_through_training() -> None:
+    """The same cloned SAC trained 200 gradient steps with and without ``bc_weight``: the weighted one stays closer."""
+
+    def cloned_then_trained(bc_weight: float) -> tuple[float, float]:
+        env = make_vec_env("inprocess", TASK, n_envs=2, base_seed=97)
+        try:
+            model = make_model("sac", env, seed=97, overrides={"device": "cpu", "buffer_size": 1000})
+            settings = DemoSettings(steps=DEMO_STEPS, bc_epochs=40, bc_batch_size=64, bc_weight=bc_weight)
+            demos = play_tracker(model, env, settings, seed=5)
+            clone_actions(model, demos, settings, seed=0)
+            train_critic(model, gradient_steps=20)
+
+            def action_mse() -> float:
+                predicted, _ = model.predict(demos.observations, deterministic=True)
+                return float(np.mean((predicted - demos.actions) ** 2))
+
+            cloned = action_mse()
+            handle = keep_cloning(model, demos, settings, seed=0) if bc_weight else None
+            model.train(gradient_steps=200, batch_size=64)
+            if handle is not None:
+                handle.remove()
+            return cloned, action_mse()
+        finally:
+            env.close()
+
+    cloned, drifted = cloned_then_trained(0.0)
+    same_start, held = cloned_then_trained(50.0)
+    assert same_start == pytest.approx(cloned)  # same seeds: the same cloned policy before training
+    assert drifted > 2 * cloned, (cloned, drifted)  # the critic's gradient alone leads the actor away
+    assert held < drifted / 2, (held, drifted)
+
+
 def test_bad_demo_settings_are_refused() -> None:
-    with pytest.raises(ValueError, match="demo steps, noise, bc_epochs and critic_steps must be >= 0"):
+    with pytest.raises(ValueError, match="demo steps, noise, bc_epochs, critic_steps and bc_weight must be >= 0"):
         DemoSettings(steps=-1).check()
+    with pytest.raises(ValueError, match="bc_weight"):
+        DemoSettings(bc_weight=-1.0).check()
     with pytest.raises(ValueError, match="bc_learning_rate"):
         DemoSettings(bc_learning_rate=0.0).check()
 
