@@ -155,7 +155,12 @@ def _train_epoch(
 
 @torch.no_grad()
 def recalibrate_batch_norm(
-    model: CMVAE, dataset: CMVAEDataset, indices: np.ndarray, settings: TrainEncoderSettings, epoch: int, device
+    model: CMVAE,
+    dataset: CMVAEDataset,
+    indices: np.ndarray,
+    settings: TrainEncoderSettings,
+    epoch: int,
+    device: torch.device,
 ) -> None:
     """Re-estimate every batch-norm layer's running mean and variance at the model's final weights.
 

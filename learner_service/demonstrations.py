@@ -125,9 +125,7 @@ def clone_actions(model: Any, demos: Demonstrations, settings: DemoSettings, see
         total = 0.0
         for start in range(0, count, settings.bc_batch_size):
             rows = order[start : start + settings.bc_batch_size]
-            obs_tensor, _ = policy.obs_to_tensor(_rows(demos.observations, rows))
-            predicted = policy._predict(obs_tensor, deterministic=True)
-            loss = torch.nn.functional.mse_loss(predicted, targets[rows])
+            loss = cloning_loss(policy, demos, targets, rows)
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()
@@ -138,6 +136,12 @@ def clone_actions(model: Any, demos: Demonstrations, settings: DemoSettings, see
     if hasattr(model, "actor_target"):
         model.actor_target.load_state_dict(model.actor.state_dict())
     return losses
+
+
+def cloning_loss(policy: Any, demos: Demonstrations, targets: torch.Tensor, rows: np.ndarray) -> torch.Tensor:
+    """Mean squared error between the policy's deterministic actions and the tracker's, on demonstration ``rows``."""
+    obs_tensor, _ = policy.obs_to_tensor(_rows(demos.observations, rows))
+    return torch.nn.functional.mse_loss(policy._predict(obs_tensor, deterministic=True), targets[rows])
 
 
 def _rows(observations: Any, rows: np.ndarray) -> Any:
@@ -179,9 +183,7 @@ def keep_cloning(model: Any, demos: Demonstrations, settings: DemoSettings, seed
 
     def add_cloning_gradient(optimizer: torch.optim.Optimizer, args: Any, kwargs: Any) -> None:
         rows = rng.integers(len(targets), size=settings.bc_batch_size)
-        obs_tensor, _ = policy.obs_to_tensor(_rows(demos.observations, rows))
-        predicted = policy._predict(obs_tensor, deterministic=True)
-        (settings.bc_weight * torch.nn.functional.mse_loss(predicted, targets[rows])).backward()
+        (settings.bc_weight * cloning_loss(policy, demos, targets, rows)).backward()
 
     return model.actor.optimizer.register_step_pre_hook(add_cloning_gradient)
 
