@@ -24,6 +24,7 @@ class BenchSettings:
     steps: int = 0  # work per measurement; 0 = the benchmark's default
     algo: str = "sac"  # train: the learner
     envs: int = 16  # encoder: environments in the batched measurement
+    mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
 
 
 def run(settings: BenchSettings) -> int:
@@ -33,6 +34,7 @@ def run(settings: BenchSettings) -> int:
     kwargs = {"steps": settings.steps} if settings.steps else {}
     if settings.target == "train":
         kwargs["algo"] = settings.algo
+        kwargs["mode"] = settings.mode
     if settings.target == "encoder":
         kwargs["envs"] = settings.envs
     result = module.run(**kwargs)

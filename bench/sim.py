@@ -1,8 +1,14 @@
 """Simulator benchmark: in-process step+render rate vs the distributed lock-step round trip.
 
-Both halves run in one invocation on the same machine, so the ratio is a
-fair comparison: the distributed half adds the msgpack codec, two Zenoh
-hops through a Python router and the process switch, nothing else.
+Everything runs in one invocation on the same machine, so the ratios are a fair comparison. The distributed
+runs start `swimm router` and `swimm sim` as separate processes and step one env from this one, in the two
+topologies the project uses:
+
+- peer (the headline keys; what `swimm up` runs): the sim and this process join as Zenoh peers, the router
+  introduces them and each message goes directly from one to the other;
+- client (the ``routed_*`` keys; what deploy/docker-compose.yml runs): every message goes through the router.
+
+Either adds the msgpack codec, the Zenoh hops and the process switches to the in-process step, nothing else.
 """
 
 from __future__ import annotations
@@ -39,14 +45,15 @@ def inprocess_rate(steps: int) -> float:
         world.close()
 
 
-def distributed_rate(steps: int, log_dir: Path) -> tuple[float, np.ndarray]:
-    """Steps/s and per-step round-trip times (s) of one env served by `swimm sim` through `swimm router`."""
+def distributed_rate(steps: int, log_dir: Path, mode: str) -> tuple[float, np.ndarray]:
+    """Steps/s and per-step round-trip times (s) of one env served by `swimm sim`, both sides joined in ``mode``."""
     from learner_service.link import RemoteEnvLink, new_holder_id
 
     with ProcessGroup(log_dir) as group:
         endpoint = group.start_router()
-        settings = ZenohSettings(connect=[endpoint], namespace="swimm/bench")
-        group.start("sim", "sim", "--connect", endpoint, "--namespace", settings.namespace, "--eval-envs", "0")
+        settings = ZenohSettings(mode=mode, connect=[endpoint], namespace="swimm/bench")
+        sim_args = ("--mode", mode, "--connect", endpoint, "--namespace", settings.namespace, "--eval-envs", "0")
+        group.start("sim", "sim", *sim_args)
         session = open_session(settings, role="bench")
         keys = Keys(settings.namespace)
         holder = new_holder_id("learner")
@@ -78,12 +85,22 @@ def distributed_rate(steps: int, log_dir: Path) -> tuple[float, np.ndarray]:
 def run(steps: int = 2000) -> dict:
     inprocess = inprocess_rate(steps)
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp:
-        distributed, round_trips = distributed_rate(steps, Path(tmp))
+        peer, peer_round_trips = distributed_rate(steps, Path(tmp) / "peer", "peer")
+        routed, routed_round_trips = distributed_rate(steps, Path(tmp) / "client", "client")
     return {
         "inprocess_steps_per_s": round(inprocess, 1),
-        "distributed_steps_per_s": round(distributed, 1),
-        "ratio": round(distributed / inprocess, 3),
-        "p50_ms": round(float(np.percentile(round_trips, 50)) * 1e3, 3),
-        "p99_ms": round(float(np.percentile(round_trips, 99)) * 1e3, 3),
+        "distributed_steps_per_s": round(peer, 1),
+        "ratio": round(peer / inprocess, 3),
+        "p50_ms": percentile_ms(peer_round_trips, 50),
+        "p99_ms": percentile_ms(peer_round_trips, 99),
+        "topology": "peer",
+        "routed_steps_per_s": round(routed, 1),
+        "routed_ratio": round(routed / inprocess, 3),
+        "routed_p50_ms": percentile_ms(routed_round_trips, 50),
+        "routed_p99_ms": percentile_ms(routed_round_trips, 99),
         "steps": steps,
     }
+
+
+def percentile_ms(seconds: np.ndarray, q: float) -> float:
+    return round(float(np.percentile(seconds, q)) * 1e3, 3)

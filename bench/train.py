@@ -5,7 +5,10 @@ same seed and cmvae observations for the same number of steps, in one invocation
 
 - in-process: a TrackingEnv (World + LatentEncoder in the learner's process);
 - distributed: `swimm router`, `swimm sim` and `swimm encoder` as separate processes, the learner stepping a
-  ProxyVecEnv, so every step is action -> router -> sim -> router -> encoder -> router -> learner.
+  ProxyVecEnv, so every step is action -> sim -> encoder -> learner. With ``mode="peer"`` (the default, what
+  `swimm up` runs) the processes join as Zenoh peers and each hop goes directly from one to the next, the router
+  only introducing them; with ``mode="client"`` (what deploy/docker-compose.yml runs) every hop passes through
+  the router.
 
 Since the ProxyEnv reproduces the in-process env bit for bit, the two runs see the same episodes and do the same
 gradient steps: the ratio isolates the cost of the transport and the process hops. The rate counts every
@@ -116,16 +119,16 @@ def train(algo: str, vec_env, steps: int, services: dict[str, int]) -> TrainingR
     return TrainingRun(model.num_timesteps, elapsed, clock.rollout_s, episodes, cpu_ms)
 
 
-def run(steps: int = 1500, algo: str = "sac") -> dict:
+def run(steps: int = 1500, algo: str = "sac", mode: str = "peer") -> dict:
     torch.set_num_threads(TORCH_THREADS)
     task = TaskSettings(obs="cmvae")
     with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
         checkpoint = encoder_checkpoint(Path(tmp))
         endpoint = group.start_router()
-        common = ("--connect", endpoint, "--namespace", NAMESPACE)
+        common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE)
         group.start("sim", "sim", *common, "--eval-envs", "0")
         group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS))
-        proxy = ProxySettings(zenoh=ZenohSettings(connect=[endpoint], namespace=NAMESPACE))
+        proxy = ProxySettings(zenoh=ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE))
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
         distributed_env = make_vec_env("zenoh", task, proxy, base_seed=SEED)
         try:
@@ -140,6 +143,7 @@ def run(steps: int = 1500, algo: str = "sac") -> dict:
         group.check_alive()
     return {
         "algo": algo,
+        "topology": mode,
         "inprocess_steps_per_s": round(inprocess.steps_per_s, 1),
         "distributed_steps_per_s": round(distributed.steps_per_s, 1),
         "ratio": round(distributed.steps_per_s / inprocess.steps_per_s, 3),

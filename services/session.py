@@ -4,6 +4,11 @@ A client-mode session fails at open when no router answers, so services
 retry with back-off until ``startup_timeout_s``; that is what lets them
 start in any order. Multicast scouting is off: endpoints are explicit, so
 two runs on one machine never see each other by accident.
+
+Peers still find each other through the router they connect to (Zenoh's gossip) and then link directly, so a
+message between two peers skips the router's hop. A peer with no listen endpoint of its own listens on
+:data:`PEER_LISTEN`, a loopback port, which reaches the peers on its machine; peers on other machines are
+then introduced but cannot link, and their messages go through the router as a client's do.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import zenoh
 from services.settings import LOCAL_ROUTER, ZenohSettings
 
 log = logging.getLogger(__name__)
+PEER_LISTEN = "tcp/127.0.0.1:0"  # a peer's own listener when none is given: any free loopback port
 
 
 class StartupTimeout(RuntimeError):
@@ -27,18 +33,18 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     """The Zenoh config: the file's (if any), then the settings' endpoints over it.
 
     Endpoints come from the flags when given, else from the config file when it names any, else a
-    router listens on (and the others connect to) :data:`LOCAL_ROUTER`.
+    router listens on (and the others connect to) :data:`LOCAL_ROUTER` and a peer listens on :data:`PEER_LISTEN`.
     """
     config = zenoh.Config.from_file(settings.zenoh_config) if settings.zenoh_config else zenoh.Config()
     stock = zenoh.Config()
     config.insert_json5("mode", json.dumps(settings.mode))
     for key, given, local_default in (
-        ("connect/endpoints", settings.connect, settings.mode != "router"),
-        ("listen/endpoints", settings.listen, settings.mode == "router"),
+        ("connect/endpoints", settings.connect, LOCAL_ROUTER if settings.mode != "router" else None),
+        ("listen/endpoints", settings.listen, {"router": LOCAL_ROUTER, "peer": PEER_LISTEN}.get(settings.mode)),
     ):
         endpoints = list(given)
         if not endpoints and local_default and config.get_json(key) == stock.get_json(key):
-            endpoints = [LOCAL_ROUTER]
+            endpoints = [local_default]
         if endpoints:
             config.insert_json5(key, json.dumps(endpoints))
     if not settings.zenoh_config:

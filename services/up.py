@@ -5,9 +5,11 @@
     swimm up --encoders 2 --envs 4 --hyperparams "{train_freq: [64, step]}"
 
 Every `swimm learn` flag is a `swimm up` flag too (``--algo``, ``--steps``, ``--eval-*``, ``--run-dir`` ...)
-and is handed to the learner through ``<run>/learn.yaml``; ``--connect`` is ignored, as every process joins
-the router this command starts (on ``--port``, 7447 by default, so `swimm eval --connect tcp/127.0.0.1:7447`
-can attach to the sim's spare eval env while training runs).
+and is handed to the learner through ``<run>/learn.yaml``; ``--connect`` and ``--mode`` are ignored, as every
+process joins the router this command starts (on ``--port``, 7447 by default, so `swimm eval --connect
+tcp/127.0.0.1:7447` can attach to the sim's spare eval env while training runs) in the ``--topology`` mode:
+``peer`` (the default) lets the router introduce the processes, which then send each message directly to one
+another, a hop fewer than ``client``, where every message passes through the router.
 
 Start-up is ordered and bounded: the router must listen, then the sim and each encoder must announce
 themselves (liveliness) within ``--startup-timeout-s``; a process that dies meanwhile fails the command with
@@ -56,6 +58,7 @@ class UpSettings:
     port: int = 7447  # the router's TCP port on 127.0.0.1; 0 = any free port
     encoders: int = 1  # encoder processes (cmvae only)
     sim_eval_envs: int = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
+    topology: str = "peer"  # peer: processes link directly once the router introduces them; client: all via the router
     stop_timeout_s: float = 180.0  # how long the learner may take to save after SIGTERM before it is killed
 
 
@@ -110,7 +113,7 @@ class LocalSystem:
         if self.settings.port:
             check_port_free(self.settings.port)
         endpoint = self.group.start_router(self.settings.port or None)
-        common = ("--connect", endpoint, "--namespace", self.namespace)
+        common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
         sim_args = ["--train-envs", str(self.learn.envs), "--eval-envs", str(self.settings.sim_eval_envs)]
         self.group.start("sim", "sim", *common, *sim_args)
         encoders = self.settings.encoders if checkpoint is not None else 0
@@ -168,7 +171,7 @@ class LocalSystem:
     def start_learner(self, endpoint: str) -> Service:
         learn = dataclasses.replace(
             self.learn,
-            zenoh=dataclasses.replace(self.learn.zenoh, connect=[endpoint]),
+            zenoh=dataclasses.replace(self.learn.zenoh, mode=self.settings.topology, connect=[endpoint]),
             run_dir=str(self.run_dir),
             backend="zenoh",
             progress_bar=False,  # this command draws the bar
@@ -226,6 +229,8 @@ class LocalSystem:
 
 def run(settings: UpSettings) -> int:
     learn = settings.learn
+    if settings.topology not in ("peer", "client"):
+        raise ValueError(f"--topology must be peer or client, got {settings.topology!r}")
     if learn.backend != "zenoh":
         log.info("swimm up always trains through the services; --backend %s is ignored", learn.backend)
     checkpoint = encoder_checkpoint(learn)
@@ -242,9 +247,10 @@ def run(settings: UpSettings) -> int:
             log.info("stopped during start-up")
             return 130
         log.info(
-            "router at %s, namespace %s; training %s on %s, run folder %s",
+            "router at %s, namespace %s, processes joined as %ss; training %s on %s, run folder %s",
             endpoint,
             system.namespace,
+            settings.topology,
             learn.algo,
             learn.obs,
             run_dir,

@@ -71,6 +71,7 @@ def test_up_trains_on_cmvae_and_leaves_a_run_folder(spawn, namespace, tmp_path) 
     assert list((run_dir / "tensorboard").rglob("events.out.tfevents.*"))
     learner_log = (run_dir / "logs" / "learner.log").read_text()
     assert "1 zenoh env(s), obs cmvae" in learner_log  # it trained through the services, on latents
+    assert "processes joined as peers" in up.log_path.read_text()  # the default topology: direct links
 
 
 @pytest.mark.slow

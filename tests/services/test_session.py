@@ -10,7 +10,7 @@ import time
 import pytest
 import zenoh
 
-from services.session import StartupTimeout, build_config, endpoints, open_session, router_settings
+from services.session import PEER_LISTEN, StartupTimeout, build_config, endpoints, open_session, router_settings
 from services.settings import LOCAL_ROUTER, ZenohSettings
 
 
@@ -104,3 +104,34 @@ def test_a_missing_zenoh_config_file_fails_at_once_naming_the_file(tmp_path):
         open_session(ZenohSettings(zenoh_config=str(missing), startup_timeout_s=1.0))
     assert time.monotonic() - started < 0.3
     assert str(missing) in str(failed.value)
+
+
+def test_a_peer_listens_on_a_loopback_port_unless_given_its_own_endpoints():
+    assert endpoints(build_config(ZenohSettings(mode="peer")), "listen") == [PEER_LISTEN]
+    given = build_config(ZenohSettings(mode="peer", listen=["tcp/0.0.0.0:7450"]))
+    assert endpoints(given, "listen") == ["tcp/0.0.0.0:7450"]
+    assert json.loads(build_config(ZenohSettings()).get_json("listen/endpoints")) != [PEER_LISTEN]  # a client's
+
+
+def test_peers_the_router_introduced_keep_talking_directly_when_it_is_gone(free_port, processes):
+    """What `swimm up` relies on: peers that only know the router link to each other, and their messages skip it."""
+    endpoint = processes.start_router(free_port())
+    peer_a, peer_b = (open_session(ZenohSettings(mode="peer", connect=[endpoint]), role="peer") for _ in range(2))
+    try:
+        deadline = time.monotonic() + 10
+        while peer_b.info.zid() not in list(peer_a.info.peers_zid()):
+            assert time.monotonic() < deadline, "the peers never linked directly"
+            time.sleep(0.05)
+        received: list[bytes] = []
+        subscriber = peer_b.declare_subscriber("swimm/test-peers/frame", lambda s: received.append(s.payload.to_bytes()))
+        time.sleep(0.3)  # the subscription reaches peer_a
+        processes.stop(processes.services[0])  # the router
+        peer_a.put("swimm/test-peers/frame", b"direct")
+        deadline = time.monotonic() + 5
+        while not received and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert received == [b"direct"]
+        subscriber.undeclare()
+    finally:
+        peer_a.close()
+        peer_b.close()
