@@ -123,10 +123,11 @@ def test_peers_the_router_introduced_keep_talking_directly_when_it_is_gone(free_
             assert time.monotonic() < deadline, "the peers never linked directly"
             time.sleep(0.05)
         received: list[bytes] = []
-        subscriber = peer_b.declare_subscriber("swimm/test-peers/frame", lambda s: received.append(s.payload.to_bytes()))
+        key = "swimm/test-peers/frame"
+        subscriber = peer_b.declare_subscriber(key, lambda sample: received.append(sample.payload.to_bytes()))
         time.sleep(0.3)  # the subscription reaches peer_a
         processes.stop(processes.services[0])  # the router
-        peer_a.put("swimm/test-peers/frame", b"direct")
+        peer_a.put(key, b"direct")
         deadline = time.monotonic() + 5
         while not received and time.monotonic() < deadline:
             time.sleep(0.02)
