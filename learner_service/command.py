@@ -186,10 +186,13 @@ class Training:
     def train(self, env: Any, eval_env: Any) -> RunResult:
         s = self.settings
         model = self.build_model(env)
-        if s.demo.steps and not s.resume:
-            from learner_service.demonstrations import demonstrate
+        if s.demo.steps:
+            from learner_service.demonstrations import demonstrate, resume_cloning
 
-            demonstrate(model, env, s.demo, s.seed)
+            if s.resume:
+                resume_cloning(model, s.demo, s.seed, Path(s.resume), self.run_dir)
+            else:
+                demonstrate(model, env, s.demo, s.seed, self.run_dir)
         start_steps = model.num_timesteps
         stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]

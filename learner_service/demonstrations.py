@@ -18,7 +18,9 @@ tracker plays ``steps`` env steps on the training envs, and what it did is used 
   cloned policy from a return of 2217 to -2272 on one episode; with weight 50 it stayed at 2476).
 
 Then the learner trains as usual. Ground truth is used at training time only, like the reward; the trained
-policy acts on its observation alone.
+policy acts on its observation alone. The observations and clean actions are saved in the run folder
+(:data:`DEMOS_FILE`), so a run resumed from one of its models keeps the same cloning loss without playing the
+tracker again (:func:`resume_cloning`).
 
 The actions taken carry Gaussian noise (``noise``, default 0.3) while the regression targets are the tracker's
 clean actions. Without it the observation's ActPrev (the last ten actions) predicts the next action almost
@@ -32,7 +34,9 @@ the buffer's actions around the tracker's, which the critic needs to rank action
 from __future__ import annotations
 
 import logging
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -45,6 +49,7 @@ from learner_service.learn_settings import DemoSettings
 from learner_service.scripted import ScriptedTracker
 
 log = logging.getLogger(__name__)
+DEMOS_FILE = "demonstrations.npz"  # in the run folder, beside the models and the checkpoints/ folder
 
 
 @dataclass(frozen=True)
@@ -54,6 +59,22 @@ class Demonstrations:
     observations: np.ndarray  # (n, *obs_shape)
     actions: np.ndarray  # (n, action_size), the tracker's actions before noise: the regression targets
     returns: list[float]  # of the episodes that ended while it played
+
+
+def save_demonstrations(demos: Demonstrations, path: Path) -> None:
+    """One .npz: ``actions``, ``returns`` and ``observations`` (or ``observations.<key>`` for dict observations)."""
+    if isinstance(demos.observations, dict):
+        observations = {f"observations.{key}": value for key, value in demos.observations.items()}
+    else:
+        observations = {"observations": demos.observations}
+    np.savez(path, actions=demos.actions, returns=np.asarray(demos.returns, dtype=np.float64), **observations)
+
+
+def load_demonstrations(path: Path) -> Demonstrations:
+    with np.load(path) as arrays:
+        keyed = {name.split(".", 1)[1]: arrays[name] for name in arrays.files if name.startswith("observations.")}
+        observations = keyed or arrays["observations"]
+        return Demonstrations(observations, arrays["actions"], [float(r) for r in arrays["returns"]])
 
 
 def innermost(env: VecEnv) -> VecEnv:
@@ -188,8 +209,11 @@ def keep_cloning(model: Any, demos: Demonstrations, settings: DemoSettings, seed
     return model.actor.optimizer.register_step_pre_hook(add_cloning_gradient)
 
 
-def demonstrate(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> Demonstrations:
-    """Play the tracker, fill the buffer, clone its actions, train the critic: the whole head start, logged."""
+def demonstrate(model: Any, env: VecEnv, settings: DemoSettings, seed: int, run_dir: Path) -> Demonstrations:
+    """Play the tracker, fill the buffer, clone its actions, train the critic: the whole head start, logged.
+
+    The demonstrations are saved as ``run_dir/`` :data:`DEMOS_FILE` for :func:`resume_cloning`.
+    """
     demos = play_tracker(model, env, settings, seed)
     mean = f"{np.mean(demos.returns):.1f}" if demos.returns else "n/a"
     log.info("tracker played %d steps, %d episodes ended (mean return %s)", len(demos.actions), len(demos.returns),
@@ -198,7 +222,35 @@ def demonstrate(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> D
         clone_actions(model, demos, settings, seed)
     if settings.critic_steps and hasattr(model, "replay_buffer") and hasattr(model, "actor"):
         train_critic(model, settings.critic_steps)
+    save_demonstrations(demos, run_dir / DEMOS_FILE)
     if settings.bc_weight > 0 and hasattr(model, "actor"):
         keep_cloning(model, demos, settings, seed)
         log.info("actor updates keep a cloning loss of weight %g", settings.bc_weight)
     return demos
+
+
+def resume_cloning(model: Any, settings: DemoSettings, seed: int, resumed_from: Path, run_dir: Path) -> bool:
+    """A resumed run's head start: the kept cloning loss again, on the demonstrations of the run it resumes.
+
+    The buffer, the cloned actor and the critic come back with the model (and its saved replay buffer); only
+    the cloning loss needs the demonstrations, looked for beside the model and in its run folder (a checkpoint
+    sits in ``<run>/checkpoints/``) and copied into ``run_dir``. Returns whether the loss is kept.
+    """
+    if settings.bc_weight <= 0 or not hasattr(model, "actor"):
+        return False
+    found = next((p for p in (resumed_from.parent / DEMOS_FILE, resumed_from.parent.parent / DEMOS_FILE)
+                  if p.is_file()), None)  # fmt: skip
+    if found is None:
+        log.warning(
+            "resuming without the kept cloning loss: no %s beside %s or in its run folder (bc_weight %g asks for it)",
+            DEMOS_FILE,
+            resumed_from,
+            settings.bc_weight,
+        )
+        return False
+    if found.resolve() != (run_dir / DEMOS_FILE).resolve():
+        shutil.copyfile(found, run_dir / DEMOS_FILE)
+    keep_cloning(model, load_demonstrations(found), settings, seed)
+    log.info("resumed: actor updates keep a cloning loss of weight %g on the demonstrations of %s",
+             settings.bc_weight, found)  # fmt: skip
+    return True

@@ -12,8 +12,19 @@ import pandas as pd
 import pytest
 import torch
 
+from learner_service.checkpoints import FINAL_MODEL
 from learner_service.command import Training
-from learner_service.demonstrations import clone_actions, innermost, keep_cloning, play_tracker, train_critic
+from learner_service.demonstrations import (
+    DEMOS_FILE,
+    Demonstrations,
+    clone_actions,
+    innermost,
+    keep_cloning,
+    load_demonstrations,
+    play_tracker,
+    save_demonstrations,
+    train_critic,
+)
 from learner_service.envs import make_vec_env
 from learner_service.learn_settings import DemoSettings
 from learner_service.registry import make_model
@@ -146,6 +157,45 @@ def test_learn_with_demonstrations_starts_from_a_filled_buffer(tmp_path) -> None
     assert result.trained_steps >= 200  # the demonstrations do not count as training steps
     episodes = pd.read_csv(tmp_path / "run" / "train.monitor.csv", skiprows=1)
     assert episodes["l"].sum() <= result.trained_steps  # the monitor holds training episodes only
+
+
+def test_demonstrations_survive_a_save_and_load_exactly(played, tmp_path) -> None:
+    _, _, demos, _ = played
+    save_demonstrations(demos, tmp_path / "flat.npz")
+    loaded = load_demonstrations(tmp_path / "flat.npz")
+    assert np.array_equal(loaded.observations, demos.observations) and np.array_equal(loaded.actions, demos.actions)
+    assert loaded.returns == demos.returns
+    keyed = Demonstrations({"image": np.arange(24, dtype=np.uint8).reshape(2, 3, 4), "acts": np.ones((2, 5))},
+                           demos.actions[:2], [])  # fmt: skip
+    save_demonstrations(keyed, tmp_path / "dict.npz")
+    loaded = load_demonstrations(tmp_path / "dict.npz")
+    assert set(loaded.observations) == {"image", "acts"} and loaded.returns == []
+    assert all(np.array_equal(loaded.observations[k], v) for k, v in keyed.observations.items())
+
+
+def test_a_resumed_run_keeps_the_cloning_loss_on_the_first_runs_demonstrations(tmp_path, caplog) -> None:
+    demo = DemoSettings(steps=150, bc_epochs=2, critic_steps=10, bc_weight=5.0)
+    first = tiny_settings(tmp_path / "first", demo=demo)
+    first.eval.enabled = False
+    Training(first).run()
+    assert (tmp_path / "first" / DEMOS_FILE).is_file()
+
+    again = tiny_settings(tmp_path / "again", demo=demo, resume=str(tmp_path / "first" / FINAL_MODEL), steps=60)
+    again.eval.enabled = False
+    with caplog.at_level("INFO", logger="learner_service.demonstrations"):
+        resumed = Training(again).run()
+    assert resumed.trained_steps >= 60
+    assert "resumed: actor updates keep a cloning loss of weight 5" in caplog.text
+    assert "tracker played" not in caplog.text  # the tracker did not play again
+    copied = load_demonstrations(tmp_path / "again" / DEMOS_FILE)
+    assert np.array_equal(copied.actions, load_demonstrations(tmp_path / "first" / DEMOS_FILE).actions)
+
+    (tmp_path / "first" / DEMOS_FILE).unlink()
+    (tmp_path / "again" / DEMOS_FILE).unlink()
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="learner_service.demonstrations"):
+        Training(again).run()
+    assert "resuming without the kept cloning loss: no demonstrations.npz" in caplog.text
 
 
 def test_the_shipped_policys_recipe_loads_as_swimm_up_settings() -> None:
