@@ -34,6 +34,7 @@ from encoder_service.model import (
     normalise_labels,
     read_checkpoint,
 )
+from services.lifecycle import sigterm_as_ctrl_c
 
 log = logging.getLogger(__name__)
 
@@ -281,58 +282,62 @@ def run(settings: TrainEncoderSettings) -> int:
     epochs_run, stopped_early, interrupted, metrics = 0, False, False, {}
     history: list[dict[str, float]] = []  # this invocation's epochs (a resumed run lists only its own)
     try:
-        for epoch in range(start_epoch, settings.epochs):
-            train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device)
-            recalibrate_batch_norm(model, dataset, train_rows, settings, epoch, device)
-            metrics = validate(model, dataset, val_rows, settings.batch_size, settings.beta, device)
-            epochs_run += 1
-            val_loss = metrics["total"]
-            history.append({"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss})
-            if writer is not None:
-                for key, value in train_metrics.items():
-                    writer.add_scalar(f"train/{key}", value, epoch + 1)
-                for key, value in metrics.items():
-                    writer.add_scalar(f"val/{key}", value, epoch + 1)
-                writer.flush()
-            log.info(
-                "epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)",
-                epoch + 1,
-                train_metrics["total"],
-                val_loss,
-                metrics["mae_d"],
-                metrics["mae_theta"],
-                metrics["mae_psi"],
-            )
-            if val_loss < best_val:
-                best_val, best_epoch = val_loss, epoch + 1
-                _save(make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics), best_path)
-            stop = stopper.update(val_loss)
-            _save(
-                make_checkpoint(
-                    model,
-                    settings.beta,
-                    epoch + 1,
-                    val_loss,
-                    metrics,
-                    optimizer=optimiser.state_dict(),
-                    torch_rng_state=torch.get_rng_state(),
-                    seed=settings.seed,
-                    best_val_loss=best_val,
-                    best_epoch=best_epoch,
-                    early_stopping={"reference": stopper.reference, "epochs_without_gain": stopper.epochs_without_gain},
-                ),
-                last_path,
-            )
-            if stop:
-                stopped_early = True
+        with sigterm_as_ctrl_c():
+            for epoch in range(start_epoch, settings.epochs):
+                train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device)
+                recalibrate_batch_norm(model, dataset, train_rows, settings, epoch, device)
+                metrics = validate(model, dataset, val_rows, settings.batch_size, settings.beta, device)
+                epochs_run += 1
+                val_loss = metrics["total"]
+                history.append({"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss})
+                if writer is not None:
+                    for key, value in train_metrics.items():
+                        writer.add_scalar(f"train/{key}", value, epoch + 1)
+                    for key, value in metrics.items():
+                        writer.add_scalar(f"val/{key}", value, epoch + 1)
+                    writer.flush()
                 log.info(
-                    "early stop after epoch %d: no %.1f%% gain for %d epochs",
+                    "epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)",
                     epoch + 1,
-                    100 * settings.min_rel_gain,
-                    settings.patience,
+                    train_metrics["total"],
+                    val_loss,
+                    metrics["mae_d"],
+                    metrics["mae_theta"],
+                    metrics["mae_psi"],
                 )
-                break
-    except KeyboardInterrupt:  # Ctrl-C: best.pt and last.pt already hold the finished epochs; say so and summarise
+                if val_loss < best_val:
+                    best_val, best_epoch = val_loss, epoch + 1
+                    _save(make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics), best_path)
+                stop = stopper.update(val_loss)
+                _save(
+                    make_checkpoint(
+                        model,
+                        settings.beta,
+                        epoch + 1,
+                        val_loss,
+                        metrics,
+                        optimizer=optimiser.state_dict(),
+                        torch_rng_state=torch.get_rng_state(),
+                        seed=settings.seed,
+                        best_val_loss=best_val,
+                        best_epoch=best_epoch,
+                        early_stopping={
+                            "reference": stopper.reference,
+                            "epochs_without_gain": stopper.epochs_without_gain,
+                        },
+                    ),
+                    last_path,
+                )
+                if stop:
+                    stopped_early = True
+                    log.info(
+                        "early stop after epoch %d: no %.1f%% gain for %d epochs",
+                        epoch + 1,
+                        100 * settings.min_rel_gain,
+                        settings.patience,
+                    )
+                    break
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: best.pt and last.pt hold the finished epochs; say so, summarise
         interrupted = True
         log.warning("interrupted during epoch %d; --resume goes on from %s", start_epoch + epochs_run + 1, last_path)
     finally:

@@ -53,3 +53,22 @@ def stop_on_signals(event: threading.Event, then: str, second_ctrl_c_interrupts:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+@contextmanager
+def sigterm_as_ctrl_c() -> Iterator[None]:
+    """While inside, SIGTERM raises KeyboardInterrupt, so a job stopped by ``kill``, systemd or ``docker stop``
+    ends as Ctrl-C ends it (a background job started from a script ignores SIGINT, so SIGTERM is how it is
+    stopped). Off the main thread it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(_signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

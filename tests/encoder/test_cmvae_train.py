@@ -165,8 +165,11 @@ def test_batch_norm_statistics_are_re_estimated_at_the_final_weights(dataset_dir
     assert all(layer.momentum == 0.1 for layer in model.modules() if isinstance(layer, torch.nn.BatchNorm2d))
 
 
-def test_ctrl_c_keeps_the_finished_epochs_and_writes_the_summary(dataset_dir: Path, tmp_path: Path) -> None:
-    """SIGINT to a running `swimm train-encoder`: exit 130, checkpoints kept, a summary that says it stopped."""
+@pytest.mark.parametrize("stop_signal", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_ctrl_c_or_sigterm_keeps_the_finished_epochs_and_writes_the_summary(
+    dataset_dir: Path, tmp_path: Path, stop_signal: signal.Signals
+) -> None:
+    """SIGINT or SIGTERM to a running `swimm train-encoder`: exit 130, checkpoints kept, a summary that says so."""
     out = tmp_path / "interrupted"
     command = [sys.executable, "-m", "services.cli", "train-encoder", "--dataset", str(dataset_dir), "--out", str(out)]
     command += ["--epochs", "1000", "--val-fraction", "0.25", "--device", "cpu", "--no-tensorboard"]
@@ -176,7 +179,7 @@ def test_ctrl_c_keeps_the_finished_epochs_and_writes_the_summary(dataset_dir: Pa
         while not (out / "last.pt").is_file():
             assert process.poll() is None and time.monotonic() < deadline, process.stderr.read().decode()[-2000:]
             time.sleep(0.1)
-        process.send_signal(signal.SIGINT)
+        process.send_signal(stop_signal)
         assert process.wait(timeout=60) == 130
     finally:
         process.kill()
