@@ -1,0 +1,58 @@
+"""`swimm bench sim | encoder | train --json` as a user runs them, on little work: one JSON object with the keys
+the docs promise, rates that are rates, and (train) the distributed run reproducing the in-process one.
+
+Benchmarks print what they measure and never pass or fail on speed; these tests check that they run and
+measure what they say, not how fast anything is.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+
+def bench(*args: str, timeout_s: float = 300.0) -> dict:
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "bench", *args, "--json"], capture_output=True, text=True,
+        timeout=timeout_s,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 1, result.stdout  # one JSON object, nothing else on stdout
+    return json.loads(lines[0])
+
+
+def assert_rates(result: dict, *keys: str) -> None:
+    for key in keys:
+        assert isinstance(result[key], float) and math.isfinite(result[key]) and result[key] > 0, (key, result)
+
+
+def test_bench_sim_times_both_topologies_against_the_same_in_process_rate() -> None:
+    result = bench("sim", "--steps", "200")
+    assert_rates(result, "inprocess_steps_per_s", "distributed_steps_per_s", "routed_steps_per_s", "p50_ms")
+    assert result["topology"] == "peer" and result["steps"] == 200
+    assert result["ratio"] == pytest.approx(result["distributed_steps_per_s"] / result["inprocess_steps_per_s"], 1e-2)
+    assert result["routed_ratio"] == pytest.approx(result["routed_steps_per_s"] / result["inprocess_steps_per_s"], 1e-2)
+    assert result["p50_ms"] <= result["p99_ms"] and result["routed_p50_ms"] <= result["routed_p99_ms"]
+
+
+def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services() -> None:
+    result = bench("train", "--algo", "sac", "--steps", "300")
+    assert_rates(result, "inprocess_steps_per_s", "distributed_steps_per_s")
+    assert (result["algo"], result["topology"]) == ("sac", "peer")
+    assert result["steps"] >= 300 and result["episodes"] >= 1
+    assert result["same_episodes"] is True  # the ratio compares the same training, step for step
+    assert set(result["distributed_cpu_ms_per_step"]) == {"learner", "router", "sim", "encoder"}
+
+
+def test_bench_encoder_compares_batch_one_with_many_envs() -> None:
+    result = bench("encoder", "--steps", "100", "--envs", "4")
+    assert_rates(result, "batch1_images_per_s", "batched_images_per_s")
+    assert result["envs"] == 4
+    assert result["ratio"] == pytest.approx(result["batched_images_per_s"] / result["batch1_images_per_s"], 1e-2)
