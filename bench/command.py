@@ -30,6 +30,8 @@ class BenchSettings:
 def run(settings: BenchSettings) -> int:
     if settings.target not in BENCHMARKS:
         raise ValueError(f"unknown benchmark {settings.target!r}; choose one of {', '.join(BENCHMARKS)}")
+    if settings.mode not in ("peer", "client"):
+        raise ValueError(f"--mode must be peer or client, got {settings.mode!r}")
     module = importlib.import_module(BENCHMARKS[settings.target])
     kwargs = {"steps": settings.steps} if settings.steps else {}
     if settings.target == "train":
