@@ -182,6 +182,7 @@ def test_a_resumed_run_keeps_the_cloning_loss_on_the_first_runs_demonstrations(t
 
     again = tiny_settings(tmp_path / "again", demo=demo, resume=str(tmp_path / "first" / FINAL_MODEL), steps=60)
     again.eval.enabled = False
+    caplog.clear()  # the first run's lines, where an earlier test left INFO on
     with caplog.at_level("INFO", logger="learner_service.demonstrations"):
         resumed = Training(again).run()
     assert resumed.trained_steps >= 60
