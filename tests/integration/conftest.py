@@ -51,8 +51,8 @@ def connect_client(namespace):
     """Factory: a Client connected to an endpoint; closed at teardown."""
     opened: list[Client] = []
 
-    def connect(endpoint: str) -> Client:
-        settings = ZenohSettings(connect=[endpoint], namespace=namespace)
+    def connect(endpoint: str, mode: str = "client") -> Client:
+        settings = ZenohSettings(mode=mode, connect=[endpoint], namespace=namespace)
         session = open_session(settings, role="test")
         keys = Keys(namespace)
         holder = new_holder_id("learner")

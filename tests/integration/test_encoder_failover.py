@@ -55,18 +55,21 @@ class LatentTap:
         self._subscriber.undeclare()
 
 
+@pytest.mark.parametrize("mode", ["client", "peer"])  # through the router, and linked directly as `swimm up` runs
 def test_killing_an_encoder_mid_run_moves_its_envs_and_loses_or_repeats_no_step(
-    group, connect_client, namespace, tmp_path
+    group, connect_client, namespace, tmp_path, mode
 ):
     checkpoint = tmp_path / "cmvae.pt"
     torch.manual_seed(0)
     torch.save(make_checkpoint(CMVAE(), beta=8.0, epoch=0, val_loss=1.0, metrics={}), checkpoint)
     endpoint = group.start_router()
-    start_sim(group, endpoint, namespace, "--train-envs", str(len(ENVS)), "--eval-envs", "0")
+    start_sim(group, endpoint, namespace, "--train-envs", str(len(ENVS)), "--eval-envs", "0", "--mode", mode)
     encoders = {
         ident: group.start(
             ident,
             "encoder",
+            "--mode",
+            mode,
             "--connect",
             endpoint,
             "--namespace",
@@ -80,7 +83,7 @@ def test_killing_an_encoder_mid_run_moves_its_envs_and_loses_or_repeats_no_step(
         )  # fmt: skip
         for ident in ENCODERS
     }
-    client = connect_client(endpoint)
+    client = connect_client(endpoint, mode)
     client.roster("sim").wait_for(1, timeout_s=60)
     roster = client.roster("encoder")
     roster.wait_for(len(ENCODERS), timeout_s=90)
