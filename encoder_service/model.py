@@ -222,7 +222,12 @@ def state_errors(predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     return torch.cat([errors[:, :2], psi], dim=1)
 
 
-def cmvae_loss(outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor, beta: float) -> LossParts:
+PSI_LOSSES = ("mse", "l1")
+
+
+def cmvae_loss(
+    outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor, beta: float, psi_loss: str = "mse"
+) -> LossParts:
     """Image MSE (pixels in [-1, 1]) + state MSE (normalised labels, psi wrapped) + beta * KL per image value.
 
     Both MSEs are means over their elements, so the KL (summed over latent
@@ -232,9 +237,19 @@ def cmvae_loss(outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor,
     SPEC's beta = 8 outweighs a per-pixel mean MSE by four orders of
     magnitude and the latent collapses onto the prior (every prediction at
     the label mean; measured: psi MAE 90 deg). See docs/encoder.md.
+
+    ``psi_loss="l1"`` takes psi's absolute error instead of its square. Where
+    a view cannot tell a dolphin facing the camera from one facing away, the
+    square is least halfway between the two (wrong by 90 deg either way); the
+    absolute error is least at the likelier of the two, and its mean is the
+    MAE that the encoder is judged by.
     """
+    if psi_loss not in PSI_LOSSES:
+        raise ValueError(f"psi_loss {psi_loss!r}: expected one of {', '.join(PSI_LOSSES)}")
     image = F.mse_loss(outputs.image, images)
-    state = state_errors(outputs.state, labels).pow(2).mean()
+    errors = state_errors(outputs.state, labels)
+    psi_term = errors[:, 2].abs() if psi_loss == "l1" else errors[:, 2].pow(2)
+    state = torch.cat([errors[:, :2].pow(2), psi_term[:, None]], dim=1).mean()
     kl = (-0.5 * (1.0 + outputs.logvar - outputs.mu.pow(2) - outputs.logvar.exp()).sum(dim=1)).mean()
     kl_per_value = kl / images[0].numel()
     return LossParts(total=image + state + beta * kl_per_value, image=image, state=state, kl=kl)

@@ -26,6 +26,7 @@ from encoder_service.data import Batch, CMVAEDataset, count_batches, iter_batche
 from encoder_service.model import (
     CMVAE,
     LABEL_NAMES,
+    PSI_LOSSES,
     cmvae_loss,
     denormalise_labels,
     images_to_tensor,
@@ -55,6 +56,7 @@ class TrainEncoderSettings:
     resume: bool = False  # continue from <out>/last.pt
     init: str = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
     mirror: float = 0.5  # share of training frames flipped left-right (theta and psi change sign); 0 = off
+    psi_loss: str = "mse"  # mse (the SPEC's) | l1: psi's absolute error, least at the likelier of two views
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -142,7 +144,7 @@ def _train_epoch(
                 batch = mirror_batch(batch, flips.random(len(batch.indices)) < settings.mirror)
             images = images_to_tensor(batch.images, device)
             labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
-            loss = cmvae_loss(model(images), images, labels, settings.beta)
+            loss = cmvae_loss(model(images), images, labels, settings.beta, settings.psi_loss)
             optimiser.zero_grad(set_to_none=True)
             loss.total.backward()
             optimiser.step()
@@ -187,7 +189,13 @@ def recalibrate_batch_norm(
 
 @torch.inference_mode()
 def validate(
-    model: CMVAE, dataset: CMVAEDataset, indices: np.ndarray, batch_size: int, beta: float, device: torch.device
+    model: CMVAE,
+    dataset: CMVAEDataset,
+    indices: np.ndarray,
+    batch_size: int,
+    beta: float,
+    device: torch.device,
+    psi_loss: str = "mse",
 ) -> dict[str, float]:
     """Mean losses on ``indices`` with z = mu, plus the MAE of each label in physical units."""
     model.eval()
@@ -198,7 +206,7 @@ def validate(
         images = images_to_tensor(batch.images, device)
         labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
         outputs = model(images)
-        for key, value in cmvae_loss(outputs, images, labels, beta).as_floats().items():
+        for key, value in cmvae_loss(outputs, images, labels, beta, psi_loss).as_floats().items():
             totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
         predicted = denormalise_labels(outputs.state.float().cpu().numpy())
         errors += label_errors(predicted, batch.labels).sum(axis=0)
@@ -233,6 +241,8 @@ def _seed_everything(seed: int) -> None:
 def run(settings: TrainEncoderSettings) -> int:
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR (a folder written by `swimm dataset`)")
+    if settings.psi_loss not in PSI_LOSSES:
+        raise ValueError(f"--psi-loss {settings.psi_loss!r}: expected one of {', '.join(PSI_LOSSES)}")
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)
@@ -286,7 +296,9 @@ def run(settings: TrainEncoderSettings) -> int:
             for epoch in range(start_epoch, settings.epochs):
                 train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device)
                 recalibrate_batch_norm(model, dataset, train_rows, settings, epoch, device)
-                metrics = validate(model, dataset, val_rows, settings.batch_size, settings.beta, device)
+                metrics = validate(
+                    model, dataset, val_rows, settings.batch_size, settings.beta, device, settings.psi_loss
+                )
                 epochs_run += 1
                 val_loss = metrics["total"]
                 history.append({"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss})

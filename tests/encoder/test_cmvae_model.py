@@ -131,6 +131,34 @@ def test_state_loss_takes_psi_the_short_way_round() -> None:
     assert errors[0, 0].item() == pytest.approx(2.0)  # d from 2 to 10 m spans the whole normalised range
 
 
+def _state_loss_at(psi_deg: float, labels: torch.Tensor, psi_loss: str) -> float:
+    """The state term when every frame's psi is predicted as ``psi_deg`` (d and theta exact)."""
+    predicted = labels.clone()
+    predicted[:, 2] = psi_deg / 180.0
+    zeros = torch.zeros(len(labels), 10)
+    outputs = CMVAEOutput(mu=zeros, logvar=zeros, z=zeros, image=torch.zeros(len(labels), 3, 64, 64), state=predicted)
+    return cmvae_loss(outputs, outputs.image, labels, 8.0, psi_loss).state.item()
+
+
+def test_l1_psi_loss_is_least_at_the_likelier_view_where_mse_is_least_between() -> None:
+    """Seven frames of a dolphin facing the camera, three of it facing away, all looking alike.
+
+    The best single answer for MAE is the likelier view (0 deg: 54 deg MAE); the square is least
+    near 54 deg, wrong for every frame (75.6 deg MAE).
+    """
+    labels = torch.from_numpy(normalise_labels(np.array([[6.0, 0.0, 0.0]] * 7 + [[6.0, 0.0, 180.0]] * 3)))
+    candidates = np.arange(-180.0, 180.0, 1.0)
+    best = {
+        loss: candidates[int(np.argmin([_state_loss_at(psi, labels, loss) for psi in candidates]))]
+        for loss in ("mse", "l1")
+    }
+    assert best["l1"] == 0.0
+    assert abs(best["mse"]) == pytest.approx(54.0, abs=1.0)
+    assert _state_loss_at(30.0, labels, "l1") == pytest.approx((7 * 30 + 3 * 150) / 180 / 10 / 3, rel=1e-5)
+    with pytest.raises(ValueError, match="psi_loss"):
+        _state_loss_at(0.0, labels, "huber")
+
+
 def test_images_become_channels_last_floats_in_minus_one_one_and_back(frames: np.ndarray) -> None:
     tensor = images_to_tensor(frames)
     assert tensor.shape == (4, 3, 64, 64) and tensor.dtype == torch.float32

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.data import Batch
+from encoder_service.data import Batch, CMVAEDataset, split_indices
 from encoder_service.inference import DEFAULT_CHECKPOINT
 from encoder_service.model import CMVAE
 from encoder_service.train import (
@@ -24,6 +24,7 @@ from encoder_service.train import (
     mirror_batch,
     recalibrate_batch_norm,
     run,
+    validate,
 )
 
 
@@ -212,3 +213,24 @@ def test_early_stopping_counts_only_gains_of_the_required_size() -> None:
 def test_a_missing_dataset_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="--dataset"):
         run(TrainEncoderSettings(out=str(tmp_path)))
+
+
+def test_psi_loss_l1_trains_and_validates_on_the_absolute_error(dataset_dir: Path, tmp_path: Path) -> None:
+    """With --psi-loss l1 the validation loss that early stopping and best.pt read is the l1 one."""
+    out = tmp_path / "l1"
+    settings = _settings(dataset_dir, out, epochs=1, psi_loss="l1")
+    assert run(settings) == 0
+    reported = _summary(out)["last_val_metrics"]["state"]
+    model = CMVAE()
+    model.load_state_dict(torch.load(out / "best.pt", weights_only=True)["state_dict"])
+    _, val_rows = split_indices(128, settings.val_fraction, settings.seed)
+    dataset = CMVAEDataset(str(dataset_dir))
+    device = torch.device("cpu")
+    state = {
+        loss: validate(model, dataset, val_rows, settings.batch_size, settings.beta, device, loss)["state"]
+        for loss in ("l1", "mse")
+    }
+    assert reported == pytest.approx(state["l1"], rel=1e-5)
+    assert state["l1"] > state["mse"]  # |error| > error**2 for normalised psi errors under 1
+    with pytest.raises(ValueError, match="--psi-loss"):
+        run(_settings(dataset_dir, tmp_path / "bad", psi_loss="huber"))
