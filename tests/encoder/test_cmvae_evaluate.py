@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.evaluate import EvalEncoderSettings, run
+from encoder_service.evaluate import EncodedSet, EvalEncoderSettings, psi_breakdown, run
 from encoder_service.model import CMVAE, make_checkpoint
 from tests.encoder.cmvae_testdata import write_dataset
 
@@ -52,6 +52,7 @@ def test_clean_and_noisy_metrics_and_figures(setup: dict[str, Path], tmp_path: P
     assert metrics["mae_normalised"]["psi"] == pytest.approx(metrics["mae"]["psi_deg"] / 360.0)
     assert 0 < metrics["image_mae_255"] < 255
     assert len(metrics["latent_std"]) == 10
+    assert 0 <= metrics["psi"]["median_deg"] <= 180 and 0 <= metrics["psi"]["reversed_share"] <= 1
 
     noisy = metrics["noisy"]
     assert set(noisy["latent_drift"]) == {"z0", "z1", "z2"} and len(noisy["latent_drift_all"]) == 10
@@ -103,3 +104,19 @@ def test_a_missing_checkpoint_names_the_command(setup: dict[str, Path], tmp_path
     )
     with pytest.raises(FileNotFoundError, match="swimm train-encoder"):
         run(settings)
+
+
+def test_psi_breakdown_splits_the_error_by_view_and_distance() -> None:
+    """Four frames with known errors: a side view off by 10 deg, a head-on view read the wrong way round, ..."""
+    labels = np.array([[3.0, 0.0, 90.0], [9.0, 0.0, 10.0], [5.0, 0.0, -170.0], [9.5, 0.0, -100.0]])
+    predicted = np.array([[3.0, 0.0, 100.0], [9.0, 0.0, -170.0], [5.0, 0.0, 170.0], [9.5, 0.0, -70.0]])
+    encoded = EncodedSet(
+        mu=np.zeros((4, 10)), predicted=predicted, labels=labels, image_mae=0.0, image_mae_vs_reference=None
+    )
+    breakdown = psi_breakdown(encoded)  # errors: 10, 180, 20 (the short way round 180), 30
+    assert breakdown["median_deg"] == pytest.approx(25.0)
+    assert breakdown["reversed_share"] == pytest.approx(0.25)
+    assert breakdown["mae_by_view_deg"] == pytest.approx(
+        {"head_on": 180.0, "oblique_front": None, "side": 20.0, "oblique_back": None, "from_behind": 20.0}
+    )
+    assert breakdown["mae_by_distance_deg"] == pytest.approx({"2-4m": 10.0, "4-6m": 20.0, "6-8m": None, "8-10m": 105.0})
