@@ -1,14 +1,18 @@
 """Simulator benchmark: in-process step+render rate vs the distributed lock-step round trip.
 
 Everything runs in one invocation on the same machine, so the ratios are a fair comparison. The distributed
-runs start `swimm router` and `swimm sim` as separate processes and step one env from this one, in the two
-topologies the project uses:
+runs start `swimm router` and `swimm sim` as separate processes and step one env from this one, three ways:
 
-- peer (the headline keys; what `swimm up` runs): the sim and this process join as Zenoh peers, the router
-  introduces them and each message goes directly from one to the other;
-- client (the ``routed_*`` keys; what deploy/docker-compose.yml runs): every message goes through the router.
+- peer, polling (the headline keys): the sim and this process join as Zenoh peers (the router introduces
+  them, each message goes directly from one to the other) and each side polls for the next message for
+  :data:`POLL_MS` before sleeping on it (`swimm sim --poll-ms`, ``ProxySettings.poll_ms``): how to serve one
+  env when each process has a core to itself;
+- peer, blocking (the ``blocking_*`` keys): the same, each side sleeping on its inbox at once, as `swimm up`
+  runs (there the processes share the cores with a training learner and the encoders);
+- client (the ``routed_*`` keys; what deploy/docker-compose.yml runs): every message goes through the router,
+  both sides blocking.
 
-Either adds the msgpack codec, the Zenoh hops and the process switches to the in-process step, nothing else.
+Each adds the msgpack codec, the Zenoh hops and the process switches to the in-process step, nothing else.
 """
 
 from __future__ import annotations
@@ -45,15 +49,19 @@ def inprocess_rate(steps: int) -> float:
         world.close()
 
 
-def distributed_rate(steps: int, log_dir: Path, mode: str) -> tuple[float, np.ndarray]:
-    """Steps/s and per-step round-trip times (s) of one env served by `swimm sim`, both sides joined in ``mode``."""
+POLL_MS = 2.0  # the polling run's wait before sleeping, each side: longer than a round trip (about 1 ms)
+
+
+def distributed_rate(steps: int, log_dir: Path, mode: str, poll_ms: float) -> tuple[float, np.ndarray]:
+    """Steps/s and per-step round-trip times (s) of one env served by `swimm sim`, both sides joined in ``mode``
+    and polling for ``poll_ms`` before sleeping on their inboxes."""
     from learner_service.link import RemoteEnvLink, new_holder_id
 
     with ProcessGroup(log_dir) as group:
         endpoint = group.start_router()
         settings = ZenohSettings(mode=mode, connect=[endpoint], namespace="swimm/bench")
         sim_args = ("--mode", mode, "--connect", endpoint, "--namespace", settings.namespace, "--eval-envs", "0")
-        group.start("sim", "sim", *sim_args)
+        group.start("sim", "sim", *sim_args, "--poll-ms", str(poll_ms))
         session = open_session(settings, role="bench")
         keys = Keys(settings.namespace)
         holder = new_holder_id("learner")
@@ -61,7 +69,7 @@ def distributed_rate(steps: int, log_dir: Path, mode: str) -> tuple[float, np.nd
         sims = Roster(session, keys, "sim")
         try:
             sims.wait_for(1, timeout_s=60)
-            link = RemoteEnvLink(session, keys, "train", "0", holder, encoded=False)
+            link = RemoteEnvLink(session, keys, "train", "0", holder, encoded=False, poll_ms=poll_ms)
             link.claim()
             link.send_reset(1, 1)
             link.wait()
@@ -82,24 +90,23 @@ def distributed_rate(steps: int, log_dir: Path, mode: str) -> tuple[float, np.nd
     return rate, round_trips
 
 
+#: The distributed runs: key prefix, Zenoh mode, poll time (ms).
+DISTRIBUTED_RUNS = (("", "peer", POLL_MS), ("blocking_", "peer", 0.0), ("routed_", "client", 0.0))
+
+
 def run(steps: int = 2000) -> dict:
     inprocess = inprocess_rate(steps)
+    result = {"inprocess_steps_per_s": round(inprocess, 1)}
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp:
-        peer, peer_round_trips = distributed_rate(steps, Path(tmp) / "peer", "peer")
-        routed, routed_round_trips = distributed_rate(steps, Path(tmp) / "client", "client")
-    return {
-        "inprocess_steps_per_s": round(inprocess, 1),
-        "distributed_steps_per_s": round(peer, 1),
-        "ratio": round(peer / inprocess, 3),
-        "p50_ms": percentile_ms(peer_round_trips, 50),
-        "p99_ms": percentile_ms(peer_round_trips, 99),
-        "topology": "peer",
-        "routed_steps_per_s": round(routed, 1),
-        "routed_ratio": round(routed / inprocess, 3),
-        "routed_p50_ms": percentile_ms(routed_round_trips, 50),
-        "routed_p99_ms": percentile_ms(routed_round_trips, 99),
-        "steps": steps,
-    }
+        for prefix, mode, poll_ms in DISTRIBUTED_RUNS:
+            rate, round_trips = distributed_rate(steps, Path(tmp) / (prefix or "polling"), mode, poll_ms)
+            result |= {
+                f"{prefix or 'distributed_'}steps_per_s": round(rate, 1),
+                f"{prefix}ratio": round(rate / inprocess, 3),
+                f"{prefix}p50_ms": percentile_ms(round_trips, 50),
+                f"{prefix}p99_ms": percentile_ms(round_trips, 99),
+            }
+    return result | {"topology": "peer", "poll_ms": POLL_MS, "steps": steps}
 
 
 def percentile_ms(seconds: np.ndarray, q: float) -> float:

@@ -36,6 +36,7 @@ from services.messages import (
     LatentMsg,
     ObservationMsg,
 )
+from services.polling import get_polled, prepare_to_poll
 from services.presence import Roster
 from services.telemetry import Telemetry
 
@@ -81,6 +82,7 @@ class RemoteEnvLink:
         encoders: Roster | None = None,
         step_timeout_s: float = 2.0,
         max_retries: int = 10,
+        poll_ms: float = 0.0,
     ) -> None:
         self.session, self.keys = session, keys
         self.channel, self.env, self.holder = channel, env, holder
@@ -88,6 +90,7 @@ class RemoteEnvLink:
         self.encoders = encoders
         self.step_timeout_s = step_timeout_s
         self.max_retries = max_retries
+        self._poll_s = prepare_to_poll(poll_ms)  # services/polling.py: when polling pays
         self.claimed = False  # set by a granted claim; only then does close() release
         self.ep = 0
         self.seq = 0
@@ -207,7 +210,7 @@ class RemoteEnvLink:
             deadline = time.monotonic() + self.step_timeout_s
             while (remaining := deadline - time.monotonic()) > 0:
                 try:
-                    item = self._replies.get(timeout=remaining)
+                    item = get_polled(self._replies, self._poll_s, remaining)
                 except queue.Empty:
                     break
                 if isinstance(item, ErrorMsg):

@@ -53,6 +53,7 @@ class ProxySettings:
     envs: tuple[str, ...] = ("0",)  # env ids on that channel
     step_timeout_s: float = 2.0  # wait per try before re-sending the same (episode, seq)
     max_retries: int = 10  # re-sends before StepTimeout
+    poll_ms: float = 0.0  # poll for each reply this long before sleeping on it (services/polling.py)
     role: str = "learner"  # liveliness role of the holder: "learner" or "eval"
 
     def check(self) -> None:
@@ -135,6 +136,7 @@ class ProxyEnv(gym.Env):
             encoders=self._encoders,
             step_timeout_s=proxy.step_timeout_s,
             max_retries=proxy.max_retries,
+            poll_ms=proxy.poll_ms,
         )
         log.info("%s: claiming as %s (waiting up to %.0f s for a sim that serves it)", self.name, self.holder, wait_s)
         try:

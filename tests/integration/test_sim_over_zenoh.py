@@ -42,12 +42,13 @@ def remote_episode(link, ep: int, seed: int, steps):
     return [(r.telemetry, r.image.tobytes()) for r in replies]
 
 
-def test_same_seed_gives_identical_bytes_inprocess_and_over_zenoh_twice(group, connect_client, namespace):
+@pytest.mark.parametrize("poll_ms", [0.0, 2.0], ids=["blocking", "polling"])
+def test_same_seed_gives_identical_bytes_inprocess_and_over_zenoh_twice(group, connect_client, namespace, poll_ms):
     endpoint = group.start_router()
-    start_sim(group, endpoint, namespace)
+    start_sim(group, endpoint, namespace, "--poll-ms", str(poll_ms))
     client = connect_client(endpoint)
     client.roster("sim").wait_for(1, timeout_s=60)
-    link = client.link()
+    link = client.link(poll_ms=poll_ms)
     link.claim()
     steps = actions(150)
     expected = inprocess_episode(42, steps)

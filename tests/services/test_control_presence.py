@@ -94,7 +94,11 @@ def test_survey_collects_info_from_every_env_and_skips_refusals(zenoh_router, ze
     ]
     _refuser = serve_ctl(sim, keys.ctl("train", "0"), lambda body: (False, {"error": "busy"}))
 
-    found = control.survey(learner, f"{keys.namespace}/*/*/ctl", timeout_s=3.0)
+    def survey() -> list[dict]:
+        return control.survey(learner, f"{keys.namespace}/*/*/ctl", timeout_s=1.0)
+
+    wait_until(lambda: len(survey()) >= 3)  # the queryables reach the learner through the router a moment later
+    found = survey()
     assert sorted(info["env"] for info in found) == ["0", "1", "2"]
     assert {info["op"] for info in found} == {"info"}
 
