@@ -97,16 +97,20 @@ DISTRIBUTED_RUNS = (("blocking_", "peer", 0.0), ("routed_", "client", 0.0), ("",
 
 def run(steps: int = 2000) -> dict:
     inprocess = inprocess_rate(steps)
-    result = {"inprocess_steps_per_s": round(inprocess, 1)}
+    measured: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp:
         for prefix, mode, poll_ms in DISTRIBUTED_RUNS:
             rate, round_trips = distributed_rate(steps, Path(tmp) / (prefix or "polling"), mode, poll_ms)
-            result |= {
+            measured[prefix] = {
                 f"{prefix or 'distributed_'}steps_per_s": round(rate, 1),
                 f"{prefix}ratio": round(rate / inprocess, 3),
                 f"{prefix}p50_ms": percentile_ms(round_trips, 50),
                 f"{prefix}p99_ms": percentile_ms(round_trips, 99),
             }
+    headline_first = sorted(measured, key=bool)
+    result = {"inprocess_steps_per_s": round(inprocess, 1)}
+    for prefix in headline_first:
+        result |= measured[prefix]
     return result | {"topology": "peer", "poll_ms": POLL_MS, "steps": steps}
 
 
