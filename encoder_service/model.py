@@ -225,6 +225,12 @@ def state_errors(predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
 PSI_LOSSES = ("mse", "l1")
 
 
+def check_psi_loss(name: str, called: str = "psi_loss") -> None:
+    """Refuse an unknown psi loss, naming it as the caller knows it (``called``: the argument or the flag)."""
+    if name not in PSI_LOSSES:
+        raise ValueError(f"{called} {name!r}: expected one of {', '.join(PSI_LOSSES)}")
+
+
 def cmvae_loss(
     outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor, beta: float, psi_loss: str = "mse"
 ) -> LossParts:
@@ -244,8 +250,7 @@ def cmvae_loss(
     absolute error is least at the likelier of the two, and its mean is the
     MAE that the encoder is judged by.
     """
-    if psi_loss not in PSI_LOSSES:
-        raise ValueError(f"psi_loss {psi_loss!r}: expected one of {', '.join(PSI_LOSSES)}")
+    check_psi_loss(psi_loss)
     image = F.mse_loss(outputs.image, images)
     errors = state_errors(outputs.state, labels)
     psi_term = errors[:, 2].abs() if psi_loss == "l1" else errors[:, 2].pow(2)

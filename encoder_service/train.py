@@ -26,7 +26,7 @@ from encoder_service.data import Batch, CMVAEDataset, count_batches, iter_batche
 from encoder_service.model import (
     CMVAE,
     LABEL_NAMES,
-    PSI_LOSSES,
+    check_psi_loss,
     cmvae_loss,
     denormalise_labels,
     images_to_tensor,
@@ -241,8 +241,7 @@ def _seed_everything(seed: int) -> None:
 def run(settings: TrainEncoderSettings) -> int:
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR (a folder written by `swimm dataset`)")
-    if settings.psi_loss not in PSI_LOSSES:
-        raise ValueError(f"--psi-loss {settings.psi_loss!r}: expected one of {', '.join(PSI_LOSSES)}")
+    check_psi_loss(settings.psi_loss, "--psi-loss")  # before the dataset is read, not at the first batch
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)

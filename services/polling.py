@@ -36,15 +36,15 @@ def prepare_to_poll(poll_ms: float) -> float:
     return poll_ms / 1e3
 
 
-def get_polled(inbox: queue.Queue[T], poll_s: float, timeout: float | None) -> T:
+def get_polled(inbox: queue.Queue[T], poll_s: float, timeout: float) -> T:
     """The next item: polled for up to ``poll_s``, yielding the CPU between tries, then waited for until
     ``timeout`` (counted from the call) runs out; raises queue.Empty then, as ``Queue.get`` does."""
+    if poll_s <= 0:  # the default: block at once, as Queue.get
+        return inbox.get(timeout=timeout)
     start = time.perf_counter()
     while time.perf_counter() - start < poll_s:
         try:
             return inbox.get_nowait()
         except queue.Empty:
             os.sched_yield()  # releases the GIL, so the delivering thread can put the item
-    if timeout is None:
-        return inbox.get()
     return inbox.get(timeout=max(0.0, timeout - (time.perf_counter() - start)))
