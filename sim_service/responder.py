@@ -3,7 +3,9 @@
 Zenoh callbacks only decode-free enqueue; one worker thread owns every World
 (MuJoCo and its GL context stay on one thread) and answers requests in
 arrival order, so each env sees its messages in order and a run is
-reproducible whatever the network does.
+reproducible whatever the network does. Between an observation and the next
+action, when nothing else waits, the worker prepares that env's next step
+(``World.prepare_step``), which takes the dolphin's swim off the round trip.
 """
 
 from __future__ import annotations
@@ -235,6 +237,8 @@ class SimResponder:
         publisher.put(outcome.payload)
         self.metrics.count("replays" if outcome.replayed else "steps")
         self.metrics.observe_ms("step", (time.perf_counter() - received_at) * 1e3)
+        if self._inbox.empty():  # nothing waiting: use the learner's think time for the next step's dolphin
+            env.world.prepare_step()
 
     def _refuse(self, env: LockstepEnv, reason: str, ep: int = 0, seq: int = 0, sender: str = "") -> None:
         self.metrics.count("errors_refused")

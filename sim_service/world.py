@@ -13,6 +13,12 @@ action sequence fix the whole episode, images included. Image noise draws
 from a child of that generator's seed, so switching noise on or off never
 changes the trajectory: clean and noisy runs of one seed see the same poses.
 
+The dolphin's next move does not depend on the rover's action, so a server can
+work it out while it waits for that action (:meth:`World.prepare_step`) and
+answer the action sooner; a step that finds nothing prepared does it itself,
+with the same draws in the same order, so prepared and unprepared runs agree
+bit for bit.
+
 Not thread-safe: MuJoCo's GL context belongs to the thread that built it.
 """
 
@@ -22,7 +28,9 @@ import importlib
 import importlib.util
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import mujoco
@@ -34,7 +42,7 @@ from services.telemetry import Telemetry
 from sim_service.camera import CameraFrustum
 from sim_service.dolphin import DolphinBehaviour
 from sim_service.noise import NOISY_PRESET, ImageNoise
-from sim_service.rotations import euler_to_matrix, matrix_to_quat
+from sim_service.rotations import euler_to_matrix
 from sim_service.rover import RoverDynamics
 from sim_service.settings import WorldSettings
 
@@ -78,6 +86,23 @@ def yaw_matrix(yaw: float) -> np.ndarray:
     return euler_to_matrix(0.0, 0.0, yaw)
 
 
+@dataclass(frozen=True)
+class DolphinPose:
+    """The dolphin at one step, in the forms a step needs: mocap poses, its rotation, its telemetry fields."""
+
+    mocap: tuple[tuple[np.ndarray, np.ndarray], ...]  # (position, quaternion) of each mocap body
+    rotation: np.ndarray  # body-to-world, for the frustum test
+    telemetry: dict[str, Any]  # the target_* fields of Telemetry
+
+
+@dataclass(frozen=True)
+class PreparedStep:
+    """The next step's action-independent half, and the generator state to restore if it is thrown away."""
+
+    dolphin: DolphinPose
+    rng_state: dict[str, Any]
+
+
 class World:
     def __init__(self, settings: WorldSettings | None = None) -> None:
         self.settings = settings or WorldSettings()
@@ -94,6 +119,7 @@ class World:
         self._mocap = [self.model.body(name).mocapid[0] for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
         self._camera = self.model.camera(CAMERA).id
         self.frustum = CameraFrustum.from_model(self.model, self._camera)
+        self._prepared: PreparedStep | None = None
         self._renderer: mujoco.Renderer | None = None
         if self.settings.render:
             self._renderer = self._make_renderer()
@@ -127,6 +153,7 @@ class World:
         """
         if noise is not None:
             self._noise = self._configured_noise if noise else None
+        self._discard_prepared()
         self.rng = np.random.default_rng(seed)
         rng = self.rng
         rover_pos = np.array([*rng.uniform(-RESET_XY_RANGE, RESET_XY_RANGE, size=2), -RESET_DEPTH])
@@ -156,14 +183,30 @@ class World:
         ``noise_rng`` feeds the image noise; by default a child of the world's generator, drawn without
         advancing it.
         """
+        self._discard_prepared()
         self._noise_rng = noise_rng or np.random.default_rng(self.rng.bit_generator.seed_seq.spawn(1)[0])
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = [rover_pos[0], rover_pos[1], rover_pos[2], rover_yaw, 0.0, 0.0]
         self.rover.reset(depth=float(rover_pos[2]))
         self.dolphin.reset(self.rng, np.asarray(target_pos, float), target_yaw, turn_weight, phase, rover_pos[:2])
-        self._pose_dolphin()
+        dolphin = self._dolphin_pose()
+        self._pose_dolphin(dolphin)
         mujoco.mj_forward(self.model, self.data)
-        return self._telemetry(), self._render()
+        return self._telemetry(dolphin), self._render()
+
+    def prepare_step(self) -> None:
+        """Work out the next step's action-independent half now: the dolphin's swim and its poses.
+
+        A lock-step server calls this while it waits for the next action, so that the step after the action
+        arrives is shorter (docs/benchmarks.md). Calling it again before that step does nothing, and before
+        the first episode it does nothing; ``reset`` and ``place`` throw a prepared step away and give its
+        random draws back, so whether and when it was called never changes an episode.
+        """
+        if self._prepared is not None or self.dolphin.state is None:
+            return
+        rng_state = self.rng.bit_generator.state
+        self.dolphin.step(self.dt, self.rng, self.data.xpos[self._rover_body])
+        self._prepared = PreparedStep(self._dolphin_pose(), rng_state)
 
     def step(
         self, action: tuple[float, float, float, float], dive_mode: DiveMode = DiveMode.DEPTH_HOLD
@@ -176,10 +219,12 @@ class World:
         )
         d.xfrc_applied[self._rover_body, :3] = force
         d.xfrc_applied[self._rover_body, 3:] = torque
-        self.dolphin.step(self.dt, self.rng, d.xpos[self._rover_body])
-        self._pose_dolphin()
+        self.prepare_step()
+        dolphin = self._prepared.dolphin
+        self._prepared = None
+        self._pose_dolphin(dolphin)
         mujoco.mj_step(self.model, d)
-        return self._telemetry(), self._render()
+        return self._telemetry(dolphin), self._render()
 
     @property
     def dt(self) -> float:
@@ -191,10 +236,30 @@ class World:
             self._renderer = None
 
     # --- internals ---------------------------------------------------------------------------
-    def _pose_dolphin(self) -> None:
-        for mocap, part in zip(self._mocap, self.dolphin.part_poses(), strict=True):
-            self.data.mocap_pos[mocap] = part.position
-            self.data.mocap_quat[mocap] = part.quat
+    def _discard_prepared(self) -> None:
+        if self._prepared is not None:
+            self.rng.bit_generator.state = self._prepared.rng_state
+            self._prepared = None
+
+    def _dolphin_pose(self) -> DolphinPose:
+        parts = self.dolphin.part_poses()
+        mocap = tuple((part.position, part.quat) for part in parts)
+        body_position, body_quat = mocap[0]
+        return DolphinPose(
+            mocap=mocap,
+            rotation=parts[0].rotation,
+            telemetry={
+                "target_pos": _vec(body_position),
+                "target_quat": _vec(body_quat),
+                "target_forward": _vec(self.dolphin.forward),
+                "target_lin_vel": _vec(self.dolphin.velocity),
+            },
+        )
+
+    def _pose_dolphin(self, dolphin: DolphinPose) -> None:
+        for mocap, (position, quat) in zip(self._mocap, dolphin.mocap, strict=True):
+            self.data.mocap_pos[mocap] = position
+            self.data.mocap_quat[mocap] = quat
 
     def _rover_ang_vel(self) -> np.ndarray:
         velocity = np.zeros(6)
@@ -207,13 +272,15 @@ class World:
         geoms = self.data.contact.geom[: self.data.ncon]
         return bool(np.any((geoms.min(axis=1) == self._pair[0]) & (geoms.max(axis=1) == self._pair[1])))
 
-    def _telemetry(self) -> Telemetry:
+    def _telemetry(self, dolphin: DolphinPose) -> Telemetry:
         d = self.data
         rover_rot = d.xmat[self._rover_body].reshape(3, 3)
-        target_rot = self.dolphin.body_rotation()
-        target_pos = self.dolphin.state.position
         in_view = self.frustum.sees_box(
-            d.cam_xpos[self._camera], d.cam_xmat[self._camera].reshape(3, 3), target_pos, target_rot, TARGET_BOX
+            d.cam_xpos[self._camera],
+            d.cam_xmat[self._camera].reshape(3, 3),
+            dolphin.mocap[0][0],
+            dolphin.rotation,
+            TARGET_BOX,
         )
         return Telemetry(
             rover_pos=_vec(d.xpos[self._rover_body]),
@@ -221,10 +288,7 @@ class World:
             rover_forward=_vec(rover_rot[:, 0]),
             rover_lin_vel=_vec(d.qvel[:3]),
             rover_ang_vel=_vec(self._rover_ang_vel()),
-            target_pos=_vec(target_pos),
-            target_quat=_vec(matrix_to_quat(target_rot)),
-            target_forward=_vec(self.dolphin.forward),
-            target_lin_vel=_vec(self.dolphin.velocity),
+            **dolphin.telemetry,
             target_in_frustum=bool(in_view),
             collided=self._collided(),
             sim_time=float(d.time),

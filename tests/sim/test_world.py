@@ -158,6 +158,43 @@ def test_same_seed_and_actions_give_identical_bytes(camera_world):
     assert other != episode()[0][0]
 
 
+def test_preparing_steps_ahead_changes_no_byte(camera_world):
+    """What the served sim does while it waits for an action (prepare_step, once or twice) leaves every
+    telemetry field and pixel as stepping alone gives them, across an episode boundary too."""
+    rng = np.random.default_rng(4)
+    actions = [tuple(rng.uniform(-1, 1, 4)) for _ in range(40)]
+
+    def episodes(prepare_times: int):
+        frames = []
+        for seed in (42, 43):
+            for _ in range(prepare_times):
+                camera_world.prepare_step()  # thrown away by the reset
+            frames.append(camera_world.reset(seed))
+            for action in actions:
+                for _ in range(prepare_times):
+                    camera_world.prepare_step()
+                frames.append(camera_world.step(action))
+        return [(t, img.tobytes()) for t, img in frames]
+
+    assert episodes(1) == episodes(0) == episodes(2)
+
+
+def test_a_prepared_step_thrown_away_gives_its_random_draws_back(physics_world):
+    def place_after(prepare: bool):
+        physics_world.reset(9)
+        physics_world.step((0, 0, 0, 0))
+        # Put the waypoint under the dolphin: its next swim step arrives there and draws a new one.
+        physics_world.dolphin.state.waypoint = physics_world.dolphin.state.position[:2].copy()
+        before = physics_world.rng.bit_generator.state
+        if prepare:
+            physics_world.prepare_step()
+            assert physics_world.rng.bit_generator.state != before  # the swim drew a waypoint
+        placed = physics_world.place(np.array([0, 0, -4.0]), 0.0, np.array([5.0, 0, -4.0]), 1.0)[0]
+        return placed, physics_world.step((0, 0, 0, 0))[0], physics_world.rng.bit_generator.state
+
+    assert place_after(prepare=True) == place_after(prepare=False)
+
+
 def test_dolphin_is_visible_across_the_reset_ranges(camera_world):
     """Pixel statistics: the frame with the dolphin differs from the same frame with it moved away."""
     far = np.array([0.0, 0.0, 500.0])
