@@ -135,7 +135,11 @@ def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
     blocks = np.array_split(np.arange(steps), rounds)
     inprocess = Tally()
     served = {way.prefix: Tally() for way in WAYS}
-    with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp, ProcessGroup(Path(tmp)) as group, ExitStack() as stack:
+    with (
+        tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp,
+        ProcessGroup(Path(tmp)) as group,
+        ExitStack() as stack,
+    ):
         endpoint = group.start_router()
         envs = [ServedEnv(group, endpoint, way, stack) for way in WAYS]
         world = World()
