@@ -34,6 +34,8 @@ from sim_service.world import World
 
 log = logging.getLogger(__name__)
 CLAIMANT_ROLES = ("learner", "eval")
+#: How long a polling sim's inbox stays empty after an answer before the answered envs prepare their next steps.
+PREPARE_AFTER_POLL_S = 1e-4
 
 
 @dataclass
@@ -69,6 +71,7 @@ class SimResponder:
         self._stop = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._envs: list[LockstepEnv] = []
+        self._unprepared: set[LockstepEnv] = set()  # answered since they last prepared their next step
         self._ready = threading.Event()
         self._worker = threading.Thread(target=self._work, name="sim-worker", daemon=True)
 
@@ -138,7 +141,7 @@ class SimResponder:
         while True:
             timeout = max(0.0, next_tick - time.perf_counter()) if self.settings.realtime else 0.5
             try:
-                request = get_polled(self._inbox, self._poll_s, timeout)
+                request = self._next_request(timeout)
             except queue.Empty:
                 request = None
                 if self._stop.is_set():
@@ -152,6 +155,34 @@ class SimResponder:
                 self._tick_realtime()
         for env in self._envs:
             env.world.close()
+
+    def _next_request(self, timeout: float) -> _Request | None:
+        """The next request, waited for up to ``timeout``.
+
+        Envs answered since they last prepared prepare their next step (``World.prepare_step``) once the inbox
+        is empty, so the work leaves the round trip. A polling sim first polls for :data:`PREPARE_AFTER_POLL_S`:
+        by then the observations are on their way and the learners deciding, and the work no longer competes
+        with their delivery for the CPU (3% faster round trips than preparing at once; a sim that sleeps on
+        its inbox instead loses more to the wake-up). A request that comes sooner is served at once, its step
+        preparing itself.
+        """
+        if self._unprepared:
+            quiet_s = PREPARE_AFTER_POLL_S if self._poll_s > 0 else 0.0
+            try:
+                return get_polled(self._inbox, min(self._poll_s, quiet_s), quiet_s)
+            except queue.Empty:
+                self._prepare_answered()
+        return get_polled(self._inbox, self._poll_s, timeout)
+
+    def _prepare_answered(self) -> None:
+        try:
+            for env in self._unprepared:
+                env.world.prepare_step()
+            self.metrics.count("steps_prepared", len(self._unprepared))
+        except Exception:  # the step will try again and report it; the worker must live on
+            self.metrics.count("errors_internal")
+            log.exception("internal error while preparing a step")
+        self._unprepared.clear()
 
     def _handle(self, request: _Request) -> None:
         try:
@@ -237,8 +268,8 @@ class SimResponder:
         publisher.put(outcome.payload)
         self.metrics.count("replays" if outcome.replayed else "steps")
         self.metrics.observe_ms("step", (time.perf_counter() - received_at) * 1e3)
-        if self._inbox.empty():  # nothing waiting: use the learner's think time for the next step's dolphin
-            env.world.prepare_step()
+        if not self.settings.realtime:
+            self._unprepared.add(env)
 
     def _refuse(self, env: LockstepEnv, reason: str, ep: int = 0, seq: int = 0, sender: str = "") -> None:
         self.metrics.count("errors_refused")

@@ -48,6 +48,10 @@ def test_same_seed_gives_identical_bytes_inprocess_and_over_zenoh_twice(group, c
     start_sim(group, endpoint, namespace, "--poll-ms", str(poll_ms))
     client = connect_client(endpoint)
     client.roster("sim").wait_for(1, timeout_s=60)
+    published: queue.Queue[dict] = queue.Queue()
+    client.session.declare_subscriber(
+        client.keys.metrics("sim", "*"), lambda sample: published.put(msgpack.unpackb(sample.payload.to_bytes()))
+    )
     link = client.link(poll_ms=poll_ms)
     link.claim()
     steps = actions(150)
@@ -55,6 +59,11 @@ def test_same_seed_gives_identical_bytes_inprocess_and_over_zenoh_twice(group, c
     assert remote_episode(link, 1, 42, steps) == expected
     assert remote_episode(link, 2, 42, steps) == expected  # a second episode with the same seed
     link.close()
+    # ...though the sim prepared steps ahead while it waited for actions (World.prepare_step).
+    metrics = published.get(timeout=10)
+    while metrics.get("steps", 0) < 2 * len(steps):
+        metrics = published.get(timeout=10)
+    assert 0 < metrics["steps_prepared"] <= metrics["steps"] + metrics.get("ctl_reset", 0)
 
 
 def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client, namespace, tmp_path):
