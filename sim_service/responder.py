@@ -159,30 +159,28 @@ class SimResponder:
     def _next_request(self, timeout: float) -> _Request | None:
         """The next request, waited for up to ``timeout``.
 
-        Envs answered since they last prepared prepare their next step (``World.prepare_step``) once the inbox
-        is empty, so the work leaves the round trip. A polling sim first polls for :data:`PREPARE_AFTER_POLL_S`:
-        by then the observations are on their way and the learners deciding, and the work no longer competes
-        with their delivery for the CPU (3% faster round trips than preparing at once; a sim that sleeps on
-        its inbox instead loses more to the wake-up). A request that comes sooner is served at once, its step
-        preparing itself.
+        An env answered since it last prepared prepares its next step (``World.prepare_step``) once the inbox
+        is empty, one env at a time, so the work leaves the round trip. A polling sim first polls for
+        :data:`PREPARE_AFTER_POLL_S`: by then the observation is on its way and the learner deciding, and the
+        work no longer competes with its delivery for the CPU (3% faster round trips than preparing at once; a
+        sim that sleeps on its inbox loses more to the extra wake-up). A request that comes sooner is served at
+        once, its step preparing itself.
         """
-        if self._unprepared:
+        while self._unprepared:
             quiet_s = PREPARE_AFTER_POLL_S if self._poll_s > 0 else 0.0
             try:
                 return get_polled(self._inbox, min(self._poll_s, quiet_s), quiet_s)
             except queue.Empty:
-                self._prepare_answered()
+                self._prepare(self._unprepared.pop())
         return get_polled(self._inbox, self._poll_s, timeout)
 
-    def _prepare_answered(self) -> None:
+    def _prepare(self, env: LockstepEnv) -> None:
         try:
-            for env in self._unprepared:
-                env.world.prepare_step()
-            self.metrics.count("steps_prepared", len(self._unprepared))
-        except Exception:  # the step will try again and report it; the worker must live on
+            env.world.prepare_step()
+            self.metrics.count("steps_prepared")
+        except Exception:  # the step will run into it again and report it; the worker must live on
             self.metrics.count("errors_internal")
-            log.exception("internal error while preparing a step")
-        self._unprepared.clear()
+            log.exception("internal error while preparing the next step of %s", env.name)
 
     def _handle(self, request: _Request) -> None:
         try:
