@@ -45,15 +45,20 @@ DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs
 
 @dataclass(frozen=True)
 class Way:
-    """One way of serving the env: its key prefix in the result, Zenoh mode and poll time (ms)."""
+    """One way of serving the env: its name, key prefix in the result, Zenoh mode and poll time (ms)."""
 
+    name: str
     prefix: str
     mode: str
     poll_ms: float
 
 
 #: The headline way first, as in the result.
-WAYS = (Way("", "peer", POLL_MS), Way("blocking_", "peer", 0.0), Way("routed_", "client", 0.0))
+WAYS = (
+    Way("polling", "", "peer", POLL_MS),
+    Way("blocking", "blocking_", "peer", 0.0),
+    Way("routed", "routed_", "client", 0.0),
+)
 
 
 def random_actions(steps: int, seed: int = 0) -> list[tuple[float, float, float, float]]:
@@ -89,9 +94,9 @@ class ServedEnv:
         from learner_service.link import RemoteEnvLink, new_holder_id
 
         self.way = way
-        settings = ZenohSettings(mode=way.mode, connect=[endpoint], namespace=f"swimm/bench-{way.prefix or 'polling'}")
+        settings = ZenohSettings(mode=way.mode, connect=[endpoint], namespace=f"swimm/bench-{way.name}")
         sim_args = ("--mode", way.mode, "--connect", endpoint, "--namespace", settings.namespace, "--eval-envs", "0")
-        group.start(f"sim-{way.prefix or 'polling'}", "sim", *sim_args, "--poll-ms", str(way.poll_ms))
+        group.start(f"sim-{way.name}", "sim", *sim_args, "--poll-ms", str(way.poll_ms))
         session = open_session(settings, role="bench")
         stack.callback(session.close)
         keys = Keys(settings.namespace)

@@ -205,8 +205,7 @@ class World:
         if self._prepared is not None or self.dolphin.state is None:
             return
         rng_state = self.rng.bit_generator.state
-        self.dolphin.step(self.dt, self.rng, self.data.xpos[self._rover_body])
-        self._prepared = PreparedStep(self._dolphin_pose(), rng_state)
+        self._prepared = PreparedStep(self._swim(), rng_state)
 
     def step(
         self, action: tuple[float, float, float, float], dive_mode: DiveMode = DiveMode.DEPTH_HOLD
@@ -219,8 +218,7 @@ class World:
         )
         d.xfrc_applied[self._rover_body, :3] = force
         d.xfrc_applied[self._rover_body, 3:] = torque
-        self.prepare_step()
-        dolphin = self._prepared.dolphin
+        dolphin = self._prepared.dolphin if self._prepared is not None else self._swim()
         self._prepared = None
         self._pose_dolphin(dolphin)
         mujoco.mj_step(self.model, d)
@@ -240,6 +238,11 @@ class World:
         if self._prepared is not None:
             self.rng.bit_generator.state = self._prepared.rng_state
             self._prepared = None
+
+    def _swim(self) -> DolphinPose:
+        """The dolphin's move for the next step: the half of a step that does not depend on the action."""
+        self.dolphin.step(self.dt, self.rng, self.data.xpos[self._rover_body])
+        return self._dolphin_pose()
 
     def _dolphin_pose(self) -> DolphinPose:
         parts = self.dolphin.part_poses()
