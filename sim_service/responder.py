@@ -1,8 +1,8 @@
 """`swimm sim`: serves LockstepEnvs on the train and eval channels over Zenoh.
 
-Zenoh callbacks only decode-free enqueue; one worker thread owns every World
-(MuJoCo and its GL context stay on one thread) and answers requests in
-arrival order, so each env sees its messages in order and a run is
+Requests reach one worker thread through an Inbox (services/polling.py), without
+decoding; the worker owns every World (MuJoCo and its GL context stay on one
+thread) and answers each env's requests in the order they came, so a run is
 reproducible whatever the network does. Between an observation and the next
 action, when nothing else waits, the worker prepares that env's next step
 (``World.prepare_step``), which takes the dolphin's swim off the round trip.
@@ -24,7 +24,7 @@ from services.keys import Keys
 from services.lifecycle import serve_until_signalled
 from services.messages import ActionMsg, BadMessage, ErrorMsg, unpack
 from services.metrics import Metrics, MetricsPublisher
-from services.polling import get_polled, prepare_to_poll
+from services.polling import Inbox, prepare_to_poll
 from services.presence import Roster, announce, live_now
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -34,8 +34,6 @@ from sim_service.world import World
 
 log = logging.getLogger(__name__)
 CLAIMANT_ROLES = ("learner", "eval")
-#: How long a polling sim's inbox stays empty after an answer before the answered envs prepare their next steps.
-PREPARE_AFTER_POLL_S = 1e-4
 
 
 @dataclass
@@ -57,7 +55,7 @@ class _Request:
     payload: bytes = b""
     query: zenoh.Query | None = None
     gone: set[str] = field(default_factory=set)
-    received_at: float = field(default_factory=time.perf_counter)
+    received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
 
 
 class SimResponder:
@@ -66,8 +64,7 @@ class SimResponder:
         self.keys = Keys(settings.zenoh.namespace)
         self.ident = settings.ident or f"sim-{os.getpid()}"
         self.metrics = Metrics()
-        self._poll_s = prepare_to_poll(settings.poll_ms)
-        self._inbox: queue.Queue[_Request | None] = queue.Queue()
+        self._inbox: Inbox[_Request | None] = Inbox(prepare_to_poll(settings.poll_ms))
         self._stop = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._envs: list[LockstepEnv] = []
@@ -85,8 +82,10 @@ class SimResponder:
         self._declared = []
         for env in self._envs:
             self._declared.append(
-                self.session.declare_subscriber(
-                    self.keys.action(env.channel, env.env), lambda s, e=env: self._enqueue("action", e, s.payload)
+                self._inbox.subscribe(
+                    self.session,
+                    self.keys.action(env.channel, env.env),
+                    lambda sample, e=env: _Request("action", e, payload=sample.payload.to_bytes()),
                 )
             )
             self._declared.append(
@@ -105,9 +104,6 @@ class SimResponder:
             self.keys.namespace,
             "real-time" if self.settings.realtime else "lock-step",
         )
-
-    def _enqueue(self, kind: str, env: LockstepEnv, payload: zenoh.ZBytes) -> None:
-        self._inbox.put(_Request(kind, env, payload=payload.to_bytes()))
 
     def _on_roster_change(self, joined: set[str], left: set[str]) -> None:
         """A holder's token went: free its envs unless it is back within the grace period.
@@ -146,8 +142,8 @@ class SimResponder:
                 request = None
                 if self._stop.is_set():
                     break
-            if request is None and self._stop.is_set() and self._inbox.empty():
-                break
+            if request is None and self._stop.is_set():
+                break  # stop()'s sentinel, behind every request that came before it
             if request is not None:
                 self._handle(request)
             if self.settings.realtime and time.perf_counter() >= next_tick:
@@ -159,20 +155,17 @@ class SimResponder:
     def _next_request(self, timeout: float) -> _Request | None:
         """The next request, waited for up to ``timeout``.
 
-        An env answered since it last prepared prepares its next step (``World.prepare_step``) once the inbox
-        is empty, one env at a time, so the work leaves the round trip. A polling sim first polls for
-        :data:`PREPARE_AFTER_POLL_S`: by then the observation is on its way and the learner deciding, and the
-        work no longer competes with its delivery for the CPU (3% faster round trips than preparing at once; a
-        sim that sleeps on its inbox loses more to the extra wake-up). A request that comes sooner is served at
-        once, its step preparing itself.
+        While the inbox is empty, each env answered since it last prepared prepares its next step
+        (``World.prepare_step``), one env at a time with a look at the inbox between them, so the work leaves
+        the round trip: it runs while the observation travels and the learner decides. A request that comes
+        first is served at once, its step preparing itself.
         """
         while self._unprepared:
-            quiet_s = PREPARE_AFTER_POLL_S if self._poll_s > 0 else 0.0
             try:
-                return get_polled(self._inbox, min(self._poll_s, quiet_s), quiet_s)
+                return self._inbox.get(timeout=0.0)
             except queue.Empty:
                 self._prepare(self._unprepared.pop())
-        return get_polled(self._inbox, self._poll_s, timeout)
+        return self._inbox.get(timeout)
 
     def _prepare(self, env: LockstepEnv) -> None:
         try:

@@ -98,9 +98,10 @@ def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client,
     (tmp_path / "outage.txt").write_text(f"{outage:.2f}")
 
 
-def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, connect_client, namespace):
+@pytest.mark.parametrize("poll_ms", [0.0, 2.0], ids=["blocking", "polling"])
+def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, connect_client, namespace, poll_ms):
     endpoint = group.start_router()
-    start_sim(group, endpoint, namespace)
+    start_sim(group, endpoint, namespace, "--poll-ms", str(poll_ms))
     client = connect_client(endpoint)
     client.roster("sim").wait_for(1, timeout_s=60)
     keys = client.keys
