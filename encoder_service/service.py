@@ -32,7 +32,7 @@ import zenoh
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from services.keys import Keys
 from services.lifecycle import serve_until_signalled
-from services.messages import BadMessage, ErrorMsg, LatentMsg, ObservationMsg, unpack
+from services.messages import BadMessage, ErrorMsg, LatentMsg, ObservationMsg, stamp_of
 from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce
 from services.session import open_session
@@ -237,7 +237,7 @@ class EncoderService:
         log.warning("refused a frame%s: %s", f" of {where[0]}/{where[1]}" if where else "", reason)
         if where is None:
             return
-        ep, seq = _episode_and_seq(payload)
+        ep, seq, _ = stamp_of(payload)
         try:
             # The encoder cannot know who drives the env (frames come from the sim), so the refusal is addressed
             # to no one in particular: whoever waits for this (ep, seq) takes it.
@@ -256,17 +256,6 @@ class EncoderService:
             publisher.undeclare()
         self.session.close()
         log.info("encoder %s stopped: %s", self.ident, self.metrics.snapshot())
-
-
-def _episode_and_seq(payload: bytes) -> tuple[int, int]:
-    """The (ep, seq) of a refused frame when its map can be read, else (0, 0), so the refusal names its step."""
-    try:
-        body = unpack(payload)
-    except BadMessage:
-        return 0, 0
-    ep, seq = body.get("ep"), body.get("seq")
-    valid = all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in (ep, seq))
-    return (ep, seq) if valid else (0, 0)
 
 
 def run(settings: EncoderSettings) -> None:

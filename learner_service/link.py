@@ -17,7 +17,6 @@ from __future__ import annotations
 import hashlib
 import logging
 import queue
-import threading
 import time
 import uuid
 from dataclasses import dataclass
@@ -36,7 +35,7 @@ from services.messages import (
     LatentMsg,
     ObservationMsg,
 )
-from services.polling import get_polled, prepare_to_poll
+from services.polling import Inbox, prepare_to_poll
 from services.presence import Roster
 from services.telemetry import Telemetry
 
@@ -96,22 +95,21 @@ class RemoteEnvLink:
         self.seq = 0
         self.duplicates_dropped = 0
         self.retries = 0
-        self._replies: queue.Queue[Reply | ErrorMsg] = queue.Queue()
+        self._replies: Inbox[Reply | ErrorMsg | None] = Inbox(self._poll_s)  # None: an unreadable message
         self._pending: tuple[str, object] | None = None  # what to re-send on a timeout
         reply_key = keys.latent(channel, env) if encoded else keys.obs(channel, env, DIRECT_ROUTE)
-        self._subscriber = session.declare_subscriber(reply_key, self._on_reply)
-        self._err_subscriber = session.declare_subscriber(keys.err(channel, env), self._on_error)
+        self._subscriber = self._replies.subscribe(session, reply_key, self._read_reply)
+        self._err_subscriber = self._replies.subscribe(session, keys.err(channel, env), self._read_error)
         self._publisher = session.declare_publisher(
             keys.action(channel, env), congestion_control=zenoh.CongestionControl.BLOCK
         )
-        self._lock = threading.Lock()
 
     @property
     def name(self) -> str:
         return f"{self.channel}/{self.env}"
 
-    # --- Zenoh callbacks: decode and queue only --------------------------------------------------
-    def _on_reply(self, sample: zenoh.Sample) -> None:
+    # --- incoming messages, decoded where the Inbox hands them over -----------------------------
+    def _read_reply(self, sample: zenoh.Sample) -> Reply | None:
         try:
             if self.encoded:
                 msg = LatentMsg.decode(sample.payload.to_bytes())
@@ -128,14 +126,15 @@ class RemoteEnvLink:
                 reply = Reply(obs.ep, obs.seq, obs.telemetry, obs.image, None, None)
         except BadMessage as exc:
             log.warning("%s: dropped an unreadable reply: %s", self.name, exc)
-            return
-        self._replies.put(reply)
+            return None
+        return reply
 
-    def _on_error(self, sample: zenoh.Sample) -> None:
+    def _read_error(self, sample: zenoh.Sample) -> ErrorMsg | None:
         try:
-            self._replies.put(ErrorMsg.decode(sample.payload.to_bytes()))
+            return ErrorMsg.decode(sample.payload.to_bytes())
         except BadMessage as exc:
             log.warning("%s: unreadable error message: %s", self.name, exc)
+            return None
 
     # --- control ---------------------------------------------------------------------------------
     def claim(self, timeout_s: float = 5.0) -> dict:
@@ -210,9 +209,11 @@ class RemoteEnvLink:
             deadline = time.monotonic() + self.step_timeout_s
             while (remaining := deadline - time.monotonic()) > 0:
                 try:
-                    item = get_polled(self._replies, self._poll_s, remaining)
+                    item = self._replies.get(remaining)
                 except queue.Empty:
                     break
+                if item is None:
+                    continue
                 if isinstance(item, ErrorMsg):
                     # Addressed to us (the sim's refusals) or to whoever drives the env (an encoder's).
                     if item.sender in (self.holder, "") and (item.ep, item.seq) == (self.ep, self.seq):

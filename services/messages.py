@@ -62,6 +62,18 @@ def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     return body
 
 
+def stamp_of(payload: bytes) -> tuple[int, int, str]:
+    """The (ep, seq, sender) of a refused message where its map can be read, else (0, 0, ""): a refusal that
+    names the step it answers reaches the learner waiting for that step at once instead of after its timeout."""
+    try:
+        body = unpack(payload)
+    except BadMessage:
+        return 0, 0, ""
+    ep, seq, sender = body.get("ep"), body.get("seq"), body.get("sender", "")
+    valid = all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in (ep, seq))
+    return (ep, seq, sender if isinstance(sender, str) else "") if valid else (0, 0, "")
+
+
 def _int(body: dict[str, Any], name: str) -> int:
     value = body.get(name)
     if not isinstance(value, int) or isinstance(value, bool) or value < 0:

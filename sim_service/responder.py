@@ -22,7 +22,7 @@ import zenoh
 from services import control
 from services.keys import Keys
 from services.lifecycle import serve_until_signalled
-from services.messages import ActionMsg, BadMessage, ErrorMsg, unpack
+from services.messages import ActionMsg, BadMessage, ErrorMsg, stamp_of, unpack
 from services.metrics import Metrics, MetricsPublisher
 from services.polling import Inbox, prepare_to_poll
 from services.presence import Roster, announce, live_now
@@ -194,7 +194,7 @@ class SimResponder:
         try:
             msg = ActionMsg.decode(request.payload)
         except BadMessage as exc:
-            self._refuse(env, str(exc))
+            self._refuse(env, str(exc), *stamp_of(request.payload))
             return
         if self.settings.realtime:
             env.pending = msg  # applied at the next tick

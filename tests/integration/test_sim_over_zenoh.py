@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from learner_service.link import StepRefused
 from services.messages import MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg
 from services.procs import free_tcp_port, wait_for_port
 from sim_service.world import World
@@ -123,7 +124,7 @@ def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, con
 
     # Before any claim: the env refuses to be driven and says so.
     assert "not claimed" in refused(ActionMsg(1, 1, (0, 0, 0, 0), sender=client.holder).encode())
-    link = client.link()
+    link = client.link(poll_ms=poll_ms)
     link.claim()
     link.send_reset(1, 3)
     link.wait()
@@ -140,9 +141,17 @@ def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, con
     other = connect_client(endpoint)
     with pytest.raises(Exception, match="held by"):
         other.link().claim()
+    # The refusals above name the step they answer, so the link would take them as its own for (1, 1):
+    # a new episode leaves them behind.
+    link.send_reset(2, 3)
+    link.wait()
     link.send_action((0, 0, 0.5, 0.1))
     reply = link.wait()
-    assert (reply.ep, reply.seq) == (1, 1)
+    assert (reply.ep, reply.seq) == (2, 1)
+    # The link hears its own refusals (blocking or polling) and raises them with the sim's reason.
+    link.send_action((0, 0, 3.0, 0))
+    with pytest.raises(StepRefused, match=r"\[-1, 1\]"):
+        link.wait()
     sub.undeclare()
     link.close()
     assert group.services[1].alive

@@ -19,6 +19,7 @@ from services.messages import (
     ObservationMsg,
     encode_reply,
     encode_request,
+    stamp_of,
     unpack,
 )
 from services.telemetry import Telemetry
@@ -295,3 +296,16 @@ def test_error_without_reason_is_refused():
     del body["error"]
     with pytest.raises(BadMessage, match="field 'error' must be a string"):
         ErrorMsg.decode(_pack(body))
+
+
+# --- the step a refusal answers ---------------------------------------------------------------------------------
+def test_a_refused_message_gives_its_step_and_sender_where_they_can_be_read():
+    out_of_range = ActionMsg(ep=3, seq=7, action=(0.0, 0.0, 3.0, 0.0), sender="learner-1").encode()
+    with pytest.raises(BadMessage):
+        ActionMsg.decode(out_of_range)
+    assert stamp_of(out_of_range) == (3, 7, "learner-1")
+    assert stamp_of(b"\xc1 not msgpack") == (0, 0, "")
+    unreadable_step = msgpack.packb({"v": PROTOCOL_VERSION, "ep": -1, "seq": 7, "sender": "learner-1"})
+    assert stamp_of(unreadable_step) == (0, 0, "")
+    odd_sender = msgpack.packb({"v": PROTOCOL_VERSION, "ep": 3, "seq": 7, "sender": 5})
+    assert stamp_of(odd_sender) == (3, 7, "")
