@@ -1,4 +1,4 @@
-"""Taking the next message from a queue by polling it before sleeping on it.
+"""A lock-step worker's inbox, which can poll for the next message before sleeping on it.
 
 A lock-step process spends most of its time waiting for the other side's message. Blocked on its inbox it
 sleeps, and the message then wakes it on a cold CPU: on the 2-core development box a World step costs 0.51 ms
@@ -28,9 +28,10 @@ import zenoh
 
 T = TypeVar("T")
 
-#: The GIL switch interval of a process that polls. The Zenoh thread that delivers a message into the queue
-#: needs the GIL, which the poller keeps taking back; at Python's default interval (5 ms) it can wait that long.
-#: Measured with `swimm bench sim`: 20 us gave the fastest round trips, 100 us and 5 us slower ones.
+#: The GIL switch interval of a process that polls. A thread that puts into the Inbox's queue (a query's
+#: callback, a timer) needs the GIL, which the poller keeps taking back; at Python's default interval (5 ms) it
+#: can wait that long. Measured with `swimm bench sim` (when actions still came through callbacks): 20 us gave
+#: the fastest round trips, 100 us and 5 us slower ones.
 POLLING_SWITCH_INTERVAL_S = 2e-5
 
 
@@ -41,20 +42,6 @@ def prepare_to_poll(poll_ms: float) -> float:
     if poll_ms > 0:
         sys.setswitchinterval(min(sys.getswitchinterval(), POLLING_SWITCH_INTERVAL_S))
     return poll_ms / 1e3
-
-
-def get_polled(inbox: queue.Queue[T], poll_s: float, timeout: float) -> T:
-    """The next item: polled for up to ``poll_s``, yielding the CPU between tries, then waited for until
-    ``timeout`` (counted from the call) runs out; raises queue.Empty then, as ``Queue.get`` does."""
-    if poll_s <= 0:  # the default: block at once, as Queue.get
-        return inbox.get(timeout=timeout)
-    start = time.perf_counter()
-    while time.perf_counter() - start < poll_s:
-        try:
-            return inbox.get_nowait()
-        except queue.Empty:
-            os.sched_yield()  # releases the GIL, so the delivering thread can put the item
-    return inbox.get(timeout=max(0.0, timeout - (time.perf_counter() - start)))
 
 
 #: A polling Inbox's naps once its poll time has run out: a Zenoh channel cannot wake a thread sleeping on
@@ -71,8 +58,9 @@ class Inbox(Generic[T]):
     ``poll_s`` 0 (blocking): each subscriber's callback puts its item into a queue, and :meth:`get` sleeps on
     that queue. ``poll_s`` > 0 (polling): each subscriber delivers into a Zenoh FIFO channel that the worker
     reads itself with ``try_recv``, so the Zenoh thread that received the sample never waits for the GIL the
-    poller holds; in `swimm bench sim` the polling round trip got 8 to 21% faster than with callbacks
-    (docs/benchmarks.md). :meth:`get` looks at every channel and then the queue, yielding the CPU between
+    poller holds. Measured alternating within single runs (docs/benchmarks.md): the sim reading its actions
+    this way made the polling round trip 8 to 22% faster, the learner's link reading its replies this way
+    another 9 to 21%. :meth:`get` looks at every channel and then the queue, yielding the CPU between
     rounds, for ``poll_s``; then it naps (:data:`NAP_MIN_S` to :data:`NAP_MAX_S`), since it has no single
     thing to sleep on.
 

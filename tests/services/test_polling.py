@@ -1,6 +1,6 @@
-"""services/polling.py: an item put by another thread is taken while polling or after it, a timeout still
-holds, and the switch interval changes only when polling is asked for; an Inbox hands over Zenoh samples (from
-a real router) and other threads' items in order, blocking or polling."""
+"""services/polling.py: an Inbox hands over items put by other threads and Zenoh samples (from a real router)
+in order, blocking, while polling or napping after it; its timeout holds; and the switch interval changes
+only when polling is asked for."""
 
 from __future__ import annotations
 
@@ -12,33 +12,28 @@ import time
 import pytest
 import zenoh
 
-from services.polling import NAP_MAX_S, POLLING_SWITCH_INTERVAL_S, Inbox, get_polled, prepare_to_poll
+from services.polling import NAP_MAX_S, POLLING_SWITCH_INTERVAL_S, Inbox, prepare_to_poll
 
 #: Blocking, and polling for 20 ms before napping.
 INBOX_POLL_S = pytest.mark.parametrize("poll_s", [0.0, 0.02], ids=["blocking", "polling"])
 
 
-def put_later(inbox: queue.Queue, item: object, delay_s: float) -> threading.Thread:
+def put_later(inbox: Inbox, item: object, delay_s: float) -> threading.Thread:
     thread = threading.Thread(target=lambda: (time.sleep(delay_s), inbox.put(item)))
     thread.start()
     return thread
 
 
-@pytest.mark.parametrize("delay_s", [0.002, 0.05], ids=["while-polling", "after-polling"])
-def test_an_item_put_by_another_thread_is_taken(delay_s: float) -> None:
-    inbox: queue.Queue[str] = queue.Queue()
-    thread = put_later(inbox, "action", delay_s)
-    assert get_polled(inbox, poll_s=0.02, timeout=5.0) == "action"
+@pytest.mark.parametrize(
+    "poll_s, delay_s", [(0.0, 0.002), (0.02, 0.002), (0.02, 0.05)], ids=["blocking", "while-polling", "after-polling"]
+)
+def test_an_item_put_by_another_thread_is_taken(poll_s: float, delay_s: float) -> None:
+    inbox: Inbox[str] = Inbox(poll_s)
+    thread = put_later(inbox, "lapse", delay_s)
+    assert inbox.get(timeout=5.0) == "lapse"
     thread.join()
-    assert inbox.empty()
-
-
-def test_the_timeout_counts_from_the_call_polling_included() -> None:
-    inbox: queue.Queue[str] = queue.Queue()
-    start = time.perf_counter()
     with pytest.raises(queue.Empty):
-        get_polled(inbox, poll_s=0.05, timeout=0.1)
-    assert 0.1 <= time.perf_counter() - start < 0.14
+        inbox.get(timeout=0.0)
 
 
 def test_polling_shortens_the_switch_interval_and_blocking_leaves_it() -> None:
