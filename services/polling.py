@@ -58,9 +58,8 @@ class Inbox(Generic[T]):
     ``poll_s`` 0 (blocking): each subscriber's callback puts its item into a queue, and :meth:`get` sleeps on
     that queue. ``poll_s`` > 0 (polling): each subscriber delivers into a Zenoh FIFO channel that the worker
     reads itself with ``try_recv``, so the Zenoh thread that received the sample never waits for the GIL the
-    poller holds. Measured alternating within single runs (docs/benchmarks.md): the sim reading its actions
-    this way made the polling round trip 8 to 22% faster, the learner's link reading its replies this way
-    another 9 to 21%. :meth:`get` looks at every channel and then the queue, yielding the CPU between
+    poller holds. The sim and the learner's link reading them this way, against both handing over through
+    callbacks, side by side in single runs: 12 to 32% more lock-step steps a second (docs/benchmarks.md). :meth:`get` looks at every channel and then the queue, yielding the CPU between
     rounds, for ``poll_s``; then it naps (:data:`NAP_MIN_S` to :data:`NAP_MAX_S`), since it has no single
     thing to sleep on.
 
