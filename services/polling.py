@@ -59,9 +59,9 @@ class Inbox(Generic[T]):
     that queue. ``poll_s`` > 0 (polling): each subscriber delivers into a Zenoh FIFO channel that the worker
     reads itself with ``try_recv``, so the Zenoh thread that received the sample never waits for the GIL the
     poller holds. The sim and the learner's link reading them this way, against both handing over through
-    callbacks, side by side in single runs: 12 to 32% more lock-step steps a second (docs/benchmarks.md). :meth:`get` looks at every channel and then the queue, yielding the CPU between
-    rounds, for ``poll_s``; then it naps (:data:`NAP_MIN_S` to :data:`NAP_MAX_S`), since it has no single
-    thing to sleep on.
+    callbacks, side by side in single runs: 12 to 32% more lock-step steps a second (docs/benchmarks.md).
+    :meth:`get` looks at every channel and then the queue, yielding the CPU between rounds, for ``poll_s``;
+    then it naps (:data:`NAP_MIN_S` to :data:`NAP_MAX_S`), since it has no single thing to sleep on.
 
     Samples already in a channel come before the queue's items, so an item put after them (the sim's stop)
     finds them taken. Each subscriber's samples keep their order.
