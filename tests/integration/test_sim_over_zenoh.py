@@ -1,4 +1,4 @@
-"""`swimm router` + `swimm sim` as real processes: determinism, router restart, bad input."""
+"""`swimm router` + `swimm sim` as real processes: determinism, router restart, bad input, real-time mode."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import pytest
 import zenoh
 
 from learner_service.link import StepRefused
-from services.messages import MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg
+from services.messages import DIRECT_ROUTE, MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg, ObservationMsg
 from services.procs import free_tcp_port, wait_for_port
+from sim_service.settings import WorldSettings
 from sim_service.world import World
 from tests.integration.conftest import start_sim
 
@@ -155,3 +156,51 @@ def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, con
     sub.undeclare()
     link.close()
     assert group.services[1].alive
+
+
+def forward_speed(telemetry) -> float:
+    return float(np.dot(telemetry.rover_lin_vel, telemetry.rover_forward))
+
+
+@pytest.mark.parametrize("poll_ms", [0.0, 2.0], ids=["blocking", "polling"])
+def test_a_realtime_sim_steps_on_its_clock_holding_the_latest_action(group, connect_client, namespace, poll_ms):
+    dt = WorldSettings().physics_dt
+    endpoint = group.start_router()
+    start_sim(group, endpoint, namespace, "--realtime", "--poll-ms", str(poll_ms))
+    client = connect_client(endpoint)
+    client.roster("sim").wait_for(1, timeout_s=60)
+    received: queue.Queue[tuple[float, ObservationMsg]] = queue.Queue()
+    sub = client.session.declare_subscriber(
+        client.keys.obs("train", "0", DIRECT_ROUTE),
+        lambda s: received.put((time.perf_counter(), ObservationMsg.decode(s.payload.to_bytes()))),
+    )
+    link = client.link()
+    link.claim()
+    link.send_reset(1, 5)
+    link.wait()
+
+    def observe(seconds: float) -> list[tuple[float, ObservationMsg]]:
+        end, got = time.perf_counter() + seconds, []
+        while (left := end - time.perf_counter()) > 0:
+            try:
+                got.append(received.get(timeout=left))
+            except queue.Empty:
+                break
+        return [(t, obs) for t, obs in got if obs.seq > 0]  # the reset's own observation is seq 0
+
+    idle = observe(1.0)  # no action sent: the sim steps anyway, holding the zero action
+    seqs = [obs.seq for _, obs in idle]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "a tick was skipped or repeated"
+    assert 0.5 / dt <= len(idle) <= 1.5 / dt
+    assert np.median(np.diff([t for t, _ in idle])) == pytest.approx(dt, rel=0.5)
+    assert np.allclose(np.diff([obs.telemetry.sim_time for _, obs in idle]), dt)
+    assert abs(forward_speed(idle[-1][1].telemetry)) < 0.05
+
+    # One action, any seq: applied at the next tick and held until another comes.
+    surge = ActionMsg(ep=1, seq=1, action=(0.0, 0.0, 1.0, 0.0), sender=client.holder)
+    client.session.put(client.keys.action("train", "0"), surge.encode())
+    surging = observe(2.0)
+    speeds = [forward_speed(obs.telemetry) for _, obs in surging]
+    assert speeds[-1] > 0.3 and speeds[-1] > speeds[len(speeds) // 2] > speeds[0]
+    sub.undeclare()
+    link.close()
