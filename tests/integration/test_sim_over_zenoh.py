@@ -1,4 +1,5 @@
-"""`swimm router` + `swimm sim` as real processes: determinism, router restart, bad input, real-time mode."""
+"""`swimm router` + `swimm sim` as real processes: determinism, router restart, bad input, real-time mode,
+SIGTERM."""
 
 from __future__ import annotations
 
@@ -204,3 +205,23 @@ def test_a_realtime_sim_steps_on_its_clock_holding_the_latest_action(group, conn
     assert speeds[-1] > 0.3 and speeds[-1] > speeds[len(speeds) // 2] > speeds[0]
     sub.undeclare()
     link.close()
+
+
+def test_sigterm_stops_a_serving_sim_cleanly_and_it_leaves_the_roster(group, connect_client, namespace):
+    endpoint = group.start_router()
+    sim = start_sim(group, endpoint, namespace)
+    client = connect_client(endpoint)
+    sims = client.roster("sim")
+    sims.wait_for(1, timeout_s=60)
+    link = client.link()
+    link.claim()
+    link.send_reset(1, 3)
+    link.wait()
+    link.send_action((0.0, 0.0, 0.5, 0.0))
+    assert link.wait().seq == 1
+    assert group.stop(sim, timeout_s=10) == 0, sim.log_tail()  # not killed after the 10 s
+    assert "stopped: {" in sim.log_tail(), sim.log_tail()  # its last words: the metrics it served
+    deadline = time.monotonic() + 5
+    while sims.members() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not sims.members()
