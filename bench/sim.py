@@ -8,7 +8,7 @@ like with like. The three ways:
 
 - peer, polling (the headline keys): the sim and this process join as Zenoh peers (the router introduces
   them, each message goes directly from one to the other) and each side polls for the next message for
-  :data:`POLL_MS` before sleeping on it (`swimm sim --poll-ms`, ``ProxySettings.poll_ms``): how to serve one
+  :data:`POLL_MS` before napping between looks (`swimm sim --poll-ms`, ``ProxySettings.poll_ms``): how to serve one
   env when each process has a core to itself;
 - peer, blocking (the ``blocking_*`` keys): the same, each side sleeping on its inbox at once, as `swimm up`
   runs (there the processes share the cores with a training learner and the encoders);

@@ -53,7 +53,7 @@ class ProxySettings:
     envs: tuple[str, ...] = ("0",)  # env ids on that channel
     step_timeout_s: float = 2.0  # wait per try before re-sending the same (episode, seq)
     max_retries: int = 10  # re-sends before StepTimeout
-    poll_ms: float = 0.0  # poll for each reply this long before sleeping on it (services/polling.py)
+    poll_ms: float = 0.0  # poll for each reply this long, then nap (services/polling.py)
     role: str = "learner"  # liveliness role of the holder: "learner" or "eval"
 
     def check(self) -> None:

@@ -45,7 +45,7 @@ class SimSettings:
     realtime: bool = False  # physics keeps running at physics_dt; the last action is held
     ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
     claim_grace_s: float = 10.0  # a claim lapses when its holder's token stays gone this long
-    poll_ms: float = 0.0  # poll the inbox this long before sleeping on it: faster lock-step for a spare core
+    poll_ms: float = 0.0  # poll the inbox this long, then nap (services/polling.py): faster lock-step for a spare core
 
 
 @dataclass

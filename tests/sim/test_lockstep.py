@@ -79,9 +79,11 @@ def test_the_same_actions_give_the_same_steps_with_or_without_retries(env):
         env.act(action(seq))
         with_retries.append(observed(env.act(action(seq)).payload).telemetry)  # every step sent twice
     fresh = LockstepEnv("train", "1", World(WorldSettings(render=False)))
-    started(fresh)
-    assert [observed(fresh.act(action(seq)).payload).telemetry for seq in range(1, 6)] == with_retries
-    fresh.world.close()
+    try:
+        started(fresh)
+        assert [observed(fresh.act(action(seq)).payload).telemetry for seq in range(1, 6)] == with_retries
+    finally:
+        fresh.world.close()
 
 
 @pytest.mark.parametrize("seq", [0, 3], ids=["behind", "ahead"])
