@@ -7,11 +7,14 @@ drifts by a third within a minute; measured in rounds, every rate sees the same 
 like with like. The three ways:
 
 - peer, polling (the headline keys): the sim and this process join as Zenoh peers (the router introduces
-  them, each message goes directly from one to the other) and each side polls for the next message for
-  :data:`POLL_MS` before napping between looks (`swimm sim --poll-ms`, ``ProxySettings.poll_ms``): how to serve one
-  env when each process has a core to itself;
-- peer, blocking (the ``blocking_*`` keys): the same, each side sleeping on its inbox at once, as `swimm up`
-  runs (there the processes share the cores with a training learner and the encoders);
+  them, each message goes directly from one to the other) over Zenoh's low-latency transport
+  (``--low-latency``), and each side polls for the next message for :data:`POLL_MS` before napping between
+  looks (`swimm sim --poll-ms`, ``ProxySettings.poll_ms``): how to serve one env when each process has a core
+  to itself;
+- peer, polling, standard transport (the ``standard_*`` keys): the same over Zenoh's default transport, which
+  shows what the low-latency one adds;
+- peer, blocking (the ``blocking_*`` keys): the standard transport, each side sleeping on its inbox at once,
+  as `swimm up` runs (there the processes share the cores with a training learner and the encoders);
 - client (the ``routed_*`` keys; what deploy/docker-compose.yml runs): every message goes through the router,
   both sides blocking.
 
@@ -45,17 +48,19 @@ DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs
 
 @dataclass(frozen=True)
 class Way:
-    """One way of serving the env: its name, key prefix in the result, Zenoh mode and poll time (ms)."""
+    """One way of serving the env: its name, key prefix in the result, Zenoh mode, poll time (ms) and transport."""
 
     name: str
     prefix: str
     mode: str
     poll_ms: float
+    low_latency: bool = False
 
 
 #: The headline way first, as in the result.
 WAYS = (
-    Way("polling", "", "peer", POLL_MS),
+    Way("polling", "", "peer", POLL_MS, low_latency=True),
+    Way("standard", "standard_", "peer", POLL_MS),
     Way("blocking", "blocking_", "peer", 0.0),
     Way("routed", "routed_", "client", 0.0),
 )
@@ -94,8 +99,11 @@ class ServedEnv:
         from learner_service.link import RemoteEnvLink, new_holder_id
 
         self.way = way
-        settings = ZenohSettings(mode=way.mode, connect=[endpoint], namespace=f"swimm/bench-{way.name}")
+        settings = ZenohSettings(
+            mode=way.mode, connect=[endpoint], namespace=f"swimm/bench-{way.name}", low_latency=way.low_latency
+        )
         sim_args = ("--mode", way.mode, "--connect", endpoint, "--namespace", settings.namespace, "--eval-envs", "0")
+        sim_args += ("--low-latency",) if way.low_latency else ()
         group.start(f"sim-{way.name}", "sim", *sim_args, "--poll-ms", str(way.poll_ms))
         session = open_session(settings, role="bench")
         stack.callback(session.close)
@@ -167,7 +175,13 @@ def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
             f"{way.prefix}p50_ms": percentile_ms(round_trips, 50),
             f"{way.prefix}p99_ms": percentile_ms(round_trips, 99),
         }
-    return result | {"topology": "peer", "poll_ms": POLL_MS, "steps": steps, "rounds": rounds}
+    return result | {
+        "topology": "peer",
+        "transport": "low-latency",
+        "poll_ms": POLL_MS,
+        "steps": steps,
+        "rounds": rounds,
+    }
 
 
 def percentile_ms(seconds: np.ndarray, q: float) -> float:

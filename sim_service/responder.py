@@ -11,6 +11,7 @@ action, when nothing else waits, the worker prepares that env's next step
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import threading
@@ -26,7 +27,7 @@ from services.messages import ActionMsg, BadMessage, ErrorMsg, stamp_of, unpack
 from services.metrics import Metrics, MetricsPublisher
 from services.polling import Inbox, prepare_to_poll
 from services.presence import Roster, announce, live_now
-from services.session import open_session
+from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES, open_session
 from services.settings import ZenohSettings
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
 from sim_service.settings import WorldSettings
@@ -34,6 +35,8 @@ from sim_service.world import World
 
 log = logging.getLogger(__name__)
 CLAIMANT_ROLES = ("learner", "eval")
+#: What an observation carries besides its image (stamps, telemetry, field names): about 700 bytes encoded.
+OBSERVATION_OVERHEAD_BYTES = 2048
 
 
 @dataclass
@@ -58,8 +61,24 @@ class _Request:
     received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
 
 
+def check_fits_low_latency(settings: SimSettings) -> None:
+    """Refuse, before any world is built, observations too large for a low-latency session to send."""
+    world = settings.world
+    if not settings.zenoh.low_latency or not world.render:
+        return
+    observation_bytes = 3 * world.image_size**2 + OBSERVATION_OVERHEAD_BYTES
+    if observation_bytes > LOW_LATENCY_MAX_MESSAGE_BYTES:
+        largest = math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
+        raise ValueError(
+            f"--low-latency sends messages of at most {LOW_LATENCY_MAX_MESSAGE_BYTES} bytes, and "
+            f"{world.image_size} px observations take up to {observation_bytes}: "
+            f"use --image-size {largest} or less, or leave --low-latency off"
+        )
+
+
 class SimResponder:
     def __init__(self, settings: SimSettings) -> None:
+        check_fits_low_latency(settings)
         self.settings = settings
         self.keys = Keys(settings.zenoh.namespace)
         self.ident = settings.ident or f"sim-{os.getpid()}"

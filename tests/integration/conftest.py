@@ -51,8 +51,8 @@ def connect_client(namespace):
     """Factory: a Client connected to an endpoint; closed at teardown."""
     opened: list[Client] = []
 
-    def connect(endpoint: str, mode: str = "client") -> Client:
-        settings = ZenohSettings(mode=mode, connect=[endpoint], namespace=namespace)
+    def connect(endpoint: str, mode: str = "client", low_latency: bool = False) -> Client:
+        settings = ZenohSettings(mode=mode, connect=[endpoint], namespace=namespace, low_latency=low_latency)
         session = open_session(settings, role="test")
         keys = Keys(namespace)
         holder = new_holder_id("learner")

@@ -36,8 +36,9 @@ def assert_rates(result: dict, *keys: str) -> None:
 def test_bench_sim_times_each_way_of_serving_against_the_same_in_process_rate() -> None:
     result = bench("sim", "--steps", "200")
     assert result["topology"] == "peer" and result["poll_ms"] > 0 and result["steps"] == 200 and result["rounds"] > 1
+    assert result["transport"] == "low-latency"
     inprocess = result["inprocess_steps_per_s"]
-    for prefix in ("", "blocking_", "routed_"):
+    for prefix in ("", "standard_", "blocking_", "routed_"):
         rate = f"{prefix or 'distributed_'}steps_per_s"
         assert_rates(result, "inprocess_steps_per_s", rate, f"{prefix}p50_ms")
         assert result[f"{prefix}ratio"] == pytest.approx(result[rate] / inprocess, 1e-2)

@@ -15,6 +15,8 @@ import zenoh
 from learner_service.link import StepRefused
 from services.messages import DIRECT_ROUTE, MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg, ObservationMsg
 from services.procs import free_tcp_port, wait_for_port
+from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
+from sim_service.responder import OBSERVATION_OVERHEAD_BYTES
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 from tests.integration.conftest import start_sim
@@ -67,6 +69,33 @@ def test_same_seed_gives_identical_bytes_inprocess_and_over_zenoh_twice(group, c
     while metrics.get("steps", 0) < 2 * len(steps):
         metrics = published.get(timeout=10)
     assert 0 < metrics["steps_prepared"] <= metrics["steps"] + metrics.get("ctl_reset", 0)
+
+
+def test_low_latency_peers_step_identically_up_to_the_largest_image_it_carries(group, connect_client, namespace):
+    """A low-latency sim and learner, linked directly, give the in-process bytes; and the largest image a sim
+    accepts with --low-latency (check_fits_low_latency) does cross such a link, which a message over the
+    transport's limit would not."""
+    endpoint = group.start_router()
+    low_latency_peer = ("--mode", "peer", "--low-latency", "--poll-ms", "2")
+    start_sim(group, endpoint, namespace, *low_latency_peer, "--eval-envs", "0")
+    largest = math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
+    start_sim(group, endpoint, namespace, *low_latency_peer, "--train-envs", "0", "--image-size", str(largest),
+              name="sim-large")  # fmt: skip
+    client = connect_client(endpoint, mode="peer", low_latency=True)
+    client.roster("sim").wait_for(2, timeout_s=60)
+    link = client.link(poll_ms=2.0)
+    link.claim()
+    steps = actions(60)
+    assert remote_episode(link, 1, 42, steps) == inprocess_episode(42, steps)
+    link.close()
+
+    large = client.link("eval", poll_ms=2.0)
+    large.claim()
+    large.send_reset(1, 7)
+    assert large.wait().image.shape == (largest, largest, 3)
+    large.send_action((0, 0, 0.5, 0))
+    assert large.wait().image.shape == (largest, largest, 3)
+    large.close()
 
 
 def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client, namespace, tmp_path):

@@ -77,7 +77,8 @@ def test_up_trains_on_cmvae_and_leaves_a_run_folder(spawn, namespace, tmp_path) 
 @pytest.mark.slow
 def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tmp_path) -> None:
     run_dir = tmp_path / "run"
-    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "1000000"))
+    # --low-latency reaches every process it starts: a link takes that transport only when both ends ask.
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "1000000", "--low-latency"))
     deadline = time.monotonic() + 100
     while time.monotonic() < deadline:
         progress = run_dir / "progress.json"
@@ -94,6 +95,8 @@ def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tm
     result = json.loads((run_dir / "result.json").read_text())
     assert result["stopped_early"] and 100 <= result["num_timesteps"] < 1_000_000
     assert (run_dir / "final_model.zip").is_file() and (run_dir / "train.monitor.csv").is_file()
+    for name in ("sim", "learner"):
+        assert "low-latency transport" in (run_dir / "logs" / f"{name}.log").read_text(), name
 
 
 def test_up_without_the_cmvae_says_what_to_do(tmp_path, capfd) -> None:

@@ -68,6 +68,16 @@ def test_client_config_has_explicit_endpoints_and_no_multicast_scouting():
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False
 
 
+def test_low_latency_asks_for_that_transport_without_qos_and_lets_only_one_of_two_peers_dial():
+    config = build_config(ZenohSettings(mode="peer", low_latency=True))
+    assert json.loads(config.get_json("transport/unicast/lowlatency")) is True
+    assert json.loads(config.get_json("transport/unicast/qos/enabled")) is False  # Zenoh refuses both at once
+    strategy = json.loads(config.get_json("scouting/gossip/autoconnect_strategy"))
+    assert strategy["peer"] == {"to_router": "always", "to_peer": "greater-zid"}
+    standard = build_config(ZenohSettings(mode="peer"))
+    assert json.loads(standard.get_json("transport/unicast/lowlatency")) is False
+
+
 def test_router_config_listens_and_connects_nowhere():
     settings = router_settings(["tcp/0.0.0.0:7447"], namespace="swimm/lab")
     assert (settings.mode, settings.connect, settings.namespace) == ("router", [], "swimm/lab")

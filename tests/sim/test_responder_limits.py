@@ -1,0 +1,37 @@
+"""What `swimm sim` refuses before it serves: observations too large for a low-latency session."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.messages import ObservationMsg
+from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
+from services.settings import ZenohSettings
+from sim_service.responder import OBSERVATION_OVERHEAD_BYTES, SimSettings, check_fits_low_latency
+from sim_service.settings import WorldSettings
+from sim_service.world import World
+
+
+def sim_settings(image_size: int, low_latency: bool = True, render: bool = True) -> SimSettings:
+    return SimSettings(
+        zenoh=ZenohSettings(low_latency=low_latency), world=WorldSettings(image_size=image_size, render=render)
+    )
+
+
+def test_low_latency_takes_images_up_to_its_limit_and_names_the_largest_size_beyond_it():
+    check_fits_low_latency(sim_settings(123))  # 123 px: 45 387 image bytes plus the overhead fit in 48 000
+    with pytest.raises(ValueError, match=r"--image-size 123 or less"):
+        check_fits_low_latency(sim_settings(124))
+    check_fits_low_latency(sim_settings(512, low_latency=False))  # the standard transport fragments
+    check_fits_low_latency(sim_settings(512, render=False))  # no image, no large message
+
+
+def test_the_overhead_allowed_for_covers_a_real_observation_with_the_longest_stamps():
+    world = World(WorldSettings(image_size=16))
+    try:
+        telemetry, image = world.reset(3)
+        payload = ObservationMsg(env="999", ep=2**63, seq=2**63, telemetry=telemetry, image=image).encode()
+    finally:
+        world.close()
+    assert len(payload) - image.nbytes <= OBSERVATION_OVERHEAD_BYTES
+    assert OBSERVATION_OVERHEAD_BYTES < LOW_LATENCY_MAX_MESSAGE_BYTES
