@@ -4,7 +4,7 @@ Everything runs in one invocation on the same machine. `swimm router` and three 
 way of serving, each in its own namespace) start first; then the steps are taken in rounds, and each round
 runs a block of in-process steps and a block through each sim, back to back. A virtual machine's speed
 drifts by a third within a minute; measured in rounds, every rate sees the same drift, so the ratios compare
-like with like. The three ways:
+like with like. The four ways:
 
 - peer, polling (the headline keys): the sim and this process join as Zenoh peers (the router introduces
   them, each message goes directly from one to the other) over Zenoh's low-latency transport

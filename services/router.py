@@ -21,6 +21,7 @@ class RouterSettings:
     )
     connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
     zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
+    low_latency: bool = False  # Zenoh's low-latency transport with the clients and peers that ask for it too
 
 
 class Router:
@@ -35,6 +36,7 @@ class Router:
             listen=self.settings.listen,
             zenoh_config=self.settings.zenoh_config,
             startup_timeout_s=10.0,
+            low_latency=self.settings.low_latency,
         )
         self.session = open_session(zenoh_settings, role="router")
         log.info("router %s up", self.session.zid())

@@ -66,8 +66,8 @@ def use_low_latency_transport(config: zenoh.Config) -> None:
     """Ask for Zenoh's low-latency transport on every link whose other end asks for it too.
 
     The standard transport hands each message to a batching task on another thread; the low-latency one
-    writes it to the socket from the sending thread, which takes a thread hand-over off each hop: 8 to 21%
-    more lock-step steps a second (docs/benchmarks.md). It cannot fragment (:data:`LOW_LATENCY_MAX_MESSAGE_BYTES`)
+    writes it to the socket from the sending thread, which takes a thread hand-over off each hop: up to a
+    fifth more lock-step steps a second (docs/benchmarks.md). It cannot fragment (:data:`LOW_LATENCY_MAX_MESSAGE_BYTES`)
     and does not keep QoS priorities, which Zenoh requires to be switched off with it. Two such peers that
     dial each other at the same moment can break both links for good (seen in about one start in ten), so
     only the peer with the greater Zenoh id dials the other.

@@ -112,9 +112,10 @@ class LocalSystem:
         """Router, sim and encoders, each waited for; returns the router's endpoint."""
         if self.settings.port:
             check_port_free(self.settings.port)
-        endpoint = self.group.start_router(self.settings.port or None)
+        low_latency = ("--low-latency",) if self.learn.zenoh.low_latency else ()  # both ends of a link must ask
+        endpoint = self.group.start_router(self.settings.port or None, "router", *low_latency)
         common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
-        common += ("--low-latency",) if self.learn.zenoh.low_latency else ()  # both ends of a link must ask for it
+        common += low_latency
         sim_args = ["--train-envs", str(self.learn.envs), "--eval-envs", str(self.settings.sim_eval_envs)]
         self.group.start("sim", "sim", *common, *sim_args)
         encoders = self.settings.encoders if checkpoint is not None else 0

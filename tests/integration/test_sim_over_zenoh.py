@@ -71,17 +71,18 @@ def test_same_seed_gives_identical_bytes_inprocess_and_over_zenoh_twice(group, c
     assert 0 < metrics["steps_prepared"] <= metrics["steps"] + metrics.get("ctl_reset", 0)
 
 
-def test_low_latency_peers_step_identically_up_to_the_largest_image_it_carries(group, connect_client, namespace):
-    """A low-latency sim and learner, linked directly, give the in-process bytes; and the largest image a sim
-    accepts with --low-latency (check_fits_low_latency) does cross such a link, which a message over the
-    transport's limit would not."""
-    endpoint = group.start_router()
-    low_latency_peer = ("--mode", "peer", "--low-latency", "--poll-ms", "2")
-    start_sim(group, endpoint, namespace, *low_latency_peer, "--eval-envs", "0")
+@pytest.mark.parametrize("mode", ["peer", "client"])
+def test_low_latency_links_step_identically_up_to_the_largest_image_they_carry(group, connect_client, namespace, mode):
+    """A low-latency sim and learner (as peers linked directly, or as clients of a low-latency router) give the
+    in-process bytes; and the largest image a sim accepts with --low-latency (check_fits_low_latency) does cross
+    such links, which a message over the transport's limit would not."""
+    endpoint = group.start_router(None, "router", "--low-latency")
+    low_latency_sim = ("--mode", mode, "--low-latency", "--poll-ms", "2")
+    start_sim(group, endpoint, namespace, *low_latency_sim, "--eval-envs", "0")
     largest = math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
-    start_sim(group, endpoint, namespace, *low_latency_peer, "--train-envs", "0", "--image-size", str(largest),
+    start_sim(group, endpoint, namespace, *low_latency_sim, "--train-envs", "0", "--image-size", str(largest),
               name="sim-large")  # fmt: skip
-    client = connect_client(endpoint, mode="peer", low_latency=True)
+    client = connect_client(endpoint, mode=mode, low_latency=True)
     client.roster("sim").wait_for(2, timeout_s=60)
     link = client.link(poll_ms=2.0)
     link.claim()

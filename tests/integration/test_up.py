@@ -95,7 +95,7 @@ def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tm
     result = json.loads((run_dir / "result.json").read_text())
     assert result["stopped_early"] and 100 <= result["num_timesteps"] < 1_000_000
     assert (run_dir / "final_model.zip").is_file() and (run_dir / "train.monitor.csv").is_file()
-    for name in ("sim", "learner"):
+    for name in ("router", "sim", "learner"):
         assert "low-latency transport" in (run_dir / "logs" / f"{name}.log").read_text(), name
 
 
