@@ -185,7 +185,7 @@ def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
         }
     return result | {
         "topology": "peer",
-        "transport": "low-latency",
+        "transport": "low-latency" if WAYS[0].low_latency else "standard",
         "poll_ms": POLL_MS,
         "steps": steps,
         "rounds": rounds,

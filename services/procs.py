@@ -15,6 +15,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,12 +81,12 @@ class ProcessGroup:
         log.info("started %s (pid %d), log %s", name, process.pid, log_path)
         return service
 
-    def start_router(self, port: int | None = None, name: str = "router", *args: str) -> str:
-        """Start `swimm router` on a port (more flags in ``args``) and wait until it accepts connections; returns
-        its endpoint."""
+    def start_router(self, port: int | None = None, name: str = "router", flags: Sequence[str] = ()) -> str:
+        """Start `swimm router` on a port (with more ``flags``) and wait until it accepts connections; returns its
+        endpoint."""
         port = port or free_tcp_port()
         endpoint = f"tcp/127.0.0.1:{port}"
-        service = self.start(name, "router", "--listen", endpoint, *args)
+        service = self.start(name, "router", "--listen", endpoint, *flags)
         if not wait_for_port("127.0.0.1", port, timeout_s=20):
             raise RuntimeError(f"router did not listen on {endpoint} within 20 s:\n{service.log_tail()}")
         return endpoint

@@ -113,7 +113,7 @@ class LocalSystem:
         if self.settings.port:
             check_port_free(self.settings.port)
         low_latency = ("--low-latency",) if self.learn.zenoh.low_latency else ()  # both ends of a link must ask
-        endpoint = self.group.start_router(self.settings.port or None, "router", *low_latency)
+        endpoint = self.group.start_router(self.settings.port or None, flags=low_latency)
         common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
         common += low_latency
         sim_args = ["--train-envs", str(self.learn.envs), "--eval-envs", str(self.settings.sim_eval_envs)]

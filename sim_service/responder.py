@@ -62,18 +62,21 @@ class _Request:
     received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
 
 
+def largest_low_latency_image_size() -> int:
+    """The largest square RGB image whose observation a low-latency session can send."""
+    return math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
+
+
 def check_fits_low_latency(settings: SimSettings) -> None:
     """Refuse, before any world is built, observations too large for a low-latency session to send."""
     world = settings.world
     if not settings.zenoh.low_latency or not world.render:
         return
-    observation_bytes = 3 * world.image_size**2 + OBSERVATION_OVERHEAD_BYTES
-    if observation_bytes > LOW_LATENCY_MAX_MESSAGE_BYTES:
-        largest = math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
+    if world.image_size > largest_low_latency_image_size():
         raise ValueError(
             f"--low-latency sends messages of at most {LOW_LATENCY_MAX_MESSAGE_BYTES} bytes, and "
-            f"{world.image_size} px observations take up to {observation_bytes}: "
-            f"use --image-size {largest} or less, or leave --low-latency off"
+            f"{world.image_size} px observations take up to {3 * world.image_size**2 + OBSERVATION_OVERHEAD_BYTES}: "
+            f"use --image-size {largest_low_latency_image_size()} or less, or leave --low-latency off"
         )
 
 

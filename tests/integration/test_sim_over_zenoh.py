@@ -15,8 +15,7 @@ import zenoh
 from learner_service.link import StepRefused
 from services.messages import DIRECT_ROUTE, MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg, ObservationMsg
 from services.procs import free_tcp_port, wait_for_port
-from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
-from sim_service.responder import OBSERVATION_OVERHEAD_BYTES
+from sim_service.responder import largest_low_latency_image_size
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 from tests.integration.conftest import start_sim
@@ -76,10 +75,10 @@ def test_low_latency_links_step_identically_up_to_the_largest_image_they_carry(g
     """A low-latency sim and learner (as peers linked directly, or as clients of a low-latency router) give the
     in-process bytes; and the largest image a sim accepts with --low-latency (check_fits_low_latency) does cross
     such links, which a message over the transport's limit would not."""
-    endpoint = group.start_router(None, "router", "--low-latency")
+    endpoint = group.start_router(flags=("--low-latency",))
     low_latency_sim = ("--mode", mode, "--low-latency", "--poll-ms", "2")
     start_sim(group, endpoint, namespace, *low_latency_sim, "--eval-envs", "0")
-    largest = math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
+    largest = largest_low_latency_image_size()
     start_sim(group, endpoint, namespace, *low_latency_sim, "--train-envs", "0", "--image-size", str(largest),
               name="sim-large")  # fmt: skip
     client = connect_client(endpoint, mode=mode, low_latency=True)
