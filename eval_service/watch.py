@@ -1,8 +1,9 @@
 """`swimm eval --watch RUN_DIR`: score every new best model a training run saves, beside the training.
 
-The learner's evaluation callback saves ``best_model.zip`` and then, atomically, ``best_model.json`` (its
-score and step count). The watcher polls the JSON: a new ``num_timesteps`` there means a complete new zip.
-It copies the zip first (the learner may overwrite it at any time), evaluates the copy on its own claimed eval
+The learner's evaluation callback saves ``best_model.zip`` and then ``best_model.json`` (its score and step
+count), each written aside and renamed into place, so either file is always whole. The watcher polls the
+JSON: a new ``num_timesteps`` there means a new zip. It copies the zip first (the learner may replace it at
+any time), evaluates the copy on its own claimed eval
 env (released between evaluations), writes one run folder per checkpoint and publishes each summary on the
 metrics key. It stops when the run writes ``result.json`` (training over) and the last best model is scored,
 or on SIGTERM / Ctrl-C.

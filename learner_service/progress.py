@@ -8,17 +8,23 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 PROGRESS_FILE = "progress.json"
 
 
-def write_json_atomically(path: Path, data: dict[str, Any]) -> None:
-    """Write then rename, so a reader in another process never sees half a file."""
+def replace_atomically(path: Path, write: Callable[[Path], Any]) -> None:
+    """``write`` the new file beside ``path``, then rename it over ``path``: a reader in another process (`swimm up`,
+    `swimm eval --watch`) sees the old file or the new one, never half of one."""
     partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(data, indent=1))
+    write(partial)
     os.replace(partial, path)
+
+
+def write_json_atomically(path: Path, data: dict[str, Any]) -> None:
+    replace_atomically(path, lambda partial: partial.write_text(json.dumps(data, indent=1)))
 
 
 def read_progress(run_dir: Path) -> dict[str, Any] | None:

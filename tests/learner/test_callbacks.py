@@ -30,6 +30,7 @@ from learner_service.callbacks import (
 )
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.learn_settings import EvalSettings
+from learner_service.progress import replace_atomically
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from sim_service.settings import WorldSettings
@@ -107,6 +108,7 @@ def test_eval_saves_best_model_only_after_min_steps(tmp_path: Path) -> None:
     assert score["mean_return"] == pytest.approx(table["mean_return"].max())
     best_row = table.loc[table["mean_return"].idxmax()]
     assert score["num_timesteps"] == best_row["num_timesteps"]
+    assert not list(tmp_path.glob("*.partial"))  # each best model was written aside and renamed into place
 
     # Replaying the saved best model on the same seed by hand gives the returns the callback recorded.
     best = SAC.load(tmp_path / BEST_MODEL)
@@ -126,6 +128,22 @@ def test_eval_saves_best_model_only_after_min_steps(tmp_path: Path) -> None:
     assert score["mean_return"] == pytest.approx(np.mean(returns), abs=1e-3)
     env.close()
     eval_env.close()
+
+
+def test_a_replaced_file_keeps_its_old_bytes_until_the_new_ones_are_complete(tmp_path: Path) -> None:
+    """What `swimm eval --watch` relies on when it copies best_model.zip while the learner saves a newer one."""
+    path = tmp_path / BEST_MODEL
+    path.write_bytes(b"old model")
+    seen_while_writing: list[bytes] = []
+
+    def write(partial: Path) -> None:
+        partial.write_bytes(b"new mod")
+        seen_while_writing.append(path.read_bytes())
+        partial.write_bytes(b"new model")
+
+    replace_atomically(path, write)
+    assert seen_while_writing == [b"old model"]
+    assert path.read_bytes() == b"new model" and not list(tmp_path.glob("*.partial"))
 
 
 def test_checkpoints_every_n_steps_keep_the_newest_replay_buffer(tmp_path: Path) -> None:
