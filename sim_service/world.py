@@ -210,7 +210,13 @@ class World:
     def step(
         self, action: tuple[float, float, float, float], dive_mode: DiveMode = DiveMode.DEPTH_HOLD
     ) -> tuple[Telemetry, np.ndarray | None]:
-        """Advance one physics step with (sway, heave, surge, yaw) commands in [-1, 1]."""
+        """Advance one physics step with (sway, heave, surge, yaw) commands in [-1, 1].
+
+        The data's position- and velocity-dependent fields always describe the current state, as dm_control
+        keeps them: the thrusters' wrench is worked out from them, ``mj_step2`` integrates, and ``mj_step1``
+        brings them up to the new state. A plain ``mj_step`` would leave them one step behind its ``qpos``,
+        so the frame, the pose and the contacts an action is answered with would not yet show that action.
+        """
         d = self.data
         rotation = d.xmat[self._rover_body].reshape(3, 3)
         force, torque = self.rover.wrench(
@@ -220,8 +226,9 @@ class World:
         d.xfrc_applied[self._rover_body, 3:] = torque
         dolphin = self._prepared.dolphin if self._prepared is not None else self._swim()
         self._prepared = None
+        mujoco.mj_step2(self.model, d)
         self._pose_dolphin(dolphin)
-        mujoco.mj_step(self.model, d)
+        mujoco.mj_step1(self.model, d)
         return self._telemetry(dolphin), self._render()
 
     @property

@@ -66,6 +66,28 @@ def test_full_surge_reaches_bluerov2_top_speed(physics_world):
     assert forward_speed == pytest.approx(speed, rel=0.01)  # straight ahead, no sway or yaw
 
 
+def test_the_pose_answering_an_action_has_moved_by_the_velocity_it_reports(physics_world):
+    """Semi-implicit Euler: each step moves the rover by its new velocity times dt. A pose one step behind
+    (what a bare ``mj_step`` leaves in the position fields) would move by the previous step's velocity."""
+    previous, _ = physics_world.reset(5)
+    for _ in range(10):
+        telemetry, _ = physics_world.step((0, 0, 1, 0))
+        moved = (np.array(telemetry.rover_pos) - previous.rover_pos) / physics_world.dt
+        assert moved == pytest.approx(telemetry.rover_lin_vel, abs=1e-9)
+        assert np.linalg.norm(telemetry.rover_lin_vel) > np.linalg.norm(previous.rover_lin_vel) + 0.01  # speeding up
+        previous = telemetry
+
+
+def test_the_frame_answering_an_action_already_shows_it(camera_world):
+    def first_step(action):
+        camera_world.reset(3)
+        return camera_world.step(action)
+
+    (ahead, ahead_image), (astern, astern_image) = first_step((0, 0, 1, 1)), first_step((0, 0, -1, -1))
+    assert ahead.rover_pos != astern.rover_pos
+    assert np.abs(ahead_image.astype(int) - astern_image).sum() > 1000
+
+
 def test_full_yaw_turns_faster_than_the_dolphin_can(physics_world):
     physics_world.reset(5)
     end = run(physics_world, (0, 0, 0, 1), 10 * STEPS_PER_S)
