@@ -1,34 +1,43 @@
 """Simulator benchmark: in-process step+render rate vs the distributed lock-step round trip.
 
-Everything runs in one invocation on the same machine. `swimm router` and three `swimm sim` processes (one per
-way of serving, each in its own namespace) start first; then the steps are taken in rounds, and each round
-runs a block of in-process steps and a block through each sim, back to back. A virtual machine's speed
-drifts by a third within a minute; measured in rounds, every rate sees the same drift, so the ratios compare
-like with like. The four ways:
+Everything runs in one invocation on the same machine. `swimm router` starts first; then each way of serving
+is measured in turn, with only its own two processes running besides the router: a `swimm sim` and a learner
+process (this module run as a script). The learner takes the steps in rounds, each round a block of steps on
+a World of its own, in its own process, and the same block through the sim, back to back. A virtual machine's
+speed drifts by a third within a minute; measured in rounds, a way's served blocks and the in-process blocks
+they alternate with see the same drift, so each way's ratio compares like with like. The four ways:
 
-- peer, polling (the headline keys): the sim and this process join as Zenoh peers (the router introduces
-  them, each message goes directly from one to the other) over Zenoh's low-latency transport
-  (``--low-latency``), and each side polls for the next message for :data:`POLL_MS` before napping between
-  looks (`swimm sim --poll-ms`, ``ProxySettings.poll_ms``): how to serve one env when each process has a core
-  to itself;
-- peer, polling, standard transport (the ``standard_*`` keys): the same over Zenoh's default transport, which
-  shows what the low-latency one adds;
-- peer, blocking (the ``blocking_*`` keys): the standard transport, each side sleeping on its inbox at once,
-  as `swimm up` runs (there the processes share the cores with a training learner and the encoders);
+- peer, polling (the headline keys): the sim and the learner join as Zenoh peers (the router introduces
+  them, each message goes directly from one to the other) with Zenoh's low-latency setting
+  (``--low-latency``: its low-latency transport, one Zenoh thread a process), and each side polls for the
+  next message for :data:`POLL_MS` before napping between looks (`swimm sim --poll-ms`,
+  ``ProxySettings.poll_ms``): how to serve one env when each process has a core to itself;
+- peer, polling, standard Zenoh (the ``standard_*`` keys): the same with Zenoh's defaults, which shows what
+  the low-latency setting adds;
+- peer, blocking (the ``blocking_*`` keys): Zenoh's defaults, each side sleeping on its inbox at once, as
+  `swimm up` runs (there the processes share the cores with a training learner and the encoders);
 - client (the ``routed_*`` keys; what deploy/docker-compose.yml runs): every message goes through the router,
   both sides blocking.
 
 Each adds the msgpack codec, the Zenoh hops and the process switches to the in-process step, nothing else.
+One way at a time, because the others' idle processes are not idle enough: a polling sim that has run out of
+poll time still wakes every millisecond to look for work (services/polling.py), and three of them beside the
+headline way made its round trip 0.72-0.77 ms instead of 0.64-0.65. In a process of its own, each way's learner
+also gets the Zenoh threads its setting asks for, which a process fixes when it opens its first session.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
+import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -42,23 +51,34 @@ from services.settings import ZenohSettings
 from sim_service.world import World
 
 POLL_MS = 2.0  # the polling run's wait before sleeping, each side: longer than a round trip (about 1 ms)
-ROUNDS = 8  # blocks per way of serving; each round measures every way once
+ROUNDS = 8  # blocks per way of serving; each round measures the way and the in-process World once
 #: Untimed steps each way (and the in-process world) takes first. A fresh process's first few hundred frames
 #: are the slowest (Mesa compiles its shaders, caches fill): 1864 steps/s over the first 2000 in-process
 #: steps, 2427-2657 over the next ones.
 WARMUP_STEPS = 200
 DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs with
+LEARNER_TIMEOUT_S = 600.0
 
 
 @dataclass(frozen=True)
 class Way:
-    """One way of serving the env: its name, key prefix in the result, Zenoh mode, poll time (ms) and transport."""
+    """One way of serving the env: its name, key prefix in the result, Zenoh mode, poll time (ms) and setting."""
 
     name: str
     prefix: str
     mode: str
     poll_ms: float
     low_latency: bool = False
+
+    def zenoh_settings(self, endpoint: str) -> ZenohSettings:
+        return ZenohSettings(
+            mode=self.mode, connect=[endpoint], namespace=f"swimm/bench-{self.name}", low_latency=self.low_latency
+        )
+
+    def flags(self, endpoint: str) -> list[str]:
+        """The command-line flags that give a swimm process this way's Zenoh settings and poll time."""
+        flags = ["--mode", self.mode, "--connect", endpoint, "--namespace", f"swimm/bench-{self.name}"]
+        return flags + ["--low-latency"] * self.low_latency + ["--poll-ms", str(self.poll_ms)]
 
 
 #: The headline way first, as in the result.
@@ -68,19 +88,12 @@ WAYS = (
     Way("blocking", "blocking_", "peer", 0.0),
     Way("routed", "routed_", "client", 0.0),
 )
+WAYS_BY_NAME = {way.name: way for way in WAYS}
 
 
 def random_actions(steps: int, seed: int = 0) -> list[tuple[float, float, float, float]]:
     rng = np.random.default_rng(seed)
     return [tuple(float(x) for x in row) for row in rng.uniform(-1, 1, (steps, 4))]
-
-
-def _step_inprocess(world: World, actions: list) -> float:
-    """Seconds for one World in this process to take ``actions`` back to back."""
-    start = time.perf_counter()
-    for action in actions:
-        world.step(action)
-    return time.perf_counter() - start
 
 
 @dataclass
@@ -96,19 +109,23 @@ class Tally:
         return self.steps / self.seconds
 
 
+def step_inprocess(world: World, actions: list, tally: Tally) -> None:
+    """One World in this process takes ``actions`` back to back."""
+    start = time.perf_counter()
+    for action in actions:
+        world.step(action)
+    tally.seconds += time.perf_counter() - start
+    tally.steps += len(actions)
+
+
 class ServedEnv:
     """One env of a `swimm sim` process, claimed and reset, stepped lock-step from this process."""
 
-    def __init__(self, group: ProcessGroup, endpoint: str, way: Way, stack: ExitStack) -> None:
+    def __init__(self, way: Way, endpoint: str, stack: ExitStack) -> None:
         from learner_service.link import RemoteEnvLink, new_holder_id
 
         self.way = way
-        settings = ZenohSettings(
-            mode=way.mode, connect=[endpoint], namespace=f"swimm/bench-{way.name}", low_latency=way.low_latency
-        )
-        sim_args = ("--mode", way.mode, "--connect", endpoint, "--namespace", settings.namespace, "--eval-envs", "0")
-        sim_args += ("--low-latency",) if way.low_latency else ()
-        group.start(f"sim-{way.name}", "sim", *sim_args, "--poll-ms", str(way.poll_ms))
+        settings = way.zenoh_settings(endpoint)
         session = open_session(settings, role="bench")
         stack.callback(session.close)
         keys = Keys(settings.namespace)
@@ -146,43 +163,46 @@ def switch_interval(seconds: float) -> Iterator[None]:
         sys.setswitchinterval(before)
 
 
-def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
-    """``steps`` per way in all, taken in ``rounds`` blocks; the in-process rate over its blocks alike."""
+def measure_way(way: Way, endpoint: str, steps: int, rounds: int) -> dict[str, Tally]:
+    """The learner's half, in its own process: ``steps`` in-process and through the sim, in ``rounds`` blocks
+    each, alternating which of the two goes first."""
     actions = random_actions(steps)
-    blocks = np.array_split(np.arange(steps), rounds)
-    inprocess = Tally()
-    served = {way.prefix: Tally() for way in WAYS}
-    with (
-        tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp,
-        ProcessGroup(Path(tmp)) as group,
-        ExitStack() as stack,
-    ):
-        endpoint = group.start_router()
-        envs = [ServedEnv(group, endpoint, way, stack) for way in WAYS]
+    tallies = {"inprocess": Tally(), "served": Tally()}
+    with ExitStack() as stack:
         world = World()
         stack.callback(world.close)
         world.reset(1)
+        served = ServedEnv(way, endpoint, stack)
         warmup = random_actions(WARMUP_STEPS, seed=1)
-        _step_inprocess(world, warmup)
-        for env in envs:
-            env.step(warmup, Tally())
-        for round_index, block in enumerate(blocks):
-            block_actions = [actions[i] for i in block]
-            inprocess.seconds += _step_inprocess(world, block_actions)
-            inprocess.steps += len(block_actions)
-            first = round_index % len(envs)  # each way goes first in some round
-            for env in envs[first:] + envs[:first]:
-                env.step(block_actions, served[env.way.prefix])
-    result = {"inprocess_steps_per_s": round(inprocess.rate, 1)}
-    for way in WAYS:
-        tally = served[way.prefix]
-        round_trips = np.array(tally.round_trips)
-        result |= {
-            f"{way.prefix or 'distributed_'}steps_per_s": round(tally.rate, 1),
-            f"{way.prefix}ratio": round(tally.rate / inprocess.rate, 3),
-            f"{way.prefix}p50_ms": percentile_ms(round_trips, 50),
-            f"{way.prefix}p99_ms": percentile_ms(round_trips, 99),
-        }
+        step_inprocess(world, warmup, Tally())
+        served.step(warmup, Tally())
+        take = {"inprocess": partial(step_inprocess, world), "served": served.step}
+        for index, block in enumerate(np.array_split(np.arange(steps), rounds)):
+            for name in sorted(take, reverse=index % 2 == 1):
+                take[name]([actions[i] for i in block], tallies[name])
+    return tallies
+
+
+def run_learner(way: Way, endpoint: str, steps: int, rounds: int, group: ProcessGroup) -> dict[str, Tally]:
+    """:func:`measure_way` in a learner process of its own, started as `python -m bench.sim`."""
+    command = [sys.executable, "-m", "bench.sim", way.name, endpoint, str(steps), str(rounds)]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=LEARNER_TIMEOUT_S)
+    if done.returncode != 0:
+        sim_log = group.services[-1].log_tail()
+        raise RuntimeError(f"the {way.name} learner failed:\n{done.stderr[-3000:]}\nits sim's log:\n{sim_log}")
+    return {name: Tally(**fields) for name, fields in json.loads(done.stdout).items()}
+
+
+def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
+    """``steps`` per way, taken in ``rounds`` blocks, and as many in-process steps alternating with them."""
+    result: dict = {}
+    with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp, ProcessGroup(Path(tmp)) as group:
+        endpoint = group.start_router()
+        for way in WAYS:
+            sim = group.start(f"sim-{way.name}", "sim", *way.flags(endpoint), "--eval-envs", "0")
+            tallies = run_learner(way, endpoint, steps, rounds, group)
+            group.stop(sim)
+            result |= way_result(way, tallies["inprocess"], tallies["served"])
     return result | {
         "topology": "peer",
         "transport": "low-latency" if WAYS[0].low_latency else "standard",
@@ -192,5 +212,33 @@ def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
     }
 
 
+def way_result(way: Way, inprocess: Tally, served: Tally) -> dict:
+    """A way's keys: its rate, its ratio to the in-process blocks it alternated with, and their rate."""
+    round_trips = np.array(served.round_trips)
+    return {
+        f"{way.prefix}inprocess_steps_per_s": round(inprocess.rate, 1),
+        f"{way.prefix or 'distributed_'}steps_per_s": round(served.rate, 1),
+        f"{way.prefix}ratio": round(served.rate / inprocess.rate, 3),
+        f"{way.prefix}p50_ms": percentile_ms(round_trips, 50),
+        f"{way.prefix}p99_ms": percentile_ms(round_trips, 99),
+    }
+
+
 def percentile_ms(seconds: np.ndarray, q: float) -> float:
     return round(float(np.percentile(seconds, q)) * 1e3, 3)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The learner process of one way: prints its tallies as one JSON object."""
+    parser = argparse.ArgumentParser(description="one way's learner process of `swimm bench sim`")
+    parser.add_argument("way", choices=sorted(WAYS_BY_NAME))
+    parser.add_argument("endpoint")
+    parser.add_argument("steps", type=int)
+    parser.add_argument("rounds", type=int)
+    args = parser.parse_args(argv)
+    tallies = measure_way(WAYS_BY_NAME[args.way], args.endpoint, args.steps, args.rounds)
+    sys.stdout.write(json.dumps({name: vars(tally) for name, tally in tallies.items()}) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -21,7 +21,7 @@ class RouterSettings:
     )
     connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
     zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
-    low_latency: bool = False  # Zenoh's low-latency transport with the clients and peers that ask for it too
+    low_latency: bool = False  # Zenoh's low-latency transport (with the clients and peers that ask too), one thread
 
 
 class Router:

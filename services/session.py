@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import zenoh
 
@@ -28,6 +31,12 @@ PEER_LISTEN = "tcp/127.0.0.1:0"  # a peer's own listener when none is given: any
 #: messages (zenoh 1.10, measured: 49,130 bytes arrive, 49,150 do not). Services that send large messages
 #: check theirs against this before they start.
 LOW_LATENCY_MAX_MESSAGE_BYTES = 48_000
+#: Zenoh reads its runtimes' thread pools from this environment variable when a process opens its first session.
+ZENOH_RUNTIME_VARIABLE = "ZENOH_RUNTIME"
+#: Zenoh's five runtimes (application, acceptor, tx, rx, network) handed over to one pool of one worker thread.
+ONE_ZENOH_THREAD = (
+    "(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), net: (handover: app))"
+)
 
 
 class StartupTimeout(RuntimeError):
@@ -79,6 +88,29 @@ def use_low_latency_transport(config: zenoh.Config) -> None:
     )
 
 
+@contextmanager
+def zenoh_threads(settings: ZenohSettings) -> Iterator[None]:
+    """Open a low-latency session's process with one Zenoh worker thread instead of a pool per runtime.
+
+    By default each of Zenoh's runtimes has its own pool, and one received message wakes two or three of
+    their threads (the one that reads the socket, and others the scheduler wakes to share the work). On two
+    cores those threads preempt the lock-step worker that is stepping the World: the sim's worker was
+    switched out 2.2 times a step, and a served step took 0.43 ms against 0.27 in a loop. With one thread a
+    message wakes one thread; the round trip drops by a tenth (docs/benchmarks.md). Zenoh reads the setting once,
+    when the process opens its first session, so a later session shares whatever the first one chose; a
+    ``ZENOH_RUNTIME`` already in the environment is left alone. It is set only while the session opens, so
+    the processes this one starts do not inherit it.
+    """
+    if not settings.low_latency or ZENOH_RUNTIME_VARIABLE in os.environ:
+        yield
+        return
+    os.environ[ZENOH_RUNTIME_VARIABLE] = ONE_ZENOH_THREAD
+    try:
+        yield
+    finally:
+        del os.environ[ZENOH_RUNTIME_VARIABLE]
+
+
 def endpoints(config: zenoh.Config, direction: str = "connect") -> list[str] | dict[str, list[str]]:
     """The endpoints a config will ``connect`` to or ``listen`` on (a list, or a map per mode), for messages."""
     return json.loads(config.get_json(f"{direction}/endpoints"))
@@ -104,7 +136,8 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
     while True:
         attempt += 1
         try:
-            session = zenoh.open(config)
+            with zenoh_threads(settings):
+                session = zenoh.open(config)
             log.info(
                 "%s joined Zenoh as %s (connect=%s listen=%s%s)",
                 role,

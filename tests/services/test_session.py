@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
 import threading
 import time
 
@@ -76,6 +78,48 @@ def test_low_latency_asks_for_that_transport_without_qos_and_lets_only_one_of_tw
     assert strategy["peer"] == {"to_router": "always", "to_peer": "greater-zid"}
     standard = build_config(ZenohSettings(mode="peer"))
     assert json.loads(standard.get_json("transport/unicast/lowlatency")) is False
+
+
+ZENOH_THREADS_OF_A_PROCESS = """
+import glob, json, re, sys, time
+from services.session import open_session
+from services.settings import ZenohSettings
+
+endpoint, low_latency = sys.argv[1], sys.argv[2] == "low-latency"
+listener = open_session(ZenohSettings(mode="peer", listen=[endpoint], low_latency=low_latency))
+dialler = open_session(ZenohSettings(mode="peer", connect=[endpoint], low_latency=low_latency))
+received = []
+subscriber = listener.declare_subscriber("swimm/test-threads", lambda sample: received.append(1))
+deadline = time.monotonic() + 10
+while not received and time.monotonic() < deadline:  # until a message has crossed the link
+    dialler.put("swimm/test-threads", b"x")
+    time.sleep(0.05)
+names = [open(task + "/comm").read().strip() for task in glob.glob("/proc/self/task/*")]
+pools = sorted({name.split("-")[0] for name in names if re.fullmatch(r"(app|acc|tx|rx|net)-[0-9]+", name)})
+print(json.dumps({"received": bool(received), "pools": pools, "passed_on": "ZENOH_RUNTIME" in __import__("os").environ}))
+subscriber.undeclare()
+dialler.close()
+listener.close()
+"""
+
+
+@pytest.mark.parametrize("low_latency", [True, False])
+def test_a_low_latency_process_runs_zenoh_on_one_pool_and_does_not_pass_it_on(free_port, low_latency):
+    """Zenoh's threads, by name: one pool ('app') under low latency, a pool per runtime otherwise; and the
+    environment variable that chose it is gone again, so the processes this one starts choose for themselves."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    transport = "low-latency" if low_latency else "standard"
+    done = subprocess.run(
+        [sys.executable, "-c", ZENOH_THREADS_OF_A_PROCESS, endpoint, transport],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["received"] and not report["passed_on"]
+    if low_latency:
+        assert report["pools"] == ["app"]
+    else:
+        assert len(report["pools"]) > 1 and "rx" in report["pools"]
 
 
 def test_router_config_listens_and_connects_nowhere():
