@@ -1,12 +1,13 @@
 """`swimm eval --watch RUN_DIR`: score every new best model a training run saves, beside the training.
 
-The learner's evaluation callback saves ``best_model.zip`` and then ``best_model.json`` (its score and step
-count), each written aside and renamed into place, so either file is always whole. The watcher polls the
-JSON: a new ``num_timesteps`` there means a new zip. It copies the zip first (the learner may replace it at
-any time), evaluates the copy on its own claimed eval
-env (released between evaluations), writes one run folder per checkpoint and publishes each summary on the
-metrics key. It stops when the run writes ``result.json`` (training over) and the last best model is scored,
-or on SIGTERM / Ctrl-C.
+The learner's evaluation callback saves ``best_model.zip`` and then ``best_model.json`` (its score, step
+count and the zip's SHA-256), each written aside and renamed into place, so either file is always whole. The
+watcher polls the JSON: a new ``num_timesteps`` there means a new zip. It copies the zip first (the learner
+may replace it at any time) and keeps the copy only if its hash is the one the JSON gives: a zip replaced
+after the JSON was read belongs to the next JSON, and is taken at the next poll. It evaluates the copy on its
+own claimed eval env (released between evaluations), writes one run folder per checkpoint and publishes each
+summary on the metrics key. It stops when the run writes ``result.json`` (training over) and the last best
+model is scored, or on SIGTERM / Ctrl-C.
 
 The algorithm and observation mode come from the run's ``settings.json`` (a policy must be evaluated on what
 it was trained on); ``--algo`` overrides the algorithm for runs without one.
@@ -27,6 +28,7 @@ from typing import Any
 from eval_service.evaluator import Contender
 from eval_service.live import LiveFeed
 from eval_service.publish import ResultPublisher
+from learner_service.progress import file_sha256
 
 log = logging.getLogger(__name__)
 
@@ -37,11 +39,13 @@ RUN_FINISHED = "result.json"
 WATCH_TABLE = "watch.csv"
 
 
-def best_model_version(run_dir: Path) -> int | None:
-    """The ``num_timesteps`` of the saved best model, or None while there is none (or its JSON is unreadable)."""
+def best_model_version(run_dir: Path) -> tuple[int, str | None] | None:
+    """The ``num_timesteps`` of the saved best model and its zip's SHA-256 (None from runs that did not record
+    it), or None while there is none (or its JSON is unreadable)."""
     try:
-        return int(json.loads((run_dir / BEST_MODEL_SCORE).read_text())["num_timesteps"])
-    except (OSError, ValueError, KeyError, TypeError):
+        score = json.loads((run_dir / BEST_MODEL_SCORE).read_text())
+        return int(score["num_timesteps"]), score.get("model_sha256")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
 
 
@@ -62,13 +66,16 @@ class BestModelWatcher:
         self.seen: int | None = None
 
     def poll(self) -> tuple[int, Path] | None:
-        version = best_model_version(self.run_dir)
-        if version is None or version == self.seen:
+        found = best_model_version(self.run_dir)
+        if found is None or found[0] == self.seen:
             return None
+        version, sha256 = found
         self.copies.mkdir(parents=True, exist_ok=True)
         copy = self.copies / f"best-{version}.zip"
         shutil.copyfile(self.run_dir / BEST_MODEL, copy)
-        if best_model_version(self.run_dir) != version:  # overwritten while copying: take the newer one next poll
+        # A newer zip than the JSON read above: its own JSON follows, and the next poll takes it.
+        replaced = file_sha256(copy) != sha256 if sha256 else best_model_version(self.run_dir) != found
+        if replaced:
             copy.unlink()
             return None
         self.seen = version

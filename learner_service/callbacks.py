@@ -34,7 +34,7 @@ from tqdm import tqdm
 from eval_service.evaluator import play_episodes
 from eval_service.metrics import summarise
 from learner_service.learn_settings import EvalSettings
-from learner_service.progress import progress_postfix, replace_atomically, write_json_atomically
+from learner_service.progress import file_sha256, progress_postfix, replace_atomically, write_json_atomically
 from learner_service.registry import SB3Policy
 from learner_service.task import CAUSE_COLLISION, CAUSE_DISTANCE, CAUSE_VISIBILITY
 
@@ -121,6 +121,7 @@ class RolloutEvalCallback(BaseCallback):
             self.best_mean_return = summary["mean_return"]
             replace_atomically(self.save_dir / BEST_MODEL, self.model.save)  # `swimm eval --watch` copies it any time
             score = {"num_timesteps": self.num_timesteps, "evaluation": self.evaluations, **summary}
+            score["model_sha256"] = file_sha256(self.save_dir / BEST_MODEL)
             score["seed"], score["first_violations"] = self.settings.seed, dict(violations)
             write_json_atomically(self.save_dir / BEST_MODEL_SCORE, score)
         return summary

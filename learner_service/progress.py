@@ -6,6 +6,7 @@ watcher needs no session. Kept free of heavy imports so `swimm up` (in services/
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections.abc import Callable
@@ -21,6 +22,12 @@ def replace_atomically(path: Path, write: Callable[[Path], Any]) -> None:
     partial = path.with_name(path.name + ".partial")
     write(partial)
     os.replace(partial, path)
+
+
+def file_sha256(path: Path) -> str:
+    """The file's SHA-256 as hex: what ``best_model.json`` records of the zip it scores, so a reader can tell that
+    the zip it copied is the one the score belongs to."""
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def write_json_atomically(path: Path, data: dict[str, Any]) -> None:

@@ -7,6 +7,7 @@ columns: theta, d, the actions, the frustum flag) rather than comparing against 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import threading
 import urllib.parse
@@ -222,6 +223,25 @@ def test_watcher_waits_for_a_best_model_and_takes_each_version_once(tmp_path) ->
     (run / watch.BEST_MODEL_SCORE).write_text(json.dumps({"num_timesteps": 20}))
     assert watcher.poll() == (20, copies / "best-20.zip")
     assert (copies / "best-10.zip").read_bytes() == b"first" and (copies / "best-20.zip").read_bytes() == b"second"
+
+
+def test_watcher_keeps_a_copy_only_when_its_hash_is_the_one_the_score_gives(tmp_path) -> None:
+    """The learner replaced the zip after the watcher read the JSON, and has not yet written the new JSON: the
+    copy is of the newer model, so it must not be scored as the older version."""
+    run, copies = tmp_path / "run", tmp_path / "copies"
+    run.mkdir()
+    watcher = watch.BestModelWatcher(run, copies)
+
+    def save(model: bytes, version: int, recorded: bytes) -> None:
+        (run / watch.BEST_MODEL).write_bytes(model)
+        score = {"num_timesteps": version, "model_sha256": hashlib.sha256(recorded).hexdigest()}
+        (run / watch.BEST_MODEL_SCORE).write_text(json.dumps(score))
+
+    save(b"second", 10, recorded=b"first")  # the JSON of version 10, the zip already version 20's
+    assert watcher.poll() is None and not (copies / "best-10.zip").exists()
+    save(b"second", 20, recorded=b"second")
+    assert watcher.poll() == (20, copies / "best-20.zip")
+    assert (copies / "best-20.zip").read_bytes() == b"second"
 
 
 def test_noise_on_renders_the_same_episode_through_image_noise_in_process(tmp_path) -> None:

@@ -6,6 +6,7 @@ that records what the env itself returned, the best model's score against a repl
 
 from __future__ import annotations
 
+import hashlib
 import json
 import threading
 from collections import Counter
@@ -108,6 +109,7 @@ def test_eval_saves_best_model_only_after_min_steps(tmp_path: Path) -> None:
     assert score["mean_return"] == pytest.approx(table["mean_return"].max())
     best_row = table.loc[table["mean_return"].idxmax()]
     assert score["num_timesteps"] == best_row["num_timesteps"]
+    assert score["model_sha256"] == hashlib.sha256((tmp_path / BEST_MODEL).read_bytes()).hexdigest()
     assert not list(tmp_path.glob("*.partial"))  # each best model was written aside and renamed into place
 
     # Replaying the saved best model on the same seed by hand gives the returns the callback recorded.
