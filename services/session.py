@@ -95,9 +95,9 @@ def zenoh_threads(settings: ZenohSettings) -> Iterator[None]:
     By default each of Zenoh's runtimes has its own pool, and one received message wakes two or three of
     their threads (the one that reads the socket, and others the scheduler wakes to share the work). On two
     cores those threads preempt the lock-step worker that is stepping the World: the sim's worker was
-    switched out 2.2 times a step, and a served step took 0.43 ms against 0.27 in a loop. With one thread a
-    message wakes one thread: over eight pairs of runs the round trip's median was shorter in six, 0.687
-    against 0.711 ms (docs/benchmarks.md). Zenoh reads the setting once, when the process opens its first
+    switched out 2.2 times a step, and 0.6 to 0.95 times with one thread, where a message wakes one thread.
+    Over eight pairs of runs the round trip's median was shorter with one thread in six, 0.687 against
+    0.711 ms (docs/benchmarks.md). Zenoh reads the setting once, when the process opens its first
     session, so a later session shares whatever the first one chose; a ``ZENOH_RUNTIME`` already in the
     environment is left alone. It is set only while the session opens, so the processes this one starts do
     not inherit it.
