@@ -57,7 +57,8 @@ ROUNDS = 8  # blocks per way of serving; each round measures the way and the in-
 #: steps, 2427-2657 over the next ones.
 WARMUP_STEPS = 200
 DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs with
-LEARNER_TIMEOUT_S = 600.0
+#: How long a way's learner process may take: a start-up allowance, and 50 ms a step, 25 times a slow day's.
+LEARNER_START_S, LEARNER_S_PER_STEP = 120.0, 0.05
 
 
 @dataclass(frozen=True)
@@ -186,7 +187,8 @@ def measure_way(way: Way, endpoint: str, steps: int, rounds: int) -> dict[str, T
 def run_learner(way: Way, endpoint: str, steps: int, rounds: int, group: ProcessGroup) -> dict[str, Tally]:
     """:func:`measure_way` in a learner process of its own, started as `python -m bench.sim`."""
     command = [sys.executable, "-m", "bench.sim", way.name, endpoint, str(steps), str(rounds)]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=LEARNER_TIMEOUT_S)
+    timeout_s = LEARNER_START_S + LEARNER_S_PER_STEP * (steps + WARMUP_STEPS)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
     if done.returncode != 0:
         sim_log = group.services[-1].log_tail()
         raise RuntimeError(f"the {way.name} learner failed:\n{done.stderr[-3000:]}\nits sim's log:\n{sim_log}")
