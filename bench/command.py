@@ -25,6 +25,7 @@ class BenchSettings:
     algo: str = "sac"  # train: the learner
     envs: int = 16  # encoder: environments in the batched measurement
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
+    low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
 
 
 def run(settings: BenchSettings) -> int:
@@ -37,6 +38,7 @@ def run(settings: BenchSettings) -> int:
     if settings.target == "train":
         kwargs["algo"] = settings.algo
         kwargs["mode"] = settings.mode
+        kwargs["low_latency"] = settings.low_latency
     if settings.target == "encoder":
         kwargs["envs"] = settings.envs
     result = module.run(**kwargs)

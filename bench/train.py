@@ -119,16 +119,18 @@ def train(algo: str, vec_env, steps: int, services: dict[str, int]) -> TrainingR
     return TrainingRun(model.num_timesteps, elapsed, clock.rollout_s, episodes, cpu_ms)
 
 
-def run(steps: int = 1500, algo: str = "sac", mode: str = "peer") -> dict:
+def run(steps: int = 1500, algo: str = "sac", mode: str = "peer", low_latency: bool = False) -> dict:
     torch.set_num_threads(TORCH_THREADS)
     task = TaskSettings(obs="cmvae")
     with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
         checkpoint = encoder_checkpoint(Path(tmp))
-        endpoint = group.start_router()
-        common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE)
+        flags = ("--low-latency",) if low_latency else ()  # both ends of a link must ask, the router's too
+        endpoint = group.start_router(flags=flags)
+        common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE, *flags)
         group.start("sim", "sim", *common, "--eval-envs", "0")
         group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS))
-        proxy = ProxySettings(zenoh=ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE))
+        zenoh = ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency)
+        proxy = ProxySettings(zenoh=zenoh)
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
         distributed_env = make_vec_env("zenoh", task, proxy, base_seed=SEED)
         try:
@@ -144,6 +146,7 @@ def run(steps: int = 1500, algo: str = "sac", mode: str = "peer") -> dict:
     return {
         "algo": algo,
         "topology": mode,
+        "transport": "low-latency" if low_latency else "standard",
         "inprocess_steps_per_s": round(inprocess.steps_per_s, 1),
         "distributed_steps_per_s": round(distributed.steps_per_s, 1),
         "ratio": round(distributed.steps_per_s / inprocess.steps_per_s, 3),

@@ -44,10 +44,12 @@ def test_bench_sim_times_each_way_of_serving_against_the_in_process_steps_it_alt
         assert result[f"{prefix}p50_ms"] <= result[f"{prefix}p99_ms"]
 
 
-def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services() -> None:
-    result = bench("train", "--algo", "sac", "--steps", "300")
+@pytest.mark.parametrize("transport", ["standard", "low-latency"])
+def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services(transport: str) -> None:
+    flags = ("--low-latency",) if transport == "low-latency" else ()
+    result = bench("train", "--algo", "sac", "--steps", "300", *flags)
     assert_rates(result, "inprocess_steps_per_s", "distributed_steps_per_s")
-    assert (result["algo"], result["topology"]) == ("sac", "peer")
+    assert (result["algo"], result["topology"], result["transport"]) == ("sac", "peer", transport)
     assert result["steps"] >= 300 and result["episodes"] >= 1
     assert result["same_episodes"] is True  # the ratio compares the same training, step for step
     assert set(result["distributed_cpu_ms_per_step"]) == {"learner", "router", "sim", "encoder"}
