@@ -45,7 +45,7 @@ import numpy as np
 from services.keys import Keys
 from services.polling import POLLING_SWITCH_INTERVAL_S
 from services.presence import Roster, announce
-from services.procs import ProcessGroup
+from services.procs import ProcessGroup, Service
 from services.session import open_session
 from services.settings import ZenohSettings
 from sim_service.world import World
@@ -185,14 +185,13 @@ def measure_way(way: Way, endpoint: str, steps: int, rounds: int) -> dict[str, T
     return tallies
 
 
-def run_learner(way: Way, endpoint: str, steps: int, rounds: int, group: ProcessGroup) -> dict[str, Tally]:
-    """:func:`measure_way` in a learner process of its own, started as `python -m bench.sim`."""
+def run_learner(way: Way, endpoint: str, steps: int, rounds: int, sim: Service) -> dict[str, Tally]:
+    """:func:`measure_way` in a learner process of its own (`python -m bench.sim`), stepping ``sim``."""
     command = [sys.executable, "-m", "bench.sim", way.name, endpoint, str(steps), str(rounds)]
     timeout_s = LEARNER_START_S + LEARNER_S_PER_STEP * (steps + WARMUP_STEPS)
     done = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
     if done.returncode != 0:
-        sim_log = group.services[-1].log_tail()
-        raise RuntimeError(f"the {way.name} learner failed:\n{done.stderr[-3000:]}\nits sim's log:\n{sim_log}")
+        raise RuntimeError(f"the {way.name} learner failed:\n{done.stderr[-3000:]}\nits sim's log:\n{sim.log_tail()}")
     return {name: Tally(**fields) for name, fields in json.loads(done.stdout).items()}
 
 
@@ -203,7 +202,7 @@ def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
         endpoint = group.start_router()
         for way in WAYS:
             sim = group.start(f"sim-{way.name}", "sim", *way.flags(endpoint), "--eval-envs", "0")
-            tallies = run_learner(way, endpoint, steps, rounds, group)
+            tallies = run_learner(way, endpoint, steps, rounds, sim)
             group.stop(sim)
             result |= way_result(way, tallies["inprocess"], tallies["served"])
     return result | {
