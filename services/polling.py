@@ -10,7 +10,7 @@ The price is a busy core while waiting, so polling is a setting, off by default:
 has a core of its own (one env served to one learner), not where the sim, the encoders and a training learner
 share two cores, since a poller then takes CPU from the very process it waits for. Even idle, once its poll
 time has run out, a poller looks for work every millisecond: an idle `swimm sim --poll-ms 2` used 3% of a
-core, and three of them beside a busy lock-step pair on two cores made its round trip a tenth longer.
+core, and three of them beside a busy lock-step pair on two cores made its round trip 11 to 18% longer.
 
 A message handed over by a Python callback needs the GIL on the Zenoh thread that received it, and a poller
 keeps taking the GIL back. :class:`Inbox` lets a polling worker read Zenoh's own FIFO channels instead, so
