@@ -70,18 +70,20 @@ def test_client_config_has_explicit_endpoints_and_no_multicast_scouting():
     assert json.loads(config.get_json("scouting/multicast/enabled")) is False
 
 
-def test_low_latency_asks_for_that_transport_without_qos_and_lets_only_one_of_two_peers_dial():
+def test_low_latency_asks_for_that_transport_without_qos_or_shared_memory_and_lets_one_of_two_peers_dial():
     config = build_config(ZenohSettings(mode="peer", low_latency=True))
     assert json.loads(config.get_json("transport/unicast/lowlatency")) is True
     assert json.loads(config.get_json("transport/unicast/qos/enabled")) is False  # Zenoh refuses both at once
+    assert json.loads(config.get_json("transport/shared_memory/enabled")) is False  # slower for lock-step frames
     strategy = json.loads(config.get_json("scouting/gossip/autoconnect_strategy"))
     assert strategy["peer"] == {"to_router": "always", "to_peer": "greater-zid"}
     standard = build_config(ZenohSettings(mode="peer"))
     assert json.loads(standard.get_json("transport/unicast/lowlatency")) is False
+    assert json.loads(standard.get_json("transport/shared_memory/enabled")) is True
 
 
 ZENOH_THREADS_OF_A_PROCESS = """
-import glob, json, re, sys, time
+import glob, json, os, re, sys, time
 from services.session import open_session
 from services.settings import ZenohSettings
 
@@ -96,7 +98,7 @@ while not received and time.monotonic() < deadline:  # until a message has cross
     time.sleep(0.05)
 names = [open(task + "/comm").read().strip() for task in glob.glob("/proc/self/task/*")]
 pools = sorted({name.split("-")[0] for name in names if re.fullmatch(r"(app|acc|tx|rx|net)-[0-9]+", name)})
-print(json.dumps({"received": bool(received), "pools": pools, "passed_on": "ZENOH_RUNTIME" in __import__("os").environ}))
+print(json.dumps({"received": bool(received), "pools": pools, "passed_on": "ZENOH_RUNTIME" in os.environ}))
 subscriber.undeclare()
 dialler.close()
 listener.close()
