@@ -49,7 +49,7 @@ class ZenohSettings:
     zenoh_config: str | None = None  # a Zenoh JSON5 config file; endpoints given as flags override its own
     namespace: str = "swimm/default"
     startup_timeout_s: float = 60.0  # how long to wait for the router or peers at start
-    low_latency: bool = False  # Zenoh's low-latency transport and one Zenoh thread: faster lock-step, messages < 48 KB
+    low_latency: bool = False  # lock-step Zenoh: low-latency transport (messages < 48 KB), one thread, no shared memory
 
 
 @dataclasses.dataclass(frozen=True)
