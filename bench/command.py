@@ -1,7 +1,10 @@
-"""`swimm bench sim | encoder | train [--json]`: ratios measured side by side in one run.
+"""`swimm bench sim | encoder | train [--json] [--repeat N]`: ratios measured side by side in one run.
 
 Benchmarks are not pass/fail: they print what they measured (one JSON
 object with ``--json``) so targets can be compared across machines.
+On a virtual machine one run's ratio varies by about a tenth either way
+(docs/benchmarks.md), so ``--repeat N`` runs it N times and reports the
+median of each number, with every run's result under ``runs``.
 """
 
 from __future__ import annotations
@@ -9,6 +12,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import statistics
 import sys
 from dataclasses import dataclass, field
 
@@ -26,6 +30,7 @@ class BenchSettings:
     envs: int = 16  # encoder: environments in the batched measurement
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
+    repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
 
 
 def run(settings: BenchSettings) -> int:
@@ -33,6 +38,8 @@ def run(settings: BenchSettings) -> int:
         raise ValueError(f"unknown benchmark {settings.target!r}; choose one of {', '.join(BENCHMARKS)}")
     if settings.mode not in ("peer", "client"):
         raise ValueError(f"--mode must be peer or client, got {settings.mode!r}")
+    if settings.repeat < 1:
+        raise ValueError(f"--repeat must be at least 1, got {settings.repeat}")
     module = importlib.import_module(BENCHMARKS[settings.target])
     kwargs = {"steps": settings.steps} if settings.steps else {}
     if settings.target == "train":
@@ -41,11 +48,39 @@ def run(settings: BenchSettings) -> int:
         kwargs["low_latency"] = settings.low_latency
     if settings.target == "encoder":
         kwargs["envs"] = settings.envs
-    result = module.run(**kwargs)
+    runs = []
+    for index in range(settings.repeat):
+        runs.append(module.run(**kwargs))
+        if settings.repeat > 1:
+            log.info("run %d of %d: %s", index + 1, settings.repeat, headline(runs[-1]))
+    result = runs[0] if settings.repeat == 1 else medians(runs) | {"repeat": settings.repeat, "runs": runs}
     if settings.json:
         sys.stdout.write(json.dumps(result) + "\n")
     else:
-        width = max(len(k) for k in result)
-        for key, value in result.items():
+        table = {key: value for key, value in result.items() if key != "runs"}  # each run's numbers: --json
+        width = max(len(k) for k in table)
+        for key, value in table.items():
             sys.stdout.write(f"{key:<{width}}  {value}\n")
     return 0
+
+
+def medians(runs: list[dict]) -> dict:
+    """One result from several: each number's median, each flag true only if true in every run, the rest
+    (names, settings, nested tables) as the first run gave them."""
+    merged = {}
+    for key, first in runs[0].items():
+        values = [run[key] for run in runs]
+        if isinstance(first, bool):
+            merged[key] = all(values)
+        elif all(value == first for value in values):
+            merged[key] = first
+        elif isinstance(first, (int, float)):
+            merged[key] = round(float(statistics.median(values)), 3)
+        else:
+            merged[key] = first
+    return merged
+
+
+def headline(result: dict) -> str:
+    """The keys a person watches while the runs go by: the rates and the ratio."""
+    return ", ".join(f"{key} {value}" for key, value in result.items() if key.endswith(("ratio", "_per_s")))

@@ -34,14 +34,18 @@ def assert_rates(result: dict, *keys: str) -> None:
 
 
 def test_bench_sim_times_each_way_of_serving_against_the_in_process_steps_it_alternated_with() -> None:
-    result = bench("sim", "--steps", "200")
-    assert result["topology"] == "peer" and result["poll_ms"] > 0 and result["steps"] == 200 and result["rounds"] > 1
-    assert result["transport"] == "low-latency"
-    for prefix in ("", "standard_", "blocking_", "routed_"):
-        rate, inprocess = f"{prefix or 'distributed_'}steps_per_s", f"{prefix}inprocess_steps_per_s"
-        assert_rates(result, inprocess, rate, f"{prefix}p50_ms")
-        assert result[f"{prefix}ratio"] == pytest.approx(result[rate] / result[inprocess], 1e-2)
-        assert result[f"{prefix}p50_ms"] <= result[f"{prefix}p99_ms"]
+    """Two runs (``--repeat 2``): each one's numbers, and their medians at the top."""
+    result = bench("sim", "--steps", "200", "--repeat", "2")
+    assert result["repeat"] == 2 and len(result["runs"]) == 2
+    for run in result["runs"]:
+        assert run["topology"] == "peer" and run["poll_ms"] > 0 and run["steps"] == 200 and run["rounds"] > 1
+        assert run["transport"] == "low-latency"
+        for prefix in ("", "standard_", "blocking_", "routed_"):
+            rate, inprocess = f"{prefix or 'distributed_'}steps_per_s", f"{prefix}inprocess_steps_per_s"
+            assert_rates(run, inprocess, rate, f"{prefix}p50_ms")
+            assert run[f"{prefix}ratio"] == pytest.approx(run[rate] / run[inprocess], 1e-2)
+            assert run[f"{prefix}p50_ms"] <= run[f"{prefix}p99_ms"]
+    assert result["ratio"] == pytest.approx(sum(run["ratio"] for run in result["runs"]) / 2, abs=1e-3)
 
 
 @pytest.mark.parametrize("transport", ["standard", "low-latency"])

@@ -1,0 +1,26 @@
+"""`swimm bench --repeat N`: how several runs' results become one."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.command import BenchSettings, medians, run
+
+
+def test_repeated_runs_report_each_numbers_median_and_a_flag_only_when_every_run_raised_it() -> None:
+    fixed = {"steps": 2000, "transport": "low-latency"}
+    runs = [
+        {"ratio": 0.48, "p50_ms": 0.70, "same_episodes": True, "cpu": {"sim": 1.0}, **fixed},
+        {"ratio": 0.56, "p50_ms": 0.60, "same_episodes": False, "cpu": {"sim": 2.0}, **fixed},
+        {"ratio": 0.51, "p50_ms": 0.65, "same_episodes": True, "cpu": {"sim": 3.0}, **fixed},
+    ]
+    merged = medians(runs)
+    assert merged["ratio"] == 0.51 and merged["p50_ms"] == 0.65
+    assert merged["steps"] == 2000 and isinstance(merged["steps"], int)  # the same in every run: kept as it is
+    assert merged["same_episodes"] is False  # one run played other episodes
+    assert merged["transport"] == "low-latency" and merged["cpu"] == {"sim": 1.0}  # not numbers: the first run's
+
+
+def test_repeat_below_one_is_refused_before_anything_runs() -> None:
+    with pytest.raises(ValueError, match="--repeat must be at least 1"):
+        run(BenchSettings(target="sim", repeat=0))
