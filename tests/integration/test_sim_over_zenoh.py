@@ -98,12 +98,14 @@ def test_low_latency_links_step_identically_up_to_the_largest_image_they_carry(g
     large.close()
 
 
-def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client, namespace, tmp_path):
+@pytest.mark.parametrize("transport", ["standard", "low-latency"])
+def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client, namespace, tmp_path, transport):
+    flags = ("--low-latency",) if transport == "low-latency" else ()  # router, sim and client alike
     port = free_tcp_port()
-    endpoint = group.start_router(port)
+    endpoint = group.start_router(port, flags=flags)
     router = group.services[-1]
-    start_sim(group, endpoint, namespace)
-    client = connect_client(endpoint)
+    start_sim(group, endpoint, namespace, *flags)
+    client = connect_client(endpoint, low_latency=bool(flags))
     client.roster("sim").wait_for(1, timeout_s=60)
     link = client.link(step_timeout_s=0.5, max_retries=40)
     link.claim()
@@ -117,7 +119,7 @@ def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client,
         if i == 100:  # kill the router mid-episode and bring it back on the same endpoint
             group.stop(router, kill=True)
             killed_at = time.monotonic()
-            group.start("router-2", "router", "--listen", endpoint)
+            group.start("router-2", "router", "--listen", endpoint, *flags)
             assert wait_for_port("127.0.0.1", port, timeout_s=20)
         link.send_action(action)
         replies.append(link.wait())
