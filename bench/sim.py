@@ -45,7 +45,7 @@ import numpy as np
 from services.keys import Keys
 from services.polling import POLLING_SWITCH_INTERVAL_S
 from services.presence import Roster, announce
-from services.procs import ProcessGroup, Service
+from services.procs import ProcessGroup, Service, low_latency_flags
 from services.session import open_session
 from services.settings import ZenohSettings
 from sim_service.world import World
@@ -72,15 +72,17 @@ class Way:
     poll_ms: float
     low_latency: bool = False
 
+    @property
+    def namespace(self) -> str:
+        return f"swimm/bench-{self.name}"
+
     def zenoh_settings(self, endpoint: str) -> ZenohSettings:
-        return ZenohSettings(
-            mode=self.mode, connect=[endpoint], namespace=f"swimm/bench-{self.name}", low_latency=self.low_latency
-        )
+        return ZenohSettings(mode=self.mode, connect=[endpoint], namespace=self.namespace, low_latency=self.low_latency)
 
     def flags(self, endpoint: str) -> list[str]:
         """The command-line flags that give a swimm process this way's Zenoh settings and poll time."""
-        flags = ["--mode", self.mode, "--connect", endpoint, "--namespace", f"swimm/bench-{self.name}"]
-        return flags + ["--low-latency"] * self.low_latency + ["--poll-ms", str(self.poll_ms)]
+        flags = ["--mode", self.mode, "--connect", endpoint, "--namespace", self.namespace]
+        return [*flags, *low_latency_flags(self.low_latency), "--poll-ms", str(self.poll_ms)]
 
 
 #: The headline way first, as in the result.

@@ -39,7 +39,7 @@ from learner_service.envs import make_vec_env
 from learner_service.proxy_env import ProxySettings
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
-from services.procs import ProcessGroup
+from services.procs import ProcessGroup, low_latency_flags
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -124,7 +124,7 @@ def run(steps: int = 1500, algo: str = "sac", mode: str = "peer", low_latency: b
     task = TaskSettings(obs="cmvae")
     with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
         checkpoint = encoder_checkpoint(Path(tmp))
-        flags = ("--low-latency",) if low_latency else ()  # both ends of a link must ask, the router's too
+        flags = low_latency_flags(low_latency)
         endpoint = group.start_router(flags=flags)
         common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE, *flags)
         group.start("sim", "sim", *common, "--eval-envs", "0")

@@ -22,6 +22,15 @@ from pathlib import Path
 log = logging.getLogger(__name__)
 
 
+def low_latency_flags(low_latency: bool) -> tuple[str, ...]:
+    """The flag that gives a started swimm process Zenoh's low-latency setting (``ZenohSettings.low_latency``).
+
+    A link uses the low-latency transport only when both its ends ask for it, so whoever starts a set of
+    processes passes the same flag to each of them, the router included.
+    """
+    return ("--low-latency",) if low_latency else ()
+
+
 def free_tcp_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

@@ -21,7 +21,7 @@ class RouterSettings:
     )
     connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
     zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
-    low_latency: bool = False  # Zenoh's low-latency transport (with the clients and peers that ask too), one thread
+    low_latency: bool = False  # lock-step Zenoh, as ZenohSettings.low_latency: with the clients and peers that ask too
 
 
 class Router:

@@ -40,7 +40,7 @@ from learner_service.progress import progress_postfix, read_progress
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
 from services.presence import Roster
-from services.procs import ProcessGroup, Service
+from services.procs import ProcessGroup, Service, low_latency_flags
 from services.session import open_session
 from services.settings import ZenohSettings, to_dict
 
@@ -112,7 +112,7 @@ class LocalSystem:
         """Router, sim and encoders, each waited for; returns the router's endpoint."""
         if self.settings.port:
             check_port_free(self.settings.port)
-        low_latency = ("--low-latency",) if self.learn.zenoh.low_latency else ()  # both ends of a link must ask
+        low_latency = low_latency_flags(self.learn.zenoh.low_latency)
         endpoint = self.group.start_router(self.settings.port or None, flags=low_latency)
         common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
         common += low_latency
