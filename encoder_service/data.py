@@ -36,6 +36,7 @@ class Batch:
     images: np.ndarray  # uint8 (B, 64, 64, 3) RGB
     labels: np.ndarray  # float32 (B, 3): d m, theta deg (signed azimuth), psi deg
     indices: np.ndarray  # int64 (B,): dataset rows, to pair a frame with its twin in another dataset
+    clean: np.ndarray | None = None  # uint8 (B, 64, 64, 3): paired datasets' frames before noise, else None
 
 
 class CMVAEDataset:
@@ -46,10 +47,13 @@ class CMVAEDataset:
         self.meta = _read_meta(self.root)
         self._images: list[np.ndarray] = []
         self._labels: list[np.ndarray] = []
+        self._clean: list[np.ndarray] = []
         for shard in self.meta["shards"]:
             images, labels = _open_shard(self.root, shard)
             self._images.append(images)
             self._labels.append(labels)
+            if self.paired:
+                self._clean.append(_open_clean(self.root, shard, len(images)))
         sizes = [len(images) for images in self._images]
         if sum(sizes) != self.meta["count"]:
             raise DatasetFormatError(
@@ -64,6 +68,11 @@ class CMVAEDataset:
     @property
     def seed(self) -> int:
         return int(self.meta["seed"])
+
+    @property
+    def paired(self) -> bool:
+        """True when each (noisy) frame has its clean render beside it (`swimm dataset --paired`)."""
+        return bool(self.meta.get("paired", False))
 
     def read_labels(self, indices: np.ndarray) -> np.ndarray:
         """Labels of rows ``indices`` only (no image reads), float32 (len, 3)."""
@@ -86,6 +95,7 @@ class CMVAEDataset:
             raise IndexError(f"row indices must lie in [0, {len(self)}), got {indices.min()}..{indices.max()}")
         images = np.empty((len(indices), *IMAGE_SHAPE), dtype=np.uint8)
         labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        clean = np.empty_like(images) if self.paired else None
         order = np.argsort(indices, kind="stable")
         shard_of = np.searchsorted(self._starts, indices[order], side="right") - 1
         for shard in np.unique(shard_of):
@@ -93,7 +103,9 @@ class CMVAEDataset:
             rows = indices[positions] - self._starts[shard]
             images[positions] = self._images[shard][rows]
             labels[positions] = self._labels[shard][rows]
-        return Batch(images=images, labels=labels, indices=indices)
+            if clean is not None:
+                clean[positions] = self._clean[shard][rows]
+        return Batch(images=images, labels=labels, indices=indices, clean=clean)
 
 
 def _read_meta(root: Path) -> dict[str, Any]:
@@ -138,6 +150,16 @@ def _open_shard(root: Path, shard: str) -> tuple[np.ndarray, np.ndarray]:
     if len(images) != len(labels):
         raise DatasetFormatError(f"{root / shard}: {len(images)} images but {len(labels)} labels")
     return images, labels
+
+
+def _open_clean(root: Path, shard: str, count: int) -> np.ndarray:
+    path = root / f"{shard}.clean.npy"
+    if not path.is_file():
+        raise DatasetFormatError(f"meta.json says the dataset is paired, but shard file {path} is missing")
+    clean = np.load(path, mmap_mode="r")
+    if clean.dtype != np.uint8 or clean.shape != (count, *IMAGE_SHAPE):
+        raise DatasetFormatError(f"{path}: expected uint8 ({count}, {', '.join(map(str, IMAGE_SHAPE))}), got {clean.dtype} {clean.shape}")
+    return clean
 
 
 def split_indices(count: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -57,6 +57,7 @@ class TrainEncoderSettings:
     init: str = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
     mirror: float = 0.5  # share of training frames flipped left-right (theta and psi change sign); 0 = off
     psi_loss: str = "mse"  # mse (the SPEC's) | l1: psi's absolute error, least at the likelier of two views
+    clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -111,7 +112,25 @@ def mirror_batch(batch: Batch, flip: np.ndarray) -> Batch:
     labels = batch.labels.copy()
     images[flip] = images[flip, :, ::-1]
     labels[flip, 1:] *= -1.0
-    return Batch(images=images, labels=labels, indices=batch.indices)
+    clean = None
+    if batch.clean is not None:
+        clean = batch.clean.copy()
+        clean[flip] = clean[flip, :, ::-1]
+    return Batch(images=images, labels=labels, indices=batch.indices, clean=clean)
+
+
+def inputs_and_targets(batch: Batch, feed_clean: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The frames the encoder reads and the frames the decoder must draw.
+
+    A paired dataset's decoder target is always the clean frame, whichever frame went in: learning to draw the
+    clean scene from a noisy view is what makes the latent ignore the noise (a denoising autoencoder). The
+    rows picked by ``feed_clean`` go in clean, the rest noisy; an unpaired batch is its own target.
+    """
+    if batch.clean is None:
+        return batch.images, batch.images
+    if feed_clean is None:
+        return batch.images, batch.clean
+    return np.where(feed_clean[:, None, None, None], batch.clean, batch.images), batch.clean
 
 
 def _train_epoch(
@@ -131,6 +150,7 @@ def _train_epoch(
     )
     n_batches = count_batches(len(indices), settings.batch_size, settings.max_batches_per_epoch)
     flips = np.random.default_rng((settings.seed, epoch, 1))
+    feeds = np.random.default_rng((settings.seed, epoch, 3))
     with tqdm(
         prefetch(batches),
         total=n_batches,
@@ -142,9 +162,10 @@ def _train_epoch(
         for batch in bar:
             if settings.mirror > 0:
                 batch = mirror_batch(batch, flips.random(len(batch.indices)) < settings.mirror)
-            images = images_to_tensor(batch.images, device)
+            inputs, targets = inputs_and_targets(batch, feeds.random(len(batch.indices)) < settings.clean_share)
             labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
-            loss = cmvae_loss(model(images), images, labels, settings.beta, settings.psi_loss)
+            outputs = model(images_to_tensor(inputs, device))
+            loss = cmvae_loss(outputs, images_to_tensor(targets, device), labels, settings.beta, settings.psi_loss)
             optimiser.zero_grad(set_to_none=True)
             loss.total.backward()
             optimiser.step()
@@ -181,8 +202,10 @@ def recalibrate_batch_norm(
         layer.reset_running_stats()
         layer.momentum = None  # a plain average over the batches below
     model.train()
+    feeds = np.random.default_rng((settings.seed, epoch, 4))
     for batch in iter_batches(dataset, indices, settings.batch_size, (settings.seed, epoch, 2), settings.bn_batches):
-        model(images_to_tensor(batch.images, device), sample=False)  # eval decodes mu, so the decoder's layers see mu
+        inputs, _ = inputs_and_targets(batch, feeds.random(len(batch.indices)) < settings.clean_share)
+        model(images_to_tensor(inputs, device), sample=False)  # eval decodes mu, so the decoder's layers see mu
     for layer, momentum in zip(layers, momenta, strict=True):
         layer.momentum = momentum
 
@@ -196,17 +219,23 @@ def validate(
     beta: float,
     device: torch.device,
     psi_loss: str = "mse",
+    feed_clean: bool = False,
 ) -> dict[str, float]:
-    """Mean losses on ``indices`` with z = mu, plus the MAE of each label in physical units."""
+    """Mean losses on ``indices`` with z = mu, plus the MAE of each label in physical units.
+
+    A paired dataset is read noisy (its ``images``) unless ``feed_clean``; the decoder's target is its clean frame.
+    """
     model.eval()
     totals: dict[str, float] = {}
     errors = np.zeros(len(LABEL_NAMES))
     seen = 0
     for batch in prefetch(iter_batches(dataset, indices, batch_size)):
-        images = images_to_tensor(batch.images, device)
+        chosen = np.full(len(batch.indices), feed_clean)
+        inputs, targets = inputs_and_targets(batch, chosen)
         labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
-        outputs = model(images)
-        for key, value in cmvae_loss(outputs, images, labels, beta, psi_loss).as_floats().items():
+        outputs = model(images_to_tensor(inputs, device))
+        targets_t = images_to_tensor(targets, device)
+        for key, value in cmvae_loss(outputs, targets_t, labels, beta, psi_loss).as_floats().items():
             totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
         predicted = denormalise_labels(outputs.state.float().cpu().numpy())
         errors += label_errors(predicted, batch.labels).sum(axis=0)
@@ -214,6 +243,22 @@ def validate(
     metrics = _mean(totals, seen)
     for name, error in zip(LABEL_NAMES, errors, strict=True):
         metrics[f"mae_{name}"] = float(error / max(seen, 1))
+    return metrics
+
+
+def validate_all(
+    model: CMVAE, dataset: CMVAEDataset, indices: np.ndarray, settings: TrainEncoderSettings, device: torch.device
+) -> dict[str, float]:
+    """`validate`; on a paired dataset both noisy and clean inputs, ``total`` their mean and ``clean_*`` the latter's.
+
+    Early stopping and ``best.pt`` then favour a model good on both, not one that gave up clean frames for noisy.
+    """
+    args = (model, dataset, indices, settings.batch_size, settings.beta, device, settings.psi_loss)
+    metrics = validate(*args)
+    if dataset.paired:
+        clean = validate(*args, feed_clean=True)
+        metrics |= {f"clean_{key}": value for key, value in clean.items()}
+        metrics["total"] = (metrics["total"] + clean["total"]) / 2.0
     return metrics
 
 
@@ -295,9 +340,7 @@ def run(settings: TrainEncoderSettings) -> int:
             for epoch in range(start_epoch, settings.epochs):
                 train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device)
                 recalibrate_batch_norm(model, dataset, train_rows, settings, epoch, device)
-                metrics = validate(
-                    model, dataset, val_rows, settings.batch_size, settings.beta, device, settings.psi_loss
-                )
+                metrics = validate_all(model, dataset, val_rows, settings, device)
                 epochs_run += 1
                 val_loss = metrics["total"]
                 history.append({"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss})

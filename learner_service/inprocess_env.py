@@ -15,9 +15,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from learner_service.proxy_env import NOISE_OPTION
 from learner_service.task import Frame, TaskSettings, TrackingTask, episode_seed
 from services.messages import DiveMode
 from services.telemetry import Telemetry
+from sim_service.noise import noise_option
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -65,13 +67,18 @@ class TrackingEnv(gym.Env):
         return self._encoder
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict[str, Any]]:
-        """Next episode; a ``seed`` restarts the run's episode sequence at episode 1 of base seed ``seed``."""
+        """Next episode; a ``seed`` restarts the run's episode sequence at episode 1 of base seed ``seed``.
+
+        ``options={"noise": ...}`` switches image noise as a distributed sim's reset does: true, false or a map of
+        noise settings, kept for the episodes after it.
+        """
         super().reset(seed=seed)
+        noise = noise_option((options or {}).get(NOISE_OPTION))
         if seed is not None:
             self.base_seed, self.episode = seed, 0
         self.episode += 1
         world_seed = episode_seed(self.base_seed, self.episode)
-        telemetry, image = self.world.reset(world_seed)
+        telemetry, image = self.world.reset(world_seed, noise)
         obs = self.task.reset(self._frame(telemetry, image), seed=world_seed)
         info = self.task.info(telemetry) | {"ep": self.episode, "seed": world_seed}
         log.debug(

@@ -164,8 +164,9 @@ class RemoteEnvLink:
         return rendezvous_choice(f"{self.channel}/{self.env}", members)
 
     # --- stepping ----------------------------------------------------------------------------------
-    def send_reset(self, ep: int, seed: int, noise: bool | None = None) -> None:
-        """Start episode ``ep``; ``noise`` switches the sim's image noise (None: leave it as it is)."""
+    def send_reset(self, ep: int, seed: int, noise: bool | dict | None = None) -> None:
+        """Start episode ``ep``; ``noise`` switches the sim's image noise (on, off, a map of noise settings; None:
+        leave it as it is)."""
         self.ep, self.seq = ep, 0
         self._pending = ("reset", (seed, noise))
         try:

@@ -39,7 +39,7 @@ from services.settings import ZenohSettings
 log = logging.getLogger(__name__)
 
 CLAIMANT_ROLES = ("learner", "eval")  # the roles whose liveliness the sim watches to lapse claims
-NOISE_OPTION = "noise"  # reset(options={"noise": True | False}) switches the sim's image noise for that episode
+NOISE_OPTION = "noise"  # reset(options={"noise": True | False | {settings}}) switches the sim's image noise from that episode on
 
 
 class ClaimRefused(ControlError):
@@ -149,7 +149,8 @@ class ProxyEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict[str, Any]]:
         """Next episode; a ``seed`` restarts the run's episode sequence at episode 1 of base seed ``seed``.
 
-        ``options={"noise": True | False}`` switches the sim's image noise from this episode on.
+        ``options={"noise": True | False | {...}}`` switches the sim's image noise from this episode on (a map holds
+        noise settings by name, e.g. ``{"preset": "murky"}``).
         """
         super().reset(seed=seed)
         if seed is not None:

@@ -60,6 +60,7 @@ class UpSettings:
     sim_eval_envs: int = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
     topology: str = "peer"  # peer: processes link directly once the router introduces them; client: all via the router
     stop_timeout_s: float = 180.0  # how long the learner may take to save after SIGTERM before it is killed
+    sim_config: str = ""  # a `swimm sim` settings file for the sim it starts (e.g. its image noise)
 
 
 class ServiceDied(RuntimeError):
@@ -117,6 +118,8 @@ class LocalSystem:
         common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
         common += low_latency
         sim_args = ["--train-envs", str(self.learn.envs), "--eval-envs", str(self.settings.sim_eval_envs)]
+        if self.settings.sim_config:
+            sim_args += ["--config", self.settings.sim_config]
         self.group.start("sim", "sim", *common, *sim_args)
         encoders = self.settings.encoders if checkpoint is not None else 0
         for index in range(encoders):
@@ -235,6 +238,8 @@ def run(settings: UpSettings) -> int:
         raise ValueError(f"--topology must be peer or client, got {settings.topology!r}")
     if learn.backend != "zenoh":
         log.info("swimm up always trains through the services; --backend %s is ignored", learn.backend)
+    if settings.sim_config and not Path(settings.sim_config).is_file():
+        raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
     checkpoint = encoder_checkpoint(learn)
     run_dir = Path(learn.run_dir) if learn.run_dir else default_run_dir(learn)
     run_dir.mkdir(parents=True, exist_ok=True)

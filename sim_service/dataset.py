@@ -8,6 +8,8 @@ On-disk format (version 1), a directory::
     shard-00000.images.npy     uint8   (n, 64, 64, 3) RGB
     shard-00000.labels.npy     float32 (n, 3): d (m), theta (signed azimuth, deg, + = left), psi (deg)
     shard-00000.poses.npy      float32 (n, 12): see POSE_NAMES
+    shard-00000.clean.npy      uint8   (n, 64, 64, 3): paired datasets only (``"paired": true``), the same
+                               frames before image noise, the target a denoising encoder reconstructs
     ...
 
 Each shard is written through a memory map as it is filled and meta.json
@@ -67,6 +69,7 @@ class DatasetSettings:
     seed: int = 3  # the paper: train seed 3, test seed 5
     shard_size: int = 4096
     workers: int = 1  # processes rendering shards in parallel; the bytes do not depend on it
+    paired: bool = False  # also keep each noisy frame's clean render (needs noise on, e.g. --noise-preset harsh)
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
 
 
@@ -96,7 +99,15 @@ def labels_and_pose(telemetry) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _write_shard(
-    out: Path, index: int, start: int, n: int, seed: int, world: World, ranges: SamplingRanges, bar: tqdm | None
+    out: Path,
+    index: int,
+    start: int,
+    n: int,
+    seed: int,
+    paired: bool,
+    world: World,
+    ranges: SamplingRanges,
+    bar: tqdm | None,
 ) -> str:
     """Render samples start..start+n into shard files named by ``index``; returns the shard's name."""
     size = world.settings.image_size
@@ -104,24 +115,30 @@ def _write_shard(
     images = np.lib.format.open_memmap(out / f"{name}.images.npy", "w+", np.uint8, (n, size, size, 3))
     labels = np.lib.format.open_memmap(out / f"{name}.labels.npy", "w+", np.float32, (n, 3))
     poses = np.lib.format.open_memmap(out / f"{name}.poses.npy", "w+", np.float32, (n, 12))
+    arrays = [images, labels, poses]
+    if paired:
+        clean = np.lib.format.open_memmap(out / f"{name}.clean.npy", "w+", np.uint8, (n, size, size, 3))
+        arrays.append(clean)
     for j in range(n):
         telemetry, image = sample_pose(world, np.random.default_rng([seed, start + j]), ranges)
         images[j] = image
+        if paired:
+            clean[j] = world.clean_frame
         labels[j], poses[j] = labels_and_pose(telemetry)
         if bar is not None:
             bar.update(1)
-    for array in (images, labels, poses):
+    for array in arrays:
         array.flush()
     return name
 
 
 def _shard_in_worker(job: tuple) -> tuple[str, int]:
     """Process-pool entry point: each worker process builds its own World (and GL context) once."""
-    out, index, start, n, seed, settings, ranges = job
+    out, index, start, n, seed, paired, settings, ranges = job
     global _worker_world
     if _worker_world is None:
         _worker_world = World(settings)
-    return _write_shard(out, index, start, n, seed, _worker_world, ranges, None), n
+    return _write_shard(out, index, start, n, seed, paired, _worker_world, ranges, None), n
 
 
 _worker_world: World | None = None
@@ -136,29 +153,32 @@ def write_dataset(
     ranges: SamplingRanges | None = None,
     progress: bool = True,
     workers: int = 1,
+    paired: bool = False,
 ) -> Path:
     """Render ``count`` labelled frames into ``out_dir`` (see the module docstring); returns the directory.
 
     With ``workers > 1`` shards are rendered by that many processes; per-sample seeds make the
-    bytes identical to a single-process run.
+    bytes identical to a single-process run. ``paired`` keeps each frame's clean render too.
     """
     if count <= 0 or shard_size <= 0 or workers <= 0:
         raise ValueError(f"count, shard_size and workers must be positive (got {count}, {shard_size}, {workers})")
+    settings = world_settings or WorldSettings()
+    if paired and not settings.noise.resolved().enabled:
+        raise ValueError("a paired dataset pairs noisy frames with clean ones: switch noise on (e.g. --noise-preset harsh)")
     out = Path(out_dir)
     if (out / "meta.json").exists():
         raise FileExistsError(f"{out} already holds a dataset; choose another --out or delete it")
     out.mkdir(parents=True, exist_ok=True)
-    settings = world_settings or WorldSettings()
     ranges = ranges or SamplingRanges()
     jobs = [
-        (out, index, start, min(shard_size, count - start), seed, settings, ranges)
+        (out, index, start, min(shard_size, count - start), seed, paired, settings, ranges)
         for index, start in enumerate(range(0, count, shard_size))
     ]
     with tqdm(total=count, desc=f"dataset {out.name}", unit="img", disable=not progress) as bar:
         if workers == 1:
             world = World(settings)
             try:
-                shards = [_write_shard(*job[:5], world, ranges, bar) for job in jobs]
+                shards = [_write_shard(*job[:6], world, ranges, bar) for job in jobs]
             finally:
                 world.close()
         else:
@@ -177,6 +197,7 @@ def write_dataset(
         "label_names": list(LABEL_NAMES),
         "pose_names": list(POSE_NAMES),
         "shards": shards,
+        "paired": paired,
         "ranges": asdict(ranges),
         "world": asdict(settings),
     }
@@ -187,6 +208,7 @@ def write_dataset(
 
 def run(settings: DatasetSettings) -> int:
     write_dataset(
-        settings.out, settings.count, settings.seed, settings.shard_size, settings.world, workers=settings.workers
-    )
+        settings.out, settings.count, settings.seed, settings.shard_size, settings.world, workers=settings.workers,
+        paired=settings.paired,
+    )  # fmt: skip
     return 0

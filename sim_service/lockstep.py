@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 
 from services.messages import DIRECT_ROUTE, ActionMsg, ObservationMsg
+from sim_service.noise import NoiseSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
@@ -75,7 +76,9 @@ class LockstepEnv:
         if sender != self.holder:
             raise Refusal(f"env {self.name} is held by {self.holder}, not {sender or 'an anonymous sender'}")
 
-    def reset(self, sender: str, ep: int, seed: int, route: str = DIRECT_ROUTE, noise: bool | None = None) -> Outcome:
+    def reset(
+        self, sender: str, ep: int, seed: int, route: str = DIRECT_ROUTE, noise: bool | NoiseSettings | None = None
+    ) -> Outcome:
         self._check_holder(sender)
         self.route = route
         if ep == self.ep and self.seq == 0 and self._last_payload is not None and seed == self.seed:

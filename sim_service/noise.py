@@ -9,24 +9,34 @@ caller's ``np.random.Generator``).
 
 Effects run in the order light meets them on its way to the sensor:
 
-1. fog: water scatters and absorbs light along the line of sight, so each pixel is blended toward the
+1. water (``attenuation``): the underwater image-formation model (as in OceanSim and the Jerlov water
+   types): each colour channel decays with distance at its own rate, ``J exp(-beta_c z)``, and backscatter
+   fills in toward the water colour, ``B_c (1 - exp(-beta_c z))``; red goes first in clear water;
+2. fog: water scatters and absorbs light along the line of sight, so each pixel is blended toward the
    water colour by its depth (visibility ``exp(-(density * depth)^2)``, squared-exponential as in the SPEC);
-2. depth of field: the lens focuses at ``focus_m``; the blur radius grows with the thin-lens circle of
+3. marine snow: bright particles drifting between the camera and the scene, a Poisson count per frame;
+4. depth of field: the lens focuses at ``focus_m``; the blur radius grows with the thin-lens circle of
    confusion, proportional to ``|depth - focus| / depth`` and capped at ``depth_of_field`` pixels;
-3. motion blur: the scene moves across the sensor during the exposure, a line kernel along the apparent
+5. motion blur: the scene moves across the sensor during the exposure, a line kernel along the apparent
    image motion, ``motion_blur`` pixels of smear per pixel of motion;
-4. barrel distortion: the wide-angle lens bends rays, radius scaled by ``1 + k1 r^2`` (r = 1 at the middle
+6. barrel distortion: the wide-angle lens bends rays, radius scaled by ``1 + k1 r^2`` (r = 1 at the middle
    of the longer image edge; samples beyond the frame are mirrored back in);
-5. film grain: sensor noise added last, monochrome Gaussian with std ``grain`` (0-255 units).
+7. sensor noise: shot noise (per channel, std growing with the square root of the signal), then film grain
+   (monochrome Gaussian with std ``grain``, 0-255 units);
+8. JPEG compression at ``jpeg_quality``, as a camera's encoder leaves it.
 
-Intermediate results stay float32 so effects do not quantise each other; the result is rounded once.
-Cost at 64x64 with all five effects on (best of 5 x 1000 frames with ``timeit`` on a 2-core AMD EPYC VM):
-0.41 ms per frame; alone, depth of field 0.21 ms (three blur levels), grain 0.09 ms (drawing the normals),
-fog 0.06 ms, motion blur 0.06 ms, distortion 0.04 ms (the remap grids are built once per image size).
+Intermediate results stay float32 so effects do not quantise each other; the result is rounded once (JPEG
+then codes the rounded frame). Each effect's cost per frame is measured in docs/physics.md.
+
+Randomisation (``randomise``) is a training aid: each episode (or dataset sample) draws every effect's
+strength from zero to its setting and the water colour from a range of natural water colours, all from the
+episode's noise generator (:func:`draw_episode_noise`). What is evaluated are fixed settings, such as the
+named presets (:data:`PRESETS`) or a preset scaled by a severity (:func:`scaled`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -43,34 +53,148 @@ _FIXED_POINT_BITS = 4  # sub-pixel precision of the drawn segment's end points
 class NoiseSettings:
     """Image noise switches; simple field types so `services.settings` turns them into ``--noise-*`` flags."""
 
+    preset: str = "off"  # off | murky | harsh: a named set of effects; effects set here that are above 0 win
+    randomise: bool = False  # each episode draws every effect from 0 to its strength and a natural water colour
+    attenuation: float = 0.0  # per metre: each channel decays as exp(-attenuation * attenuation_rgb[c] * depth)
+    attenuation_rgb: list[float] = field(default_factory=lambda: [1.0, 0.45, 0.3])  # relative R, G, B decay rates
     fog: float = 0.0  # density per metre: visibility exp(-(fog * depth)^2)
-    fog_color: list[int] = field(default_factory=lambda: [20, 70, 90])  # RGB of the water the fog fades into
+    fog_color: list[int] = field(default_factory=lambda: [20, 70, 90])  # RGB of the water that fog and backscatter fade into
+    marine_snow: float = 0.0  # mean number of particles per frame
     grain: float = 0.0  # std of film grain, 0-255 units
+    shot_noise: float = 0.0  # std of shot noise at full brightness, 0-255 units (std grows as sqrt(signal))
     depth_of_field: float = 0.0  # largest blur radius in pixels, reached far from the focus distance
     focus_m: float = 6.0  # in-focus distance in metres (the tracking distance opt_d)
     distortion: float = 0.0  # barrel distortion coefficient k1
     motion_blur: float = 0.0  # pixels of smear per pixel of apparent image motion
+    jpeg_quality: int = 0  # JPEG-compress each frame at this quality (1-100); 0 = off
 
     @property
     def enabled(self) -> bool:
         """True when at least one effect would change an image."""
-        return any(v > 0 for v in (self.fog, self.grain, self.depth_of_field, self.distortion, self.motion_blur))
+        return any(getattr(self, name) > 0 for name in EFFECTS)
 
     @property
     def needs_depth(self) -> bool:
         """True when `ImageNoise.apply` needs a depth map (so the renderer knows to produce one)."""
-        return self.fog > 0 or self.depth_of_field > 0
+        return self.fog > 0 or self.depth_of_field > 0 or self.attenuation > 0
+
+    @classmethod
+    def from_mapping(cls, values: dict) -> NoiseSettings:
+        """Settings from a message's map (a reset's ``noise``), refusing unknown keys and wrong types by name."""
+        known = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ValueError(f"unknown noise settings {unknown}; known: {', '.join(known)}")
+        for name, value in values.items():
+            default = getattr(cls(), name)
+            if isinstance(default, list):
+                ok = isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            elif isinstance(default, bool):
+                ok = isinstance(value, bool)
+            elif isinstance(default, str):
+                ok = isinstance(value, str)
+            elif isinstance(default, int):
+                ok = isinstance(value, int) and not isinstance(value, bool)
+            else:
+                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not ok:
+                raise ValueError(f"noise setting {name} must be like {default!r}, got {value!r}")
+        settings = cls(**values)
+        ImageNoise(settings)  # validates ranges and the preset
+        return settings
+
+    def resolved(self) -> NoiseSettings:
+        """These settings with the preset's effects filled in where this leaves an effect at 0."""
+        if self.preset not in PRESETS:
+            raise ValueError(f"unknown noise preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
+        base = PRESETS[self.preset]
+        filled = {name: getattr(self, name) or getattr(base, name) for name in EFFECTS}
+        return dataclasses.replace(self, preset="off", **filled)
 
 
-#: The effects `--noise on` switches on when the world's own settings leave them all off: a murky harbour at the
-#: tracking distance (the target fades to about half contrast at 6 m), a slightly soft lens, visible grain.
-NOISY_PRESET = NoiseSettings(fog=0.12, grain=6.0, depth_of_field=1.5, distortion=0.15, motion_blur=1.0)
+def noise_option(value: object) -> bool | NoiseSettings | None:
+    """A reset's ``noise`` option as `World.reset` takes it: on/off, settings from a map, or None (unchanged)."""
+    if isinstance(value, dict):
+        return NoiseSettings.from_mapping(value)
+    if value is None or isinstance(value, (bool, NoiseSettings)):
+        return value
+    raise ValueError(f"'noise' must be true, false, a map of noise settings or absent, got {value!r}")
+
+
+#: The effects' strength fields: 0 is off, more is stronger (for JPEG, the quality: lower is stronger).
+EFFECTS = (
+    "attenuation", "fog", "marine_snow", "depth_of_field", "motion_blur", "distortion", "shot_noise", "grain",
+    "jpeg_quality",
+)  # fmt: skip
+
+#: Named presets. ``murky`` is the one `--noise on` has always meant: a murky harbour at the tracking distance
+#: (the target fades to about half contrast at 6 m), a slightly soft lens, visible grain. ``harsh`` adds coloured
+#: water, marine snow, shot noise and JPEG, and strengthens the rest: the training range's upper end.
+PRESETS = {
+    "off": NoiseSettings(),
+    "murky": NoiseSettings(fog=0.12, grain=6.0, depth_of_field=1.5, distortion=0.15, motion_blur=1.0),
+    "harsh": NoiseSettings(
+        attenuation=0.12, fog=0.15, marine_snow=12.0, grain=9.0, shot_noise=12.0, depth_of_field=2.5,
+        distortion=0.25, motion_blur=1.5, jpeg_quality=40,
+    ),
+}  # fmt: skip
+NOISY_PRESET = PRESETS["murky"]
+
+#: Natural water colours (RGB of deep water seen horizontally): clear ocean blue, coastal blue-green, green
+#: coastal, turbid green-brown. A randomised episode's water is a random mix of two neighbours.
+WATER_COLOURS = ((10, 50, 100), (20, 70, 90), (30, 85, 70), (55, 75, 50))
+_JPEG_BEST = 100
+
+
+def scaled(settings: NoiseSettings, severity: float, effects: tuple[str, ...] = EFFECTS) -> NoiseSettings:
+    """``settings`` with the named effects' strengths times ``severity`` and every other effect off.
+
+    JPEG's quality moves from 100 toward the setting's: severity 1 is the setting, 2 twice as far from 100.
+    The sweep of `swimm eval --sweep` plays policies on these.
+    """
+    if severity < 0:
+        raise ValueError(f"noise severity must be >= 0, got {severity}")
+    unknown = set(effects) - set(EFFECTS)
+    if unknown:
+        raise ValueError(f"unknown noise effects {sorted(unknown)}; choose from {', '.join(EFFECTS)}")
+    values = {name: 0 for name in EFFECTS}
+    for name in effects:
+        value = getattr(settings, name)
+        if name == "jpeg_quality":
+            values[name] = 0 if value <= 0 or severity == 0 else max(1, round(_JPEG_BEST - severity * (_JPEG_BEST - value)))
+        else:
+            values[name] = value * severity
+    return dataclasses.replace(settings, preset="off", randomise=False, **values)
+
+
+def draw_episode_noise(settings: NoiseSettings, rng: np.random.Generator) -> NoiseSettings:
+    """One episode's fixed settings drawn from ``settings`` read as maxima (see ``randomise``).
+
+    Every effect's strength is uniform between 0 and its setting (JPEG's quality between the setting and 100), and
+    the water colour a uniform mix of two neighbouring natural water colours. The same generator state gives the
+    same draw, so an episode's noise is fixed by its seed.
+    """
+    values: dict[str, float | int] = {}
+    for name in EFFECTS:
+        value = getattr(settings, name)
+        fraction = rng.uniform(0.0, 1.0)  # drawn for every effect, so one effect's setting never shifts another's draw
+        if name == "jpeg_quality":
+            values[name] = 0 if value <= 0 else round(value + fraction * (_JPEG_BEST - value))
+        else:
+            values[name] = value * fraction
+    pick = int(rng.integers(len(WATER_COLOURS) - 1))
+    mix = rng.uniform(0.0, 1.0)
+    colour = (1 - mix) * np.asarray(WATER_COLOURS[pick]) + mix * np.asarray(WATER_COLOURS[pick + 1])
+    return dataclasses.replace(
+        settings, preset="off", randomise=False, fog_color=[int(c) for c in np.rint(colour)], **values
+    )
 
 
 class ImageNoise:
     """Applies `NoiseSettings` to rendered frames; holds only caches that depend on the image size."""
 
     def __init__(self, settings: NoiseSettings) -> None:
+        settings = settings.resolved()
         _validate(settings)
         self.settings = settings
         self._fog_color = np.asarray(settings.fog_color, dtype=np.float32)
@@ -99,17 +223,25 @@ class ImageNoise:
         if s.needs_depth:
             depth = self._checked_depth(depth, image.shape[:2])
         out = image.astype(np.float32)
+        if s.attenuation > 0:
+            out = self._attenuate(out, depth)
         if s.fog > 0:
             out = self._fog(out, depth)
+        if s.marine_snow > 0:
+            out = _marine_snow(out, s.marine_snow, rng)
         if s.depth_of_field > 0:
             out = self._depth_of_field(out, depth)
         if s.motion_blur > 0:
             out = self._motion_blur(out, motion_px)
         if s.distortion > 0:
             out = self._distort(out)
+        if s.shot_noise > 0:
+            signal = np.sqrt(np.clip(out, 0.0, 255.0) / np.float32(255.0))
+            out += rng.standard_normal(size=out.shape, dtype=np.float32) * signal * np.float32(s.shot_noise)
         if s.grain > 0:
             out += rng.standard_normal(size=(*out.shape[:2], 1), dtype=np.float32) * np.float32(s.grain)
-        return np.rint(np.clip(out, 0.0, 255.0)).astype(np.uint8)
+        result = np.rint(np.clip(out, 0.0, 255.0)).astype(np.uint8)
+        return _jpeg(result, s.jpeg_quality) if s.jpeg_quality > 0 else result
 
     @staticmethod
     def _checked_depth(depth: np.ndarray | None, size: tuple[int, int]) -> np.ndarray:
@@ -126,6 +258,12 @@ class ImageNoise:
             water = np.broadcast_to(self._fog_color, (*visibility.shape, 3)).copy()
             self._fog_fields[visibility.shape] = water
         return cv2.blendLinear(image, water, visibility, 1.0 - visibility)
+
+    def _attenuate(self, image: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Per-channel decay with distance plus backscatter toward the water colour (far pixels become water)."""
+        rates = np.float32(self.settings.attenuation) * np.asarray(self.settings.attenuation_rgb, dtype=np.float32)
+        transmission = np.exp(-depth[..., None] * rates)
+        return image * transmission + self._fog_color * (np.float32(1.0) - transmission)
 
     def _depth_of_field(self, image: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """Blend a few Gaussian-blurred copies per pixel by its circle of confusion (cheaper than per-pixel kernels).
@@ -168,14 +306,48 @@ class ImageNoise:
 
 
 def _validate(settings: NoiseSettings) -> None:
-    for name in ("fog", "grain", "depth_of_field", "distortion", "motion_blur"):
+    for name in EFFECTS:
         if getattr(settings, name) < 0:
             raise ValueError(f"noise setting {name} must be >= 0, got {getattr(settings, name)}")
     if settings.focus_m <= 0:
         raise ValueError(f"noise focus_m must be > 0, got {settings.focus_m}")
+    if settings.jpeg_quality < 0 or settings.jpeg_quality > _JPEG_BEST:
+        raise ValueError(f"noise jpeg_quality must lie in 0..100 (0 = off), got {settings.jpeg_quality}")
+    rates = list(settings.attenuation_rgb)
+    if len(rates) != 3 or any(r < 0 for r in rates):
+        raise ValueError(f"noise attenuation_rgb must be 3 values >= 0, got {rates}")
     color = list(settings.fog_color)
     if len(color) != 3 or any(not 0 <= c <= 255 for c in color):
         raise ValueError(f"noise fog_color must be 3 values in 0..255, got {color}")
+
+
+def _marine_snow(image: np.ndarray, mean_count: float, rng: np.random.Generator) -> np.ndarray:
+    """Blend a Poisson number of small bright discs (sub-pixel positions and radii) into the frame."""
+    height, width = image.shape[:2]
+    count = int(rng.poisson(mean_count))
+    if count == 0:
+        return image
+    mask = np.zeros((height, width), dtype=np.float32)
+    scale = 1 << _FIXED_POINT_BITS
+    for x, y, radius, opacity in zip(
+        rng.uniform(0, width, count), rng.uniform(0, height, count), rng.uniform(0.4, 1.2, count),
+        rng.uniform(0.3, 0.9, count), strict=True,
+    ):  # fmt: skip
+        centre = (round(x * scale), round(y * scale))
+        cv2.circle(mask, centre, max(1, round(radius * scale)), float(opacity), -1, cv2.LINE_AA, _FIXED_POINT_BITS)
+    mask = np.minimum(mask, 1.0)[..., None]
+    return image * (1.0 - mask) + _SNOW_COLOUR * mask
+
+
+_SNOW_COLOUR = np.asarray([215, 225, 225], dtype=np.float32)  # particles lit by the camera's lights: near white
+
+
+def _jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    """Encode and decode as the camera's JPEG encoder would (OpenCV works in BGR)."""
+    ok, encoded = cv2.imencode(".jpg", image[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise RuntimeError(f"OpenCV could not JPEG-encode a {image.shape} frame")
+    return cv2.imdecode(encoded, cv2.IMREAD_COLOR)[..., ::-1].copy()
 
 
 def _line_kernel(smear: np.ndarray, length: float) -> np.ndarray:

@@ -30,6 +30,7 @@ from services.presence import Roster, announce, live_now
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES, open_session
 from services.settings import ZenohSettings
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
+from sim_service.noise import noise_option
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -260,8 +261,10 @@ class SimResponder:
                 noise = body.get("noise")
                 if not isinstance(ep, int) or not isinstance(seed, int):
                     raise BadMessage("reset needs integer 'ep' and 'seed'")
-                if noise is not None and not isinstance(noise, bool):
-                    raise BadMessage(f"reset's 'noise' must be true, false or absent, got {noise!r}")
+                try:
+                    noise = noise_option(noise)
+                except ValueError as exc:
+                    raise BadMessage(f"reset's {exc}") from None
                 outcome = env.reset(holder, ep, seed, route, noise)
                 self._publish(env, route, outcome, request.received_at)
                 control.reply(query, True, **env.info(), replayed=outcome.replayed)

@@ -24,6 +24,7 @@ Not thread-safe: MuJoCo's GL context belongs to the thread that built it.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.util
 import math
@@ -41,7 +42,7 @@ from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.camera import CameraFrustum
 from sim_service.dolphin import DolphinBehaviour
-from sim_service.noise import NOISY_PRESET, ImageNoise
+from sim_service.noise import NOISY_PRESET, ImageNoise, NoiseSettings, draw_episode_noise
 from sim_service.rotations import euler_to_matrix
 from sim_service.rover import RoverDynamics
 from sim_service.settings import WorldSettings
@@ -123,10 +124,12 @@ class World:
         self._renderer: mujoco.Renderer | None = None
         if self.settings.render:
             self._renderer = self._make_renderer()
-        noise = self.settings.noise
-        self._configured_noise = ImageNoise(noise if noise.enabled else NOISY_PRESET)
-        self._noise = self._configured_noise if noise.enabled else None
+        self._noise: ImageNoise | None = None
         self._noise_rng = np.random.default_rng(0)
+        self.configure_noise(self.settings.noise)
+        #: The last frame before image noise (the same array as the frame when noise is off): paired datasets
+        #: keep it beside the noisy frame as the denoising target.
+        self.clean_frame: np.ndarray | None = None
         # Apparent image motion per radian of yaw: the frame's width spans the horizontal field of view.
         self._px_per_rad = self.settings.image_size / math.radians(2 * ALPHA_DEG)
 
@@ -142,17 +145,36 @@ class World:
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
         return renderer
 
+    def configure_noise(self, noise: NoiseSettings, active: bool | None = None) -> None:
+        """Make ``noise`` the world's image noise from the next episode on (`reset` and `place` draw it).
+
+        ``active`` switches it on or off (None: on when ``noise`` changes images); switched on with every effect
+        at 0, it means :data:`~sim_service.noise.NOISY_PRESET`. Settings are checked here, so a bad one fails
+        before any episode.
+        """
+        noise = noise.resolved()
+        self._configured_noise = noise if noise.enabled else dataclasses.replace(NOISY_PRESET, randomise=noise.randomise)
+        ImageNoise(self._configured_noise)  # validates
+        self._noise_on = noise.enabled if active is None else active
+
+    @property
+    def noise_settings(self) -> NoiseSettings | None:
+        """The image noise of the current episode (randomised ones drawn), or None when frames are clean."""
+        return self._noise.settings if self._noise is not None else None
+
     # --- episodes --------------------------------------------------------------------------
-    def reset(self, seed: int, noise: bool | None = None) -> tuple[Telemetry, np.ndarray | None]:
+    def reset(self, seed: int, noise: bool | NoiseSettings | None = None) -> tuple[Telemetry, np.ndarray | None]:
         """Start an episode from the SPEC's reset distributions, every draw from ``seed``.
 
         ``noise`` switches image noise for this episode and the ones after it: True applies the world's
         noise settings (or :data:`~sim_service.noise.NOISY_PRESET` when they are all off), False renders
-        clean frames, None keeps the current choice. Alternating clean and noisy episodes is how the
-        paper trains for robustness.
+        clean frames, None keeps the current choice, and settings replace the world's noise (on when they
+        change images). Alternating clean and noisy episodes is how the paper trains for robustness.
         """
-        if noise is not None:
-            self._noise = self._configured_noise if noise else None
+        if isinstance(noise, NoiseSettings):
+            self.configure_noise(noise)
+        elif noise is not None:
+            self._noise_on = noise
         self._discard_prepared()
         self.rng = np.random.default_rng(seed)
         rng = self.rng
@@ -180,11 +202,12 @@ class World:
         """Put rover (at rest, level) and dolphin at given poses: the reset primitive, and datasets' sampler.
 
         Angles in radians; ``turn_weight`` is the dolphin's turn rate in deg/step (it sets its bank).
-        ``noise_rng`` feeds the image noise; by default a child of the world's generator, drawn without
-        advancing it.
+        ``noise_rng`` feeds the image noise (a randomised noise setting's draw first); by default a child of the
+        world's generator, drawn without advancing it.
         """
         self._discard_prepared()
         self._noise_rng = noise_rng or np.random.default_rng(self.rng.bit_generator.seed_seq.spawn(1)[0])
+        self._noise = self._episode_noise() if self._noise_on else None
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = [rover_pos[0], rover_pos[1], rover_pos[2], rover_yaw, 0.0, 0.0]
         self.rover.reset(depth=float(rover_pos[2]))
@@ -241,6 +264,14 @@ class World:
             self._renderer = None
 
     # --- internals ---------------------------------------------------------------------------
+    def _episode_noise(self) -> ImageNoise:
+        configured = self._configured_noise
+        if configured.randomise:
+            return ImageNoise(draw_episode_noise(configured, self._noise_rng))
+        if self._noise is None or self._noise.settings != configured:
+            return ImageNoise(configured)
+        return self._noise  # the same fixed noise as the last episode: keep its caches
+
     def _discard_prepared(self) -> None:
         if self._prepared is not None:
             self.rng.bit_generator.state = self._prepared.rng_state
@@ -309,6 +340,7 @@ class World:
             return None
         self._renderer.update_scene(self.data, camera=self._camera)
         image = self._downscale(self._renderer.render())
+        self.clean_frame = image
         if self._noise is None:
             return image
         depth = self._render_depth() if self._noise.settings.needs_depth else None

@@ -15,12 +15,13 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.data import Batch, CMVAEDataset, split_indices
+from encoder_service.data import Batch, CMVAEDataset, DatasetFormatError, split_indices
 from encoder_service.inference import DEFAULT_CHECKPOINT
 from encoder_service.model import CMVAE
 from encoder_service.train import (
     EarlyStopping,
     TrainEncoderSettings,
+    inputs_and_targets,
     mirror_batch,
     recalibrate_batch_norm,
     run,
@@ -234,3 +235,61 @@ def test_psi_loss_l1_trains_and_validates_on_the_absolute_error(dataset_dir: Pat
     assert state["l1"] > state["mse"]  # |error| > error**2 for normalised psi errors under 1
     with pytest.raises(ValueError, match="--psi-loss"):
         run(_settings(dataset_dir, tmp_path / "bad", psi_loss="huber"))
+
+
+@pytest.fixture(scope="module")
+def paired_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from sim_service.dataset import write_dataset
+    from sim_service.noise import NoiseSettings
+    from sim_service.settings import WorldSettings
+
+    noisy = WorldSettings(noise=NoiseSettings(preset="harsh", randomise=True))
+    return write_dataset(tmp_path_factory.mktemp("cmvae-paired") / "frames", count=96, seed=3, shard_size=40,
+                         world_settings=noisy, progress=False, paired=True)  # fmt: skip
+
+
+def test_a_paired_batch_feeds_the_chosen_frames_and_always_targets_the_clean_one(paired_dir: Path) -> None:
+    dataset = CMVAEDataset(paired_dir)
+    assert dataset.paired
+    batch = mirror_batch(dataset.read(np.arange(6)), np.array([True, False] * 3))
+    assert batch.clean is not None and not np.array_equal(batch.clean, batch.images)
+    np.testing.assert_array_equal(batch.clean[0], dataset.read(np.array([0])).clean[0][:, ::-1])  # flipped too
+    feed_clean = np.array([True, True, False, False, True, False])
+    inputs, targets = inputs_and_targets(batch, feed_clean)
+    np.testing.assert_array_equal(inputs[feed_clean], batch.clean[feed_clean])
+    np.testing.assert_array_equal(inputs[~feed_clean], batch.images[~feed_clean])
+    np.testing.assert_array_equal(targets, batch.clean)
+    unpaired = Batch(images=batch.images, labels=batch.labels, indices=batch.indices)
+    assert inputs_and_targets(unpaired, feed_clean) == (unpaired.images, unpaired.images)
+
+
+def test_training_on_a_paired_dataset_validates_noisy_and_clean_inputs(paired_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert run(_settings(paired_dir, out)) == 0
+    metrics = _summary(out)["last_val_metrics"]
+    assert {"mae_d", "clean_mae_d", "clean_total", "clean_image"} <= set(metrics)
+    noisy_only = validate(*_validate_args(paired_dir, out))
+    clean_only = validate(*_validate_args(paired_dir, out), feed_clean=True)
+    assert metrics["total"] == pytest.approx((noisy_only["total"] + clean_only["total"]) / 2, rel=1e-5)
+    assert metrics["mae_d"] == pytest.approx(noisy_only["mae_d"], rel=1e-5)
+
+
+def test_a_paired_dataset_missing_its_clean_shard_is_refused(paired_dir: Path, tmp_path: Path) -> None:
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(paired_dir, broken)
+    (broken / "shard-00001.clean.npy").unlink()
+    with pytest.raises(DatasetFormatError, match="paired.*shard-00001.clean.npy"):
+        CMVAEDataset(broken)
+
+
+def _validate_args(dataset_dir: Path, out: Path) -> tuple:
+    from encoder_service.model import read_checkpoint
+
+    dataset = CMVAEDataset(dataset_dir)
+    _, val_rows = split_indices(len(dataset), 0.25, 0)
+    model = CMVAE()
+    model.load_state_dict(read_checkpoint(out / "last.pt")["state_dict"])
+    return model, dataset, val_rows, 32, 8.0, torch.device("cpu")

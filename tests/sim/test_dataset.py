@@ -51,3 +51,28 @@ def test_refuses_to_overwrite_and_cli_writes(tmp_path):
     assert json.loads((tmp_path / "cli" / "meta.json").read_text())["count"] == 5
     with pytest.raises(FileExistsError):
         write_dataset(tmp_path / "cli", count=5, seed=1, progress=False)
+
+
+def test_a_paired_dataset_keeps_each_noisy_frames_clean_twin_with_the_same_labels(tmp_path):
+    from sim_service.noise import NoiseSettings
+    from sim_service.settings import WorldSettings
+
+    noisy = WorldSettings(noise=NoiseSettings(preset="harsh", randomise=True))
+    paired = write_dataset(tmp_path / "paired", count=12, seed=5, shard_size=5, world_settings=noisy,
+                           progress=False, paired=True)  # fmt: skip
+    plain = write_dataset(tmp_path / "plain", count=12, seed=5, shard_size=12, progress=False)
+    meta, arrays = load(paired)
+    _, clean_arrays = load(plain)
+    clean = np.concatenate([np.load(paired / f"{s}.clean.npy") for s in meta["shards"]])
+    assert meta["paired"] is True and clean.shape == arrays["images"].shape
+    # The clean twins are the noise-free dataset of the same seed: same poses, same labels, same pixels.
+    np.testing.assert_array_equal(clean, clean_arrays["images"])
+    np.testing.assert_array_equal(arrays["labels"], clean_arrays["labels"])
+    differences = np.abs(arrays["images"].astype(int) - clean).mean(axis=(1, 2, 3))
+    assert (differences > 0).all() and differences.std() > 0.5  # every frame noisy, each by its own draw
+
+
+def test_a_paired_dataset_without_noise_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="switch noise on"):
+        write_dataset(tmp_path / "p", count=4, seed=1, progress=False, paired=True)
+    assert not (tmp_path / "p").exists()

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from services import settings as settings_module
+from sim_service import noise
 from sim_service.noise import ImageNoise, NoiseSettings
 
 SIZE = 64
@@ -207,3 +208,107 @@ def test_settings_become_noise_flags():
     loaded = settings_module.load(Holder, args, environ={"SWIMM_NOISE_GRAIN": "4.5"})
     assert loaded.noise == NoiseSettings(fog=0.1, fog_color=[10, 20, 30], grain=4.5)
     assert loaded.noise.enabled and loaded.noise.needs_depth
+
+
+# --- the water model, marine snow, sensor effects -----------------------------------------------------------
+
+
+def test_attenuation_takes_red_first_and_far_pixels_become_the_water_colour():
+    settings = NoiseSettings(attenuation=0.3, attenuation_rgb=[1.0, 0.45, 0.3], fog_color=[20, 70, 90])
+    white = np.full((SIZE, SIZE, 3), 255, dtype=np.uint8)
+    near = _apply(settings, white, _depth(2.0)).astype(float).mean(axis=(0, 1))
+    far = _apply(settings, white, _depth(200.0)).astype(float).mean(axis=(0, 1))
+    assert near[0] < near[1] < near[2]  # red decays fastest, blue slowest
+    np.testing.assert_allclose(far, settings.fog_color, atol=1)  # nothing of the scene survives 200 m of water
+    transmission_red = math.exp(-0.3 * 1.0 * 2.0)
+    assert near[0] == pytest.approx(255 * transmission_red + 20 * (1 - transmission_red), abs=1)
+
+
+def test_marine_snow_brightens_a_dark_frame_in_small_spots_and_more_with_more_snow():
+    dark = np.full((SIZE, SIZE, 3), 10, dtype=np.uint8)
+    light = _apply(NoiseSettings(marine_snow=3.0), dark, seed=1)
+    heavy = _apply(NoiseSettings(marine_snow=60.0), dark, seed=1)
+    assert (light >= dark).all() and (heavy >= dark).all()  # particles only add light here
+    lit_light, lit_heavy = (light > 20).any(axis=2).mean(), (heavy > 20).any(axis=2).mean()
+    assert 0 < lit_light < 0.05 and lit_heavy > 4 * lit_light
+
+
+def test_shot_noise_grows_with_the_signal_and_is_zero_on_black():
+    flat = lambda value: np.full((SIZE, SIZE, 3), value, dtype=np.uint8)  # noqa: E731
+    settings = NoiseSettings(shot_noise=20.0)
+    spread = {value: _apply(settings, flat(value), seed=2).astype(float).std() for value in (0, 50, 200)}
+    assert spread[0] == 0.0
+    assert spread[200] == pytest.approx(spread[50] * 2.0, rel=0.1)  # std as sqrt(signal): sqrt(200/50) = 2
+
+
+def test_jpeg_compression_loses_more_at_lower_quality():
+    image = _texture(8)
+    error = {q: np.abs(_apply(NoiseSettings(jpeg_quality=q), image).astype(float) - image).mean() for q in (95, 20)}
+    assert 0 < error[95] < error[20]
+
+
+# --- presets, severity, randomisation ---------------------------------------------------------------------
+
+
+def test_presets_fill_the_effects_left_at_zero_and_unknown_presets_are_refused():
+    murky = NoiseSettings(preset="murky").resolved()
+    assert murky == dataclasses.replace(noise.NOISY_PRESET, preset="off")
+    stronger = NoiseSettings(preset="murky", fog=0.5).resolved()
+    assert stronger.fog == 0.5 and stronger.grain == noise.NOISY_PRESET.grain
+    harsh = noise.PRESETS["harsh"]
+    assert all(getattr(harsh, name) >= getattr(noise.NOISY_PRESET, name) for name in noise.EFFECTS if name != "jpeg_quality")
+    with pytest.raises(ValueError, match="unknown noise preset 'soup'"):
+        ImageNoise(NoiseSettings(preset="soup"))
+
+
+def test_severity_scales_the_chosen_effects_and_switches_the_others_off():
+    harsh = noise.PRESETS["harsh"]
+    assert not noise.scaled(harsh, 0.0).enabled
+    assert noise.scaled(harsh, 1.0) == dataclasses.replace(harsh, preset="off")
+    fog_only = noise.scaled(harsh, 1.5, ("fog", "jpeg_quality"))
+    assert fog_only.fog == 1.5 * harsh.fog and fog_only.grain == 0 and fog_only.attenuation == 0
+    assert fog_only.jpeg_quality == 100 - 1.5 * (100 - harsh.jpeg_quality)
+    assert noise.scaled(harsh, 5.0).jpeg_quality == 1  # the lowest quality JPEG has
+    with pytest.raises(ValueError, match="unknown noise effects"):
+        noise.scaled(harsh, 1.0, ("smoke",))
+
+
+def test_an_episode_draw_lies_inside_the_ranges_and_follows_the_seed():
+    maxima = dataclasses.replace(noise.PRESETS["harsh"], randomise=True)
+    draws = [noise.draw_episode_noise(maxima, np.random.default_rng(seed)) for seed in range(200)]
+    assert draws[7] == noise.draw_episode_noise(maxima, np.random.default_rng(7))
+    for name in noise.EFFECTS:
+        values = np.array([getattr(d, name) for d in draws], float)
+        top = getattr(maxima, name)
+        if name == "jpeg_quality":
+            assert values.min() >= top and values.max() <= 100
+        else:
+            assert values.min() >= 0 and values.max() <= top and values.max() > 0.9 * top and values.min() < 0.1 * top
+    colours = np.array([d.fog_color for d in draws], float)
+    low, high = np.min(noise.WATER_COLOURS, axis=0), np.max(noise.WATER_COLOURS, axis=0)
+    assert (colours >= low).all() and (colours <= high).all() and len({tuple(c) for c in colours}) > 50
+    assert not any(d.randomise for d in draws)
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [NoiseSettings(jpeg_quality=101), NoiseSettings(attenuation_rgb=[1.0, -0.1, 0.2]), NoiseSettings(marine_snow=-1)],
+)
+def test_invalid_new_settings_raise(settings):
+    with pytest.raises(ValueError):
+        ImageNoise(settings)
+
+
+def test_preset_and_randomise_come_from_flags_yaml_and_the_environment(tmp_path):
+    @dataclasses.dataclass
+    class Holder:
+        noise: NoiseSettings = dataclasses.field(default_factory=NoiseSettings)
+
+    config = tmp_path / "sim.yaml"
+    config.write_text("noise:\n  preset: harsh\n  jpeg_quality: 70\n")
+    parser = argparse.ArgumentParser()
+    settings_module.add_arguments(parser, Holder)
+    args = parser.parse_args(["--noise-randomise"])
+    loaded = settings_module.load(Holder, args, config, environ={"SWIMM_NOISE_MARINE_SNOW": "4"})
+    assert (loaded.noise.preset, loaded.noise.randomise, loaded.noise.jpeg_quality) == ("harsh", True, 70)
+    assert loaded.noise.resolved().marine_snow == 4.0 and loaded.noise.resolved().fog == noise.PRESETS["harsh"].fog
