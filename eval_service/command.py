@@ -1,12 +1,15 @@
 """`swimm eval`: deterministic evaluation episodes of checkpoints (or the scripted baseline) on a live sim.
 
     swimm eval --algo sac --checkpoint runs/sac/best_model.zip --algo scripted --episodes 5 --seed 113 \\
-        --obs state --connect tcp/127.0.0.1:7447 --namespace swimm/default --noise off --out runs/eval-sac
+        --obs state --connect tcp/127.0.0.1:7447 --namespace swimm/default --out runs/eval-sac
 
 It discovers a live sim, claims a free env of its ``eval`` channel (a clear error if none is live or free) and
 plays every contender on it in turn, from the same seed, so all of them meet the same episodes. Episodes run
 ``--steps`` steps without early termination. ``--backend inprocess`` plays on a World in this process instead
-(offline evaluation, no sim). ``--watch RUN_DIR`` re-evaluates each new best model a training run saves
+(offline evaluation, no sim). ``--noise`` leaves a live sim's image noise as the sim was started (``keep``, the
+default) unless it names a choice: ``off``, ``on`` (the sim's configured noise, else the murky preset) or a preset
+(murky, harsh); in-process, ``keep`` is clean frames. ``--sweep`` plays every contender across noise severities
+instead (eval_service.sweep). ``--watch RUN_DIR`` re-evaluates each new best model a training run saves
 (eval_service.watch); ``--live-port P`` serves the live view (eval_service.live) while episodes run, and
 ``--live-env train/0`` adds envs that others drive to it (eval_service.live_tap).
 
@@ -37,12 +40,14 @@ from eval_service.publish import ResultPublisher
 from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
 from learner_service.registry import SCRIPTED, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
+from sim_service.noise import EFFECTS, PRESETS
 from services.settings import ZenohSettings, to_dict
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("zenoh", "inprocess")
-NOISE_CHOICES = {"on": True, "off": False}
+KEEP_NOISE = "keep"
+NOISE_CHOICES = (KEEP_NOISE, "off", "on", *(name for name in PRESETS if name != "off"))
 IMAGE_MODES = ("cmvae", "image")
 TABLE_COLUMNS = ("mean_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A")  # the paper's Table 12, return first
 
@@ -58,7 +63,7 @@ class EvalCommandSettings:
     steps: int = 3000  # steps per episode (no early termination)
     obs: str = "cmvae"  # cmvae | image | state: what the policies were trained on
     reward: str = "swimm2"  # swimm2 | swimm1
-    noise: str = "off"  # on | off: the sim's image noise during these episodes
+    noise: str = KEEP_NOISE  # keep (a live sim's noise as it was started) | off | on | murky | harsh
     backend: str = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
     out: str = ""  # run folder; default runs/eval-<UTC time>
     trajectory_episode: int = 1  # the episode drawn from above
@@ -74,6 +79,10 @@ class EvalCommandSettings:
     live_env: list[str] = field(default_factory=list)  # also show envs others drive, e.g. train/0 (needs a live view)
     figures: bool = True  # returns, metrics and trajectory PNGs in the run folder (CSV and JSON always)
     progress_bar: bool = True  # tqdm bar on stderr
+    sweep: bool = False  # play every contender across noise severities (eval_service.sweep) instead
+    sweep_preset: str = "harsh"  # the preset whose effects the sweep scales (severity 1 = the preset)
+    sweep_severities: list[float] = field(default_factory=lambda: [0.0, 0.5, 1.0, 1.5, 2.0])
+    sweep_effects: list[str] = field(default_factory=lambda: ["all", *EFFECTS])  # each alone, and all together
 
 
 def check(settings: EvalCommandSettings) -> None:
@@ -81,7 +90,11 @@ def check(settings: EvalCommandSettings) -> None:
     if settings.backend not in BACKENDS:
         raise ValueError(f"unknown backend {settings.backend!r}; choose one of {', '.join(BACKENDS)}")
     if settings.noise not in NOISE_CHOICES:
-        raise ValueError(f"--noise must be on or off, got {settings.noise!r}")
+        raise ValueError(f"--noise must be one of {', '.join(NOISE_CHOICES)}, got {settings.noise!r}")
+    if settings.sweep:
+        from eval_service.sweep import check_sweep
+
+        check_sweep(settings)
     if settings.episodes < 1 or settings.steps < 1:
         raise ValueError("episodes and steps must be >= 1")
     task_settings(settings)  # validates obs and reward
@@ -150,12 +163,9 @@ def evaluation_env(settings: EvalCommandSettings, render: bool = False) -> Itera
         return
     from learner_service.envs import shared_encoder
     from learner_service.inprocess_env import TrackingEnv
-    from sim_service.noise import NOISY_PRESET
     from sim_service.settings import WorldSettings
 
     world = WorldSettings(render=render or task.obs in IMAGE_MODES)
-    if NOISE_CHOICES[settings.noise]:
-        world.noise = NOISY_PRESET
     encoder = shared_encoder(task, checkpoint=settings.encoder_checkpoint or None)
     env = TrackingEnv(task, world, base_seed=settings.seed, encoder=encoder)
     try:
@@ -177,7 +187,7 @@ def evaluate(
     entries = entries if entries is not None else contenders(settings)
     policies = {entry.label: load_policy(entry.algo, entry.checkpoint, device=settings.device) for entry in entries}
     summaries: dict[str, dict[str, float]] = {}
-    noise = NOISE_CHOICES[settings.noise] if settings.backend == "zenoh" else NO_NOISE_CHANGE
+    noise = noise_option(settings.noise)
     started = time.perf_counter()
     with evaluation_env(settings, render=feed is not None) as env:
         folder = RunFolder(out)  # only once an env is ours: a refused evaluation leaves no half-empty run folder
@@ -215,6 +225,15 @@ def evaluate(
     return summaries
 
 
+def noise_option(choice: str) -> bool | dict[str, Any] | None:
+    """The reset option that ``--noise`` asks for: None leaves the env's noise as it is (``keep``)."""
+    if choice == KEEP_NOISE:
+        return NO_NOISE_CHANGE
+    if choice in ("on", "off"):
+        return choice == "on"
+    return {"preset": choice}
+
+
 def _table_line(summary: dict[str, float]) -> str:
     return ", ".join(f"{name} {summary[name]:.3g}" for name in TABLE_COLUMNS)
 
@@ -237,6 +256,11 @@ def run(settings: EvalCommandSettings) -> int:
         # results go on the metrics key whenever there is a Zenoh network to put them on (not in-process)
         publish = settings.backend == "zenoh"
         publisher = stack.enter_context(closing(ResultPublisher(settings.zenoh))) if publish else None
+        if settings.sweep:
+            from eval_service.sweep import sweep
+
+            sweep(settings, out)
+            return 0
         if settings.watch:
             from eval_service.watch import watch
 

@@ -84,7 +84,7 @@ def play_episodes(
     label: str,
     episodes: int,
     seed: int,
-    noise: bool | None = NO_NOISE_CHANGE,
+    noise: bool | dict[str, Any] | None = NO_NOISE_CHANGE,
     on_step: StepSink | None = None,
     on_episode: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:

@@ -7,6 +7,7 @@ columns: theta, d, the actions, the frustum flag) rather than comparing against 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import threading
@@ -20,7 +21,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from eval_service import command, watch
+from eval_service import command, sweep, watch
 from eval_service.attach import NoEvalEnv, free_env_ids
 from eval_service.command import SHIPPED_POLICY, EvalCommandSettings, contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
@@ -31,6 +32,7 @@ from learner_service.task import TaskSettings
 from services.cli import main as swimm
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D
 from services.settings import ZenohSettings
+from sim_service.noise import PRESETS
 from sim_service.settings import WorldSettings
 
 STEPS = 60
@@ -244,14 +246,52 @@ def test_watcher_keeps_a_copy_only_when_its_hash_is_the_one_the_score_gives(tmp_
     assert (copies / "best-20.zip").read_bytes() == b"second"
 
 
-def test_noise_on_renders_the_same_episode_through_image_noise_in_process(tmp_path) -> None:
-    frames = {}
-    for noise in ("off", "on"):
-        with command.evaluation_env(settings(tmp_path, noise=noise), render=True) as env:
+def test_each_noise_choice_renders_the_same_episode_through_its_noise_in_process(tmp_path) -> None:
+    frames, applied = {}, {}
+    for choice in ("keep", "off", "on", "murky", "harsh"):
+        with command.evaluation_env(settings(tmp_path, noise=choice), render=True) as env:
             frame = tap_frames(env)
-            env.reset(seed=113)
+            option = command.noise_option(choice)
+            env.reset(seed=113, options=None if option is None else {"noise": option})
             env.step(np.zeros(2, np.float32))
-            frames[noise] = (frame().astype(np.int16), env.world.settings.noise.enabled)
-    (clean, clean_enabled), (noisy, noisy_enabled) = frames["off"], frames["on"]
-    assert not clean_enabled and noisy_enabled
-    assert np.abs(noisy - clean).mean() > 1.0  # same seed and action, visibly different pixels
+            frames[choice], applied[choice] = frame().astype(np.int16), env.world.noise_settings
+    assert applied["keep"] is None and applied["off"] is None  # an in-process world starts clean
+    assert applied["on"] == applied["murky"] == dataclasses.replace(PRESETS["murky"], preset="off")
+    assert applied["harsh"] == dataclasses.replace(PRESETS["harsh"], preset="off")
+    assert np.array_equal(frames["keep"], frames["off"])
+    for noisy in ("murky", "harsh"):
+        assert np.abs(frames[noisy] - frames["off"]).mean() > 1.0  # same seed and action, visibly different pixels
+
+
+def test_a_sweep_plays_every_condition_once_and_writes_its_table_and_figure(tmp_path) -> None:
+    given = settings(tmp_path, obs="cmvae", algo=["sac", "scripted"], checkpoint=[str(SHIPPED_POLICY)], episodes=1,
+                     steps=40, sweep=True, figures=True, sweep_severities=[0.0, 1.0, 2.0],
+                     sweep_effects=["all", "fog"])  # fmt: skip
+    table = sweep.sweep(given, Path(given.out))
+    conditions = [("none", 0.0), ("all", 1.0), ("all", 2.0), ("fog", 1.0), ("fog", 2.0)]
+    for label in ("sac", "scripted"):
+        rows = table[table["label"] == label]
+        assert list(zip(rows["effects"], rows["severity"], strict=True)) == conditions
+    episodes = pd.read_csv(Path(given.out) / "episodes.csv")
+    assert len(episodes) == 10 and episodes["seed"].nunique() == 1  # every condition plays the same episode
+    assert table["mean_return"].tolist() == pytest.approx(episodes["return"].tolist())
+    # Noise reaches a policy only through its frames: the camera policy's actions change, ground truth's do not.
+    scripted, camera = table[table["label"] == "scripted"], table[table["label"] == "sac"]
+    assert scripted["mean_return"].nunique() == 1
+    assert camera["mean_return"].iloc[0] != camera["mean_return"].iloc[2]
+    image = matplotlib.image.imread(Path(given.out) / "sweep.png")
+    assert image.shape[0] > 200 and image.std() > 0.01
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"sweep_preset": "fish"}, "--sweep-preset"),
+        ({"sweep_effects": ["smoke"]}, "--sweep-effects"),
+        ({"sweep_severities": [-1.0]}, "--sweep-severities"),
+        ({"noise": "soup"}, "--noise must be one of keep, off, on, murky, harsh"),
+    ],
+)
+def test_bad_sweep_and_noise_settings_are_refused_by_name(tmp_path, overrides, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        command.check(settings(tmp_path, sweep=True, **overrides))

@@ -1,0 +1,144 @@
+"""`swimm eval --sweep`: robustness curves, every contender played across image-noise severities.
+
+    swimm eval --sweep --backend inprocess --algo sac --checkpoint a.zip --algo scripted --episodes 2 \\
+        --sweep-preset harsh --sweep-severities 0 0.5 1 1.5 2 --out runs/sweep
+
+A condition is one group of effects (one effect alone, or ``all`` of them) at one severity: the preset's strength
+of those effects times the severity, every other effect off (:func:`sim_service.noise.scaled`). Severity 0 is
+clean frames, the same condition for every group, so it is played once. Every contender plays the same episodes
+(the same seeds) in every condition, on one env: a live sim's eval env (each episode's reset carries the
+condition's noise settings, so the sim's other envs are untouched; the claimed env keeps the last condition's
+noise) or an in-process world.
+
+The run folder holds ``sweep.csv`` (one row per contender and condition: Table 12's columns), ``episodes.csv``
+(one row per episode), ``sweep.json`` (the rows and how the run was made) and ``sweep.png`` (return and the
+share of episodes with a violation, against severity, one panel per effect group).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pandas as pd
+from matplotlib.figure import Figure
+from tqdm import tqdm
+
+from eval_service.evaluator import play_episodes
+from eval_service.metrics import summarise
+from learner_service.registry import load_policy
+from services.settings import to_dict
+from sim_service.noise import EFFECTS, PRESETS, scaled
+
+if TYPE_CHECKING:
+    from eval_service.command import EvalCommandSettings
+
+log = logging.getLogger(__name__)
+
+ALL_EFFECTS = "all"
+SWEEP_COLUMNS = ("label", "effects", "severity", "mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D",
+                 "S_A", "violations", "episodes")  # fmt: skip
+
+
+def check_sweep(settings: EvalCommandSettings) -> None:
+    """Refuse a sweep that could only fail later, naming the setting."""
+    if settings.sweep_preset not in PRESETS or settings.sweep_preset == "off":
+        choices = ", ".join(name for name in PRESETS if name != "off")
+        raise ValueError(f"--sweep-preset must be one of {choices}, got {settings.sweep_preset!r}")
+    unknown = [name for name in settings.sweep_effects if name != ALL_EFFECTS and name not in EFFECTS]
+    if unknown or not settings.sweep_effects:
+        raise ValueError(f"--sweep-effects takes {ALL_EFFECTS} and {', '.join(EFFECTS)}; got {settings.sweep_effects}")
+    if not settings.sweep_severities or any(s < 0 for s in settings.sweep_severities):
+        raise ValueError(f"--sweep-severities must be numbers >= 0, got {settings.sweep_severities}")
+    if settings.watch:
+        raise ValueError("--sweep and --watch are two different runs: give one")
+
+
+def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str, Any]]]:
+    """(effect group, severity, noise settings as a reset's map) in play order; severity 0 once, as ``none``."""
+    preset = PRESETS[settings.sweep_preset]
+    played: list[tuple[str, float, dict[str, Any]]] = []
+    severities = sorted(set(settings.sweep_severities))
+    if 0.0 in severities:
+        played.append(("none", 0.0, dataclasses.asdict(scaled(preset, 0.0))))
+    for group in settings.sweep_effects:
+        effects = EFFECTS if group == ALL_EFFECTS else (group,)
+        for severity in severities:
+            if severity > 0:
+                played.append((group, severity, dataclasses.asdict(scaled(preset, severity, effects))))
+    return played
+
+
+def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
+    """Play every contender in every condition; write the run folder; returns the per-condition table."""
+    from eval_service.command import contenders, evaluation_env  # the command module imports this one lazily
+
+    entries = contenders(settings)
+    policies = {entry.label: load_policy(entry.algo, entry.checkpoint, device=settings.device) for entry in entries}
+    plan = conditions(settings)
+    rows: list[dict[str, Any]] = []
+    episodes: list[dict[str, Any]] = []
+    started = time.perf_counter()
+    total = len(plan) * len(entries) * settings.episodes * settings.steps
+    with evaluation_env(settings) as env, tqdm(total=total, desc="sweep", unit="step", unit_scale=True,
+                                               disable=not settings.progress_bar, file=sys.stderr,
+                                               mininterval=1.0) as bar:  # fmt: skip
+        for group, severity, noise in plan:
+            for entry in entries:
+                bar.set_postfix(effects=group, severity=severity, label=entry.label)
+                played = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed, noise,
+                                       on_step=lambda *_: bar.update(1))  # fmt: skip
+                summary = summarise(played)
+                violations = sum(bool(r["left_view"] or r["distance_exceeded"] or r["collided"]) for r in played)
+                rows.append({"label": entry.label, "effects": group, "severity": severity, **summary,
+                             "violations": violations / len(played)})  # fmt: skip
+                episodes += [{"label": entry.label, "effects": group, "severity": severity, **r} for r in played]
+                log.info("%s, %s x%.2f: return %.0f, violations in %d of %d episodes", entry.label, group, severity,
+                         summary["mean_return"], violations, len(played))  # fmt: skip
+    table = pd.DataFrame(rows, columns=list(SWEEP_COLUMNS))
+    out.mkdir(parents=True, exist_ok=True)
+    table.to_csv(out / "sweep.csv", index=False)
+    pd.DataFrame(episodes).to_csv(out / "episodes.csv", index=False)
+    record = {"rows": rows, "preset": dataclasses.asdict(PRESETS[settings.sweep_preset]),
+              "contenders": [vars(entry) for entry in entries], "wall_s": time.perf_counter() - started,
+              "settings": to_dict(settings), "argv": sys.argv}  # fmt: skip
+    (out / "sweep.json").write_text(json.dumps(record, indent=2))
+    if settings.figures:
+        sweep_figure(table, settings.sweep_preset).savefig(out / "sweep.png", dpi=100)
+    print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    print(f"run folder: {out}")
+    return table
+
+
+def sweep_figure(table: pd.DataFrame, preset: str) -> Figure:
+    """Return (top) and share of episodes with a violation (bottom) against severity, one column per effect group.
+
+    The clean condition (``none``) is every group's severity-0 point.
+    """
+    groups = [group for group in table["effects"].drop_duplicates() if group != "none"]
+    clean = table[table["effects"] == "none"]
+    fig = Figure(figsize=(2.6 * max(len(groups), 1), 5.2))
+    axes = fig.subplots(2, max(len(groups), 1), sharex=True, sharey="row", squeeze=False)
+    for column, group in enumerate(groups):
+        part = pd.concat([clean, table[table["effects"] == group]])
+        for index, (label, rows) in enumerate(part.groupby("label", sort=False)):
+            rows = rows.sort_values("severity")
+            style = {"color": f"C{index % 10}", "marker": "o", "markersize": 3, "linewidth": 1.2}
+            axes[0, column].plot(rows["severity"], rows["mean_return"], label=str(label), **style)
+            axes[1, column].plot(rows["severity"], rows["violations"], **style)
+        axes[0, column].set_title(group, fontsize=9)
+        axes[1, column].set_xlabel(f"severity (x {preset})", fontsize=8)
+        for row in (0, 1):
+            axes[row, column].grid(alpha=0.3)
+    axes[0, 0].set_ylabel("mean return")
+    axes[1, 0].set_ylabel("episodes with a violation")
+    axes[1, 0].set_ylim(-0.05, 1.05)
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle("Robustness to image noise: each effect alone, and all together", fontsize=10)
+    fig.tight_layout()
+    return fig
