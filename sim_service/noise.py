@@ -55,6 +55,7 @@ class NoiseSettings:
 
     preset: str = "off"  # off | murky | harsh: a named set of effects; effects set here that are above 0 win
     randomise: bool = False  # each episode draws every effect from 0 to its strength and a natural water colour
+    clean_share: float = 0.0  # randomised: the share of episodes drawn with no noise at all (clean and noisy mixed)
     attenuation: float = 0.0  # per metre: each channel decays as exp(-attenuation * attenuation_rgb[c] * depth)
     attenuation_rgb: list[float] = field(default_factory=lambda: [1.0, 0.45, 0.3])  # relative R, G, B decay rates
     fog: float = 0.0  # density per metre: visibility exp(-(fog * depth)^2)
@@ -171,9 +172,10 @@ def draw_episode_noise(settings: NoiseSettings, rng: np.random.Generator) -> Noi
     """One episode's fixed settings drawn from ``settings`` read as maxima (see ``randomise``).
 
     Every effect's strength is uniform between 0 and its setting (JPEG's quality between the setting and 100), and
-    the water colour a uniform mix of two neighbouring natural water colours. The same generator state gives the
-    same draw, so an episode's noise is fixed by its seed.
+    the water colour a uniform mix of two neighbouring natural water colours; a ``clean_share`` of draws switch
+    every effect off. The same generator state gives the same draw, so an episode's noise is fixed by its seed.
     """
+    clean = rng.uniform(0.0, 1.0) < settings.clean_share
     values: dict[str, float | int] = {}
     for name in EFFECTS:
         value = getattr(settings, name)
@@ -185,6 +187,8 @@ def draw_episode_noise(settings: NoiseSettings, rng: np.random.Generator) -> Noi
     pick = int(rng.integers(len(WATER_COLOURS) - 1))
     mix = rng.uniform(0.0, 1.0)
     colour = (1 - mix) * np.asarray(WATER_COLOURS[pick]) + mix * np.asarray(WATER_COLOURS[pick + 1])
+    if clean:
+        values = {name: 0 for name in EFFECTS}
     return dataclasses.replace(
         settings, preset="off", randomise=False, fog_color=[int(c) for c in np.rint(colour)], **values
     )
@@ -311,6 +315,8 @@ def _validate(settings: NoiseSettings) -> None:
             raise ValueError(f"noise setting {name} must be >= 0, got {getattr(settings, name)}")
     if settings.focus_m <= 0:
         raise ValueError(f"noise focus_m must be > 0, got {settings.focus_m}")
+    if not 0.0 <= settings.clean_share <= 1.0:
+        raise ValueError(f"noise clean_share must lie in [0, 1], got {settings.clean_share}")
     if settings.jpeg_quality < 0 or settings.jpeg_quality > _JPEG_BEST:
         raise ValueError(f"noise jpeg_quality must lie in 0..100 (0 = off), got {settings.jpeg_quality}")
     rates = list(settings.attenuation_rgb)

@@ -117,7 +117,9 @@ class World:
         rover_geom = self.model.geom("rover_hull").id
         target_geom = self.model.geom("dolphin_collider").id
         self._pair = (min(rover_geom, target_geom), max(rover_geom, target_geom))
-        self._mocap = [self.model.body(name).mocapid[0] for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
+        dolphin_bodies = [self.model.body(name).id for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
+        self._mocap = [self.model.body_mocapid[body] for body in dolphin_bodies]
+        self._target_geoms = np.flatnonzero(np.isin(self.model.geom_bodyid, dolphin_bodies))
         self._camera = self.model.camera(CAMERA).id
         self.frustum = CameraFrustum.from_model(self.model, self._camera)
         self._prepared: PreparedStep | None = None
@@ -253,6 +255,27 @@ class World:
         self._pose_dolphin(dolphin)
         mujoco.mj_step1(self.model, d)
         return self._telemetry(dolphin), self._render()
+
+    def target_mask(self) -> np.ndarray:
+        """Which pixels of the current frame show the dolphin: bool (size, size), from MuJoCo's segmentation render.
+
+        The ground truth of where the target is in the image, e.g. to check labels against what the camera sees.
+        """
+        if self._renderer is None:
+            raise RuntimeError("target_mask needs a rendering world (WorldSettings(render=True))")
+        self._renderer.update_scene(self.data, camera=self._camera)
+        self._renderer.enable_segmentation_rendering()
+        try:
+            segmentation = self._renderer.render()
+        finally:
+            self._renderer.disable_segmentation_rendering()
+        ids, types = segmentation[..., 0], segmentation[..., 1]
+        mask = (types == mujoco.mjtObj.mjOBJ_GEOM) & np.isin(ids, self._target_geoms)
+        size = self.settings.image_size
+        if mask.shape[0] != size:  # rendered at a multiple: a pixel shows the dolphin if any of its samples does
+            scale = mask.shape[0] // size
+            mask = mask.reshape(size, scale, size, scale).any(axis=(1, 3))
+        return mask
 
     @property
     def dt(self) -> float:

@@ -288,11 +288,19 @@ def test_an_episode_draw_lies_inside_the_ranges_and_follows_the_seed():
     low, high = np.min(noise.WATER_COLOURS, axis=0), np.max(noise.WATER_COLOURS, axis=0)
     assert (colours >= low).all() and (colours <= high).all() and len({tuple(c) for c in colours}) > 50
     assert not any(d.randomise for d in draws)
+    mixed = [noise.draw_episode_noise(dataclasses.replace(maxima, clean_share=0.3), np.random.default_rng(seed))
+             for seed in range(200)]  # fmt: skip
+    assert 0.2 < np.mean([not d.enabled for d in mixed]) < 0.4
 
 
 @pytest.mark.parametrize(
     "settings",
-    [NoiseSettings(jpeg_quality=101), NoiseSettings(attenuation_rgb=[1.0, -0.1, 0.2]), NoiseSettings(marine_snow=-1)],
+    [
+        NoiseSettings(jpeg_quality=101),
+        NoiseSettings(attenuation_rgb=[1.0, -0.1, 0.2]),
+        NoiseSettings(marine_snow=-1),
+        NoiseSettings(clean_share=1.5),
+    ],
 )
 def test_invalid_new_settings_raise(settings):
     with pytest.raises(ValueError):

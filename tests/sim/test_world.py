@@ -308,3 +308,26 @@ def test_configured_noise_is_on_from_the_start(camera_world):
     water = np.array(settings.noise.fog_color, float)
     # Fog pulls every pixel toward the water colour: the foggy frame is closer to it than the clean one.
     assert np.abs(image - water).mean() < 0.8 * np.abs(clean - water).mean()
+
+
+def test_randomised_noise_is_drawn_per_episode_from_its_seed_and_never_moves_the_trajectory(camera_world):
+    from sim_service.noise import EFFECTS, PRESETS
+
+    maxima = NoiseSettings(preset="harsh", randomise=True)
+    world = World(WorldSettings(noise=maxima))
+    try:
+        first_poses, first = _episode(world, 31, noise=None, steps=5)
+        first_noise = world.noise_settings
+        _, other = _episode(world, 32, noise=None, steps=5)
+        other_noise = world.noise_settings
+        again_poses, again = _episode(world, 31, noise=None, steps=5)
+        assert world.noise_settings == first_noise and np.array_equal(again, first)  # the seed fixes the draw
+        assert first_noise != other_noise and not np.array_equal(first, other)
+        for name in EFFECTS:  # inside the preset's range
+            drawn, top = getattr(first_noise, name), getattr(PRESETS["harsh"], name)
+            assert (top <= drawn <= 100) if name == "jpeg_quality" else (0 <= drawn <= top)
+        clean_poses, clean = _episode(camera_world, 31, noise=False, steps=5)
+        assert first_poses == clean_poses and not np.array_equal(first, clean)
+        assert np.array_equal(world.clean_frame, clean[-1])  # the frame before noise is the clean world's
+    finally:
+        world.close()
