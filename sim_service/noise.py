@@ -113,6 +113,16 @@ class NoiseSettings:
         return dataclasses.replace(self, preset="off", **filled)
 
 
+def describe_noise(settings: NoiseSettings) -> str:
+    """One line for logs: the preset, randomisation and every effect that is on."""
+    resolved = settings.resolved()
+    if not resolved.enabled:
+        return "off"
+    effects = ", ".join(f"{name} {getattr(resolved, name):g}" for name in EFFECTS if getattr(resolved, name) > 0)
+    randomised = f"randomised up to ({effects}), {settings.clean_share:.0%} of episodes clean"
+    return f"{settings.preset}: " * (settings.preset != "off") + (randomised if settings.randomise else effects)
+
+
 def noise_option(value: object) -> bool | NoiseSettings | None:
     """A reset's ``noise`` option as `World.reset` takes it: on/off, settings from a map, or None (unchanged)."""
     if isinstance(value, dict):

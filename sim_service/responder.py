@@ -30,7 +30,7 @@ from services.presence import Roster, announce, live_now
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES, open_session
 from services.settings import ZenohSettings
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
-from sim_service.noise import noise_option
+from sim_service.noise import describe_noise, noise_option
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -121,12 +121,13 @@ class SimResponder:
         self._token = announce(self.session, self.keys, "sim", self.ident)
         self._metrics_publisher = MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics)
         log.info(
-            "sim %s serving %d train and %d eval envs under %s (%s)",
+            "sim %s serving %d train and %d eval envs under %s (%s); image noise: %s",
             self.ident,
             self.settings.train_envs,
             self.settings.eval_envs,
             self.keys.namespace,
             "real-time" if self.settings.realtime else "lock-step",
+            describe_noise(self.settings.world.noise),
         )
 
     def _on_roster_change(self, joined: set[str], left: set[str]) -> None:

@@ -57,8 +57,12 @@ def test_up_trains_on_cmvae_and_leaves_a_run_folder(spawn, namespace, tmp_path) 
     checkpoint = tmp_path / "tiny_cmvae.pt"  # an untrained CMVAE: the pipeline, not the policy, is under test
     torch.save(make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), checkpoint)
     run_dir = tmp_path / "run"
-    up = spawn("up", *up_args(run_dir, namespace, "--steps", "300", "--encoder-checkpoint", str(checkpoint)))
+    sim_config = tmp_path / "sim.yaml"
+    sim_config.write_text("noise_preset: murky\nnoise_randomise: true\n")
+    up = spawn("up", *up_args(run_dir, namespace, "--steps", "300", "--encoder-checkpoint", str(checkpoint),
+                              "--sim-config", str(sim_config)))  # fmt: skip
     assert wait_exit(up, 150) == 0, up.log_tail(60)
+    assert "image noise: murky: randomised up to (fog 0.12" in (run_dir / "logs" / "sim.log").read_text()
 
     assert_all_stopped(up, {"router", "sim", "encoder", "learner"})
     result = json.loads((run_dir / "result.json").read_text())
@@ -97,6 +101,14 @@ def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tm
     assert (run_dir / "final_model.zip").is_file() and (run_dir / "train.monitor.csv").is_file()
     for name in ("router", "sim", "learner"):
         assert "low-latency transport" in (run_dir / "logs" / f"{name}.log").read_text(), name
+
+
+def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capfd) -> None:
+    missing = tmp_path / "nowhere.yaml"
+    assert cli.main(["up", "--run-dir", str(tmp_path / "run"), "--sim-config", str(missing)]) == 1
+    message = capfd.readouterr().err
+    assert f"--sim-config {missing}: no such settings file" in message
+    assert not (tmp_path / "run").exists()
 
 
 def test_up_without_the_cmvae_says_what_to_do(tmp_path, capfd) -> None:
