@@ -320,3 +320,13 @@ def test_preset_and_randomise_come_from_flags_yaml_and_the_environment(tmp_path)
     loaded = settings_module.load(Holder, args, config, environ={"SWIMM_NOISE_MARINE_SNOW": "4"})
     assert (loaded.noise.preset, loaded.noise.randomise, loaded.noise.jpeg_quality) == ("harsh", True, 70)
     assert loaded.noise.resolved().marine_snow == 4.0 and loaded.noise.resolved().fog == noise.PRESETS["harsh"].fog
+
+
+def test_the_shipped_randomised_noise_config_loads_as_sim_settings():
+    from pathlib import Path
+
+    from sim_service.responder import SimSettings
+
+    config = Path(noise.__file__).parent / "configs" / "randomised_noise.yaml"
+    sim = settings_module.load(SimSettings, None, config, environ={})
+    assert sim.world.noise.randomise and sim.world.noise.resolved().enabled and 0 < sim.world.noise.clean_share < 1
