@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import sys
 import time
 from pathlib import Path
@@ -115,29 +116,38 @@ def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     return table
 
 
-def sweep_figure(table: pd.DataFrame, preset: str) -> Figure:
-    """Return (top) and share of episodes with a violation (bottom) against severity, one column per effect group.
-
-    The clean condition (``none``) is every group's severity-0 point.
+def sweep_figure(table: pd.DataFrame, preset: str, per_row: int = 5) -> Figure:
+    """Return and share of episodes with a violation against severity: a pair of panels per effect group, ``per_row``
+    groups to a row. The clean condition (``none``) is every group's severity-0 point.
     """
-    groups = [group for group in table["effects"].drop_duplicates() if group != "none"]
+    groups = [group for group in table["effects"].drop_duplicates() if group != "none"] or ["none"]
     clean = table[table["effects"] == "none"]
-    fig = Figure(figsize=(2.6 * max(len(groups), 1), 5.2))
-    axes = fig.subplots(2, max(len(groups), 1), sharex=True, sharey="row", squeeze=False)
-    for column, group in enumerate(groups):
-        part = pd.concat([clean, table[table["effects"] == group]])
-        for index, (label, rows) in enumerate(part.groupby("label", sort=False)):
-            rows = rows.sort_values("severity")
-            style = {"color": f"C{index % 10}", "marker": "o", "markersize": 3, "linewidth": 1.2}
-            axes[0, column].plot(rows["severity"], rows["mean_return"], label=str(label), **style)
-            axes[1, column].plot(rows["severity"], rows["violations"], **style)
-        axes[0, column].set_title(group, fontsize=9)
-        axes[1, column].set_xlabel(f"severity (x {preset})", fontsize=8)
-        for row in (0, 1):
-            axes[row, column].grid(alpha=0.3)
-    axes[0, 0].set_ylabel("mean return")
-    axes[1, 0].set_ylabel("episodes with a violation")
-    axes[1, 0].set_ylim(-0.05, 1.05)
+    margin = 0.05 * max(float(table["mean_return"].max() - table["mean_return"].min()), 1.0)
+    returns = (float(table["mean_return"].min()) - margin, float(table["mean_return"].max()) + margin)  # one scale
+    columns = min(per_row, len(groups))
+    rows = math.ceil(len(groups) / columns)
+    fig = Figure(figsize=(2.8 * columns, 4.4 * rows))
+    axes = fig.subplots(2 * rows, columns, sharex=True, squeeze=False)
+    for index, group in enumerate(groups):
+        top, bottom = axes[2 * (index // columns), index % columns], axes[2 * (index // columns) + 1, index % columns]
+        part = pd.concat([clean, table[table["effects"] == group]]).drop_duplicates()
+        for colour, (label, played) in enumerate(part.groupby("label", sort=False)):
+            played = played.sort_values("severity")
+            style = {"color": f"C{colour % 10}", "marker": "o", "markersize": 3, "linewidth": 1.2}
+            top.plot(played["severity"], played["mean_return"], label=str(label), **style)
+            bottom.plot(played["severity"], played["violations"], **style)
+        top.set_ylim(*returns)
+        top.set_title(group, fontsize=9)
+        top.set_ylabel("mean return", fontsize=8)
+        bottom.set_ylabel("violation share", fontsize=8)
+        bottom.set_ylim(-0.05, 1.05)
+        bottom.set_xlabel(f"severity (x {preset})", fontsize=8)
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3)
+            ax.tick_params(labelsize=7)
+    for index in range(len(groups), rows * columns):  # empty slots of the last row
+        axes[2 * (index // columns), index % columns].set_visible(False)
+        axes[2 * (index // columns) + 1, index % columns].set_visible(False)
     axes[0, 0].legend(fontsize=7)
     fig.suptitle("Robustness to image noise: each effect alone, and all together", fontsize=10)
     fig.tight_layout()
