@@ -158,7 +158,8 @@ def _open_clean(root: Path, shard: str, count: int) -> np.ndarray:
         raise DatasetFormatError(f"meta.json says the dataset is paired, but shard file {path} is missing")
     clean = np.load(path, mmap_mode="r")
     if clean.dtype != np.uint8 or clean.shape != (count, *IMAGE_SHAPE):
-        raise DatasetFormatError(f"{path}: expected uint8 ({count}, {', '.join(map(str, IMAGE_SHAPE))}), got {clean.dtype} {clean.shape}")
+        shape = ", ".join(map(str, IMAGE_SHAPE))
+        raise DatasetFormatError(f"{path}: expected uint8 ({count}, {shape}), got {clean.dtype} {clean.shape}")
     return clean
 
 

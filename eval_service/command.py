@@ -38,10 +38,10 @@ from eval_service.live_tap import EnvTap, parse_env
 from eval_service.metrics import summarise
 from eval_service.publish import ResultPublisher
 from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
-from learner_service.registry import SCRIPTED, load_policy, resolve_algorithm
+from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
-from sim_service.noise import EFFECTS, PRESETS
 from services.settings import ZenohSettings, to_dict
+from sim_service.noise import EFFECTS, PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -119,11 +119,11 @@ def contenders(settings: EvalCommandSettings) -> list[Contender]:
     algos = list(settings.algo) or (["sac"] if checkpoints or shipped else [SCRIPTED])
     if shipped and not checkpoints and algos.count("sac") == 1:
         checkpoints = [str(SHIPPED_POLICY)]
-    if len(algos) == 1 and algos[0] != SCRIPTED and len(checkpoints) > 1:
+    if len(algos) == 1 and algos[0] not in SCRIPTED_NAMES and len(checkpoints) > 1:
         algos *= len(checkpoints)
     pairs: list[tuple[str, str | None]] = []
     for algo in algos:
-        if algo == SCRIPTED:
+        if algo in SCRIPTED_NAMES:
             pairs.append((algo, None))
             continue
         resolve_algorithm(algo)  # an unknown name fails here, before any sim is touched
@@ -136,6 +136,18 @@ def contenders(settings: EvalCommandSettings) -> list[Contender]:
     if len(labels) != len(pairs) or len(set(labels)) != len(labels):
         raise ValueError(f"--label needs {len(pairs)} distinct names (one per contender), got {labels}")
     return [Contender(label, algo, checkpoint) for label, (algo, checkpoint) in zip(labels, pairs, strict=True)]
+
+
+def load_policies(settings: EvalCommandSettings, entries: list[Contender]) -> dict[str, Policy]:
+    """Each contender's deterministic policy by label; the camera-only scripted tracker decodes with the CMVAE
+    that makes the latents (``--encoder-checkpoint``, else the shipped one)."""
+    if any(entry.algo == LATENT_SCRIPTED for entry in entries) and settings.obs != "cmvae":
+        raise ValueError(f"--algo {LATENT_SCRIPTED} reads CMVAE latents: it needs --obs cmvae, not {settings.obs}")
+
+    def checkpoint(entry: Contender) -> str | None:
+        return (settings.encoder_checkpoint or None) if entry.algo == LATENT_SCRIPTED else entry.checkpoint
+
+    return {entry.label: load_policy(entry.algo, checkpoint(entry), device=settings.device) for entry in entries}
 
 
 def default_labels(pairs: list[tuple[str, str | None]]) -> list[str]:
@@ -185,7 +197,7 @@ def evaluate(
     """Play every contender's episodes on one env, write the run folder ``out``; returns Table 12 per label."""
     check(settings)
     entries = entries if entries is not None else contenders(settings)
-    policies = {entry.label: load_policy(entry.algo, entry.checkpoint, device=settings.device) for entry in entries}
+    policies = load_policies(settings, entries)
     summaries: dict[str, dict[str, float]] = {}
     noise = noise_option(settings.noise)
     started = time.perf_counter()

@@ -32,7 +32,6 @@ from tqdm import tqdm
 
 from eval_service.evaluator import play_episodes
 from eval_service.metrics import summarise
-from learner_service.registry import load_policy
 from services.settings import to_dict
 from sim_service.noise import EFFECTS, PRESETS, scaled
 
@@ -77,10 +76,10 @@ def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str
 
 def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     """Play every contender in every condition; write the run folder; returns the per-condition table."""
-    from eval_service.command import contenders, evaluation_env  # the command module imports this one lazily
+    from eval_service.command import contenders, evaluation_env, load_policies  # command imports this module lazily
 
     entries = contenders(settings)
-    policies = {entry.label: load_policy(entry.algo, entry.checkpoint, device=settings.device) for entry in entries}
+    policies = load_policies(settings, entries)
     plan = conditions(settings)
     rows: list[dict[str, Any]] = []
     episodes: list[dict[str, Any]] = []

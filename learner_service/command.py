@@ -40,7 +40,7 @@ from learner_service.checkpoints import FINAL_MODEL, load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
 from learner_service.progress import PROGRESS_FILE
-from learner_service.registry import SCRIPTED, load_hyperparams, make_model, merge_overrides, resolve_algorithm
+from learner_service.registry import SCRIPTED_NAMES, load_hyperparams, make_model, merge_overrides, resolve_algorithm
 from learner_service.task import TaskSettings
 from services.lifecycle import stop_on_signals
 from services.settings import to_dict
@@ -92,8 +92,8 @@ def check(settings: LearnCommandSettings) -> None:
     check_backend(settings.backend)
     settings.eval.check()
     settings.demo.check()
-    if settings.algo == SCRIPTED:
-        raise ValueError("the scripted baseline has nothing to learn; evaluate it with `swimm eval --algo scripted`")
+    if settings.algo in SCRIPTED_NAMES:
+        raise ValueError(f"a scripted baseline has nothing to learn; evaluate it: `swimm eval --algo {settings.algo}`")
     _, defaults = resolve_algorithm(settings.algo)
     train_freq = merge_overrides(defaults, parse_hyperparams(settings.hyperparams)).get("train_freq")
     if settings.envs > 1 and isinstance(train_freq, list | tuple) and str(train_freq[-1]).startswith("episode"):

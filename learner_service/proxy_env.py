@@ -39,7 +39,7 @@ from services.settings import ZenohSettings
 log = logging.getLogger(__name__)
 
 CLAIMANT_ROLES = ("learner", "eval")  # the roles whose liveliness the sim watches to lapse claims
-NOISE_OPTION = "noise"  # reset(options={"noise": True | False | {settings}}) switches the sim's image noise from that episode on
+NOISE_OPTION = "noise"  # reset(options={"noise": True | False | {settings}}): the sim's image noise from that episode
 
 
 class ClaimRefused(ControlError):

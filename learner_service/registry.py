@@ -27,12 +27,14 @@ import yaml
 from stable_baselines3.common.noise import ActionNoise, NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.utils import LinearSchedule
 
-from learner_service.scripted import ScriptedTracker
+from learner_service.scripted import LatentTracker, ScriptedTracker
 
 log = logging.getLogger(__name__)
 
 HYPERPARAMS_DIR = Path(__file__).parent / "hyperparams"
 SCRIPTED = "scripted"
+LATENT_SCRIPTED = "scripted-camera"  # the scripted tracker on the CMVAE's decoded d and theta (camera only)
+SCRIPTED_NAMES = (SCRIPTED, LATENT_SCRIPTED)
 LINEAR_SCHEDULE_PREFIX = "lin_"
 ACTION_NOISES = {"ornstein_uhlenbeck": OrnsteinUhlenbeckActionNoise, "normal": NormalActionNoise}
 SB3_API = ("learn", "predict", "load")
@@ -58,7 +60,7 @@ class SB3Policy:
 
 def algorithm_names() -> list[str]:
     """Every algorithm known by name: the YAML files' stems and the scripted baseline."""
-    return sorted([path.stem for path in HYPERPARAMS_DIR.glob("*.yaml")] + [SCRIPTED])
+    return sorted([path.stem for path in HYPERPARAMS_DIR.glob("*.yaml")] + list(SCRIPTED_NAMES))
 
 
 def load_hyperparams(algo: str) -> dict[str, Any]:
@@ -95,8 +97,8 @@ def resolve_algorithm(algo: str) -> tuple[type, dict[str, Any]]:
     """The class and default model keyword arguments of a name ("sac") or an import path ("pkg.mod:Class")."""
     if ":" in algo:
         return import_algorithm(algo), {}
-    if algo == SCRIPTED:
-        raise ValueError("the scripted baseline has nothing to train; use load_policy('scripted', None)")
+    if algo in SCRIPTED_NAMES:
+        raise ValueError(f"the scripted baseline has nothing to train; use load_policy({algo!r}, None)")
     if algo not in algorithm_names():
         raise ValueError(
             f"unknown algorithm {algo!r}; choose one of {', '.join(algorithm_names())} or give 'package.module:Class'"
@@ -186,9 +188,17 @@ def make_model(
 
 
 def load_policy(algo: str, checkpoint: str | Path | None, env: Any = None, device: str = "auto") -> Policy:
-    """A deterministic policy: the scripted baseline (no checkpoint), or a saved model of ``algo``."""
+    """A deterministic policy: the scripted baseline (no checkpoint), or a saved model of ``algo``.
+
+    For ``scripted-camera`` the checkpoint is the CMVAE whose state decoders it reads (None: the shipped one).
+    """
     if algo == SCRIPTED:
         return ScriptedTracker()
+    if algo == LATENT_SCRIPTED:
+        from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder  # torch only when asked for
+
+        encoder = LatentEncoder(checkpoint or DEFAULT_CHECKPOINT)
+        return LatentTracker(encoder.decode_state, encoder.n_z)
     cls, _ = resolve_algorithm(algo)
     if checkpoint is None:
         raise ValueError(f"algorithm {algo!r} needs a checkpoint to load")

@@ -1,7 +1,9 @@
-"""A scripted baseline: a proportional controller on ground truth, the yardstick a learned policy must beat.
+"""Scripted baselines: a proportional controller on ground truth, the yardstick a learned policy must beat, and
+the same controller on the CMVAE's reading of the camera frame, a camera-only baseline with nothing learnt
+but the encoder.
 
-It reads the telemetry the envs put in ``info`` (never the observation), so
-it runs unchanged in every observation mode and needs no checkpoint.
+`ScriptedTracker` reads the telemetry the envs put in ``info`` (never the observation), so it runs unchanged in
+every observation mode and needs no checkpoint. `LatentTracker` reads the observation's latent mean only.
 Sign conventions (the sim's, ArduSub's): positive azimuth = target to the
 left; positive yaw command turns the nose left (counter-clockwise seen from
 above, z up); positive surge drives forward.
@@ -10,6 +12,7 @@ above, z up); positive surge drives forward.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -38,6 +41,32 @@ class ScriptedTracker:
         if not isinstance(telemetry, Telemetry):
             raise ValueError("the scripted tracker needs info['telemetry'] (a services.telemetry.Telemetry)")
         geometry = relative_geometry(telemetry)
-        surge = self.surge_gain * (geometry.d - OPT_D) * math.cos(math.radians(geometry.azimuth))
-        yaw = self.yaw_gain * geometry.azimuth
+        return self.command(geometry.d, geometry.azimuth)
+
+    def command(self, d: float, azimuth: float) -> np.ndarray:
+        """(surge, yaw) in [-1, 1] for a target ``d`` metres away at ``azimuth`` degrees (+ = left)."""
+        surge = self.surge_gain * (d - OPT_D) * math.cos(math.radians(azimuth))
+        yaw = self.yaw_gain * azimuth
         return np.clip(np.array([surge, yaw], dtype=np.float32), -1.0, 1.0)
+
+
+class LatentTracker(ScriptedTracker):
+    """The tracker's control law on the distance and azimuth that the CMVAE's state decoders read from the latent.
+
+    Camera only, like a learned policy on cmvae observations, and nothing to train: it separates what the encoder
+    can see (under noise, say) from what a policy learns to do with it. ``decode`` maps latents (N, n_z) to
+    (d, theta, psi) arrays, as `encoder_service.inference.LatentEncoder.decode_state` does.
+    """
+
+    def __init__(self, decode: Callable[[np.ndarray], tuple[np.ndarray, ...]], n_z: int) -> None:
+        super().__init__()
+        self.decode = decode
+        self.n_z = n_z
+
+    def act(self, obs: Any, info: dict[str, Any]) -> np.ndarray:
+        """(surge, yaw) from the latent mean at the head of a cmvae observation; ``info`` is ignored."""
+        latent = np.asarray([] if isinstance(obs, dict) else obs, dtype=np.float32).reshape(-1)
+        if latent.size < self.n_z:
+            raise ValueError(f"the latent tracker reads cmvae observations (a latent of {self.n_z} values first)")
+        d, theta, _ = self.decode(latent[None, : self.n_z])
+        return self.command(float(d[0]), float(theta[0]))

@@ -164,7 +164,7 @@ def write_dataset(
         raise ValueError(f"count, shard_size and workers must be positive (got {count}, {shard_size}, {workers})")
     settings = world_settings or WorldSettings()
     if paired and not settings.noise.resolved().enabled:
-        raise ValueError("a paired dataset pairs noisy frames with clean ones: switch noise on (e.g. --noise-preset harsh)")
+        raise ValueError("a paired dataset pairs noisy frames with clean ones: switch noise on (--noise-preset harsh)")
     out = Path(out_dir)
     if (out / "meta.json").exists():
         raise FileExistsError(f"{out} already holds a dataset; choose another --out or delete it")

@@ -59,7 +59,7 @@ class NoiseSettings:
     attenuation: float = 0.0  # per metre: each channel decays as exp(-attenuation * attenuation_rgb[c] * depth)
     attenuation_rgb: list[float] = field(default_factory=lambda: [1.0, 0.45, 0.3])  # relative R, G, B decay rates
     fog: float = 0.0  # density per metre: visibility exp(-(fog * depth)^2)
-    fog_color: list[int] = field(default_factory=lambda: [20, 70, 90])  # RGB of the water that fog and backscatter fade into
+    fog_color: list[int] = field(default_factory=lambda: [20, 70, 90])  # RGB of the water fog and backscatter fade to
     marine_snow: float = 0.0  # mean number of particles per frame
     grain: float = 0.0  # std of film grain, 0-255 units
     shot_noise: float = 0.0  # std of shot noise at full brightness, 0-255 units (std grows as sqrt(signal))
@@ -89,7 +89,7 @@ class NoiseSettings:
         for name, value in values.items():
             default = getattr(cls(), name)
             if isinstance(default, list):
-                ok = isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+                ok = isinstance(value, list) and all(_is_number(v) for v in value)
             elif isinstance(default, bool):
                 ok = isinstance(value, bool)
             elif isinstance(default, str):
@@ -97,7 +97,7 @@ class NoiseSettings:
             elif isinstance(default, int):
                 ok = isinstance(value, int) and not isinstance(value, bool)
             else:
-                ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                ok = _is_number(value) and math.isfinite(value)
             if not ok:
                 raise ValueError(f"noise setting {name} must be like {default!r}, got {value!r}")
         settings = cls(**values)
@@ -172,7 +172,8 @@ def scaled(settings: NoiseSettings, severity: float, effects: tuple[str, ...] = 
     for name in effects:
         value = getattr(settings, name)
         if name == "jpeg_quality":
-            values[name] = 0 if value <= 0 or severity == 0 else max(1, round(_JPEG_BEST - severity * (_JPEG_BEST - value)))
+            off = value <= 0 or severity == 0
+            values[name] = 0 if off else max(1, round(_JPEG_BEST - severity * (_JPEG_BEST - value)))
         else:
             values[name] = value * severity
     return dataclasses.replace(settings, preset="off", randomise=False, **values)
@@ -364,6 +365,10 @@ def _jpeg(image: np.ndarray, quality: int) -> np.ndarray:
     if not ok:
         raise RuntimeError(f"OpenCV could not JPEG-encode a {image.shape} frame")
     return cv2.imdecode(encoded, cv2.IMREAD_COLOR)[..., ::-1].copy()
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _line_kernel(smear: np.ndarray, length: float) -> np.ndarray:

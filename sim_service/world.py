@@ -155,7 +155,8 @@ class World:
         before any episode.
         """
         noise = noise.resolved()
-        self._configured_noise = noise if noise.enabled else dataclasses.replace(NOISY_PRESET, randomise=noise.randomise)
+        preset = dataclasses.replace(NOISY_PRESET, randomise=noise.randomise)
+        self._configured_noise = noise if noise.enabled else preset
         ImageNoise(self._configured_noise)  # validates
         self._noise_on = noise.enabled if active is None else active
 

@@ -295,3 +295,18 @@ def test_a_sweep_plays_every_condition_once_and_writes_its_table_and_figure(tmp_
 def test_bad_sweep_and_noise_settings_are_refused_by_name(tmp_path, overrides, message) -> None:
     with pytest.raises(ValueError, match=message):
         command.check(settings(tmp_path, sweep=True, **overrides))
+
+
+def test_the_camera_only_scripted_tracker_follows_from_the_latent_alone(tmp_path) -> None:
+    """It reads the shipped CMVAE's decoded d and theta, never the telemetry: close to the ground-truth tracker
+    on clean frames, and it moves with the image where the ground-truth one cannot (the noise sweep uses this)."""
+    given = settings(tmp_path, obs="cmvae", algo=["scripted", "scripted-camera"], episodes=1, steps=300)
+    summaries = evaluate(given, Path(given.out))
+    camera, truth = summaries["scripted-camera"], summaries["scripted"]
+    assert camera["A'"] == camera["D'"] == camera["C'"] == 0.0
+    assert camera["mean_return"] > 0.8 * truth["mean_return"] and camera["mean_return"] != truth["mean_return"]
+    tracker = command.load_policies(given, command.contenders(given))["scripted-camera"]
+    with pytest.raises(ValueError, match="cmvae observations"):
+        tracker.act({"image": np.zeros((64, 64, 3), np.uint8)}, {})
+    with pytest.raises(ValueError, match="needs --obs cmvae"):
+        command.load_policies(replace(given, obs="state"), command.contenders(given))

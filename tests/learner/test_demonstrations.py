@@ -210,4 +210,3 @@ def test_the_shipped_policys_recipe_loads_as_swimm_up_settings() -> None:
     assert (up.learn.algo, up.learn.obs, up.learn.backend) == ("sac", "cmvae", "zenoh")
     assert up.learn.demo.steps > 0 and up.learn.demo.critic_steps > 0
     assert parse_hyperparams(up.learn.hyperparams)["policy_kwargs"]["log_std_init"] == -4.0
-
