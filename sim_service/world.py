@@ -147,18 +147,17 @@ class World:
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
         return renderer
 
-    def configure_noise(self, noise: NoiseSettings, active: bool | None = None) -> None:
+    def configure_noise(self, noise: NoiseSettings) -> None:
         """Make ``noise`` the world's image noise from the next episode on (`reset` and `place` draw it).
 
-        ``active`` switches it on or off (None: on when ``noise`` changes images); switched on with every effect
-        at 0, it means :data:`~sim_service.noise.NOISY_PRESET`. Settings are checked here, so a bad one fails
-        before any episode.
+        It is on when it changes images; switched on later (``reset(noise=True)``) with every effect at 0, it means
+        :data:`~sim_service.noise.NOISY_PRESET`. Settings are checked here, so a bad one fails before any episode.
         """
         noise = noise.resolved()
         preset = dataclasses.replace(NOISY_PRESET, randomise=noise.randomise)
         self._configured_noise = noise if noise.enabled else preset
         ImageNoise(self._configured_noise)  # validates
-        self._noise_on = noise.enabled if active is None else active
+        self._noise_on = noise.enabled
 
     @property
     def noise_settings(self) -> NoiseSettings | None:
