@@ -81,7 +81,7 @@ class EvalCommandSettings:
     progress_bar: bool = True  # tqdm bar on stderr
     sweep: bool = False  # play every contender across noise severities (eval_service.sweep) instead
     sweep_preset: str = "harsh"  # the preset whose effects the sweep scales (severity 1 = the preset)
-    sweep_severities: list[float] = field(default_factory=lambda: [0.0, 0.5, 1.0, 1.5, 2.0])
+    sweep_severities: list[float] = field(default_factory=lambda: [0.0, 0.5, 1.0, 1.5, 2.0])  # x preset; 0 = clean
     sweep_effects: list[str] = field(default_factory=lambda: ["all", *EFFECTS])  # each alone, and all together
 
 
