@@ -59,7 +59,7 @@ class TaskSpacesEnv(gym.Env):
 
 
 def test_named_algorithms() -> None:
-    assert algorithm_names() == ["ppo", "sac", "scripted", "td3"]
+    assert algorithm_names() == ["ppo", "sac", "scripted", "scripted-camera", "td3"]
     assert load_hyperparams("sac")["n_timesteps"] == 1_000_000
 
 
@@ -153,7 +153,7 @@ def test_any_sb3_api_class_by_import_path_with_a_dict_observation() -> None:
 
 def test_bad_names_fail_clearly(tmp_path: Path) -> None:
     env = TaskSpacesEnv()
-    with pytest.raises(ValueError, match="unknown algorithm 'dqnx'.*ppo, sac, scripted, td3"):
+    with pytest.raises(ValueError, match="unknown algorithm 'dqnx'.*ppo, sac, scripted, scripted-camera, td3"):
         make_model("dqnx", env, seed=0)
     with pytest.raises(ValueError, match="cannot import module 'no_such_package.algos'"):
         make_model("no_such_package.algos:Fast", env, seed=0)
@@ -161,8 +161,9 @@ def test_bad_names_fail_clearly(tmp_path: Path) -> None:
         make_model("stable_baselines3:Missing", env, seed=0)
     with pytest.raises(ValueError, match="does not follow the stable-baselines3 API"):
         make_model("collections:OrderedDict", env, seed=0)
-    with pytest.raises(ValueError, match="nothing to train"):
-        make_model("scripted", env, seed=0)
+    for scripted in ("scripted", "scripted-camera"):
+        with pytest.raises(ValueError, match="nothing to train"):
+            make_model(scripted, env, seed=0)
     with pytest.raises(ValueError, match="not a torch.nn module class"):
         make_model("ppo", env, seed=0, overrides={"policy_kwargs": {"activation_fn": "Swishy"}})
     with pytest.raises(ValueError, match="bad schedule"):
