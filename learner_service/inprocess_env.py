@@ -15,8 +15,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from learner_service.proxy_env import NOISE_OPTION
-from learner_service.task import Frame, TaskSettings, TrackingTask, episode_seed
+from learner_service.task import NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
 from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.noise import noise_option

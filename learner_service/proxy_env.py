@@ -29,7 +29,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
 
 from learner_service.link import RemoteEnvLink, Reply, new_holder_id
-from learner_service.task import Frame, TaskSettings, TrackingTask, episode_seed
+from learner_service.task import NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
 from services.control import ControlError
 from services.keys import CHANNELS, Keys, check_chunk
 from services.presence import Roster, announce
@@ -39,7 +39,6 @@ from services.settings import ZenohSettings
 log = logging.getLogger(__name__)
 
 CLAIMANT_ROLES = ("learner", "eval")  # the roles whose liveliness the sim watches to lapse claims
-NOISE_OPTION = "noise"  # reset(options={"noise": True | False | {settings}}): the sim's image noise from that episode
 
 
 class ClaimRefused(ControlError):

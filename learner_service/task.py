@@ -27,6 +27,7 @@ RewardVersion = Literal["swimm2", "swimm1"]
 
 ACTION_SIZE = 2  # (surge, yaw): the training curriculum's action
 LATENT_SIZE = 10  # n_z of the CMVAE
+NOISE_OPTION = "noise"  # env.reset(options={"noise": True | False | {settings}}): the image noise from that episode
 IMAGE_SHAPE = (64, 64, 3)
 STATE_SIZE = 12  # rover pos, rover roll/pitch/yaw, target pos, target roll/pitch/yaw
 REWARD_K = 1.0  # the SPEC's k: curvature of both penalties

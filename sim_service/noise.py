@@ -82,12 +82,12 @@ class NoiseSettings:
     @classmethod
     def from_mapping(cls, values: dict) -> NoiseSettings:
         """Settings from a message's map (a reset's ``noise``), refusing unknown keys and wrong types by name."""
-        known = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = sorted(set(values) - set(known))
+        defaults = dataclasses.asdict(cls())
+        unknown = sorted(set(values) - set(defaults))
         if unknown:
-            raise ValueError(f"unknown noise settings {unknown}; known: {', '.join(known)}")
+            raise ValueError(f"unknown noise settings {unknown}; known: {', '.join(defaults)}")
         for name, value in values.items():
-            default = getattr(cls(), name)
+            default = defaults[name]
             if isinstance(default, list):
                 ok = isinstance(value, list) and all(_is_number(v) for v in value)
             elif isinstance(default, bool):
@@ -119,8 +119,9 @@ def describe_noise(settings: NoiseSettings) -> str:
     if not resolved.enabled:
         return "off"
     effects = ", ".join(f"{name} {getattr(resolved, name):g}" for name in EFFECTS if getattr(resolved, name) > 0)
-    randomised = f"randomised up to ({effects}), {settings.clean_share:.0%} of episodes clean"
-    return f"{settings.preset}: " * (settings.preset != "off") + (randomised if settings.randomise else effects)
+    if settings.randomise:
+        effects = f"randomised up to ({effects}), {settings.clean_share:.0%} of episodes clean"
+    return effects if settings.preset == "off" else f"{settings.preset}: {effects}"
 
 
 def noise_option(value: object) -> bool | NoiseSettings | None:
