@@ -40,7 +40,15 @@ from learner_service.checkpoints import FINAL_MODEL, load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
 from learner_service.progress import PROGRESS_FILE
-from learner_service.registry import SCRIPTED_NAMES, load_hyperparams, make_model, merge_overrides, resolve_algorithm
+from learner_service.registry import (
+    LATENT_SCRIPTED,
+    SCRIPTED_NAMES,
+    load_hyperparams,
+    load_policy,
+    make_model,
+    merge_overrides,
+    resolve_algorithm,
+)
 from learner_service.task import TaskSettings
 from services.lifecycle import stop_on_signals
 from services.settings import to_dict
@@ -94,6 +102,10 @@ def check(settings: LearnCommandSettings) -> None:
     settings.demo.check()
     if settings.algo in SCRIPTED_NAMES:
         raise ValueError(f"a scripted baseline has nothing to learn; evaluate it: `swimm eval --algo {settings.algo}`")
+    if settings.demo.teacher not in SCRIPTED_NAMES:
+        raise ValueError(f"demo teacher must be one of {', '.join(SCRIPTED_NAMES)}, got {settings.demo.teacher!r}")
+    if settings.demo.teacher == LATENT_SCRIPTED and settings.obs != "cmvae":
+        raise ValueError(f"demo teacher {LATENT_SCRIPTED} reads the latent: it needs --obs cmvae, got {settings.obs}")
     _, defaults = resolve_algorithm(settings.algo)
     train_freq = merge_overrides(defaults, parse_hyperparams(settings.hyperparams)).get("train_freq")
     if settings.envs > 1 and isinstance(train_freq, list | tuple) and str(train_freq[-1]).startswith("episode"):
@@ -192,7 +204,8 @@ class Training:
             if s.resume:
                 resume_cloning(model, s.demo, s.seed, Path(s.resume), self.run_dir)
             else:
-                demonstrate(model, env, s.demo, s.seed, self.run_dir)
+                teacher = load_policy(s.demo.teacher, s.encoder_checkpoint or None)
+                demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher)
         start_steps = model.num_timesteps
         stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]

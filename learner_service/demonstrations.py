@@ -46,7 +46,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from tqdm import tqdm
 
 from learner_service.learn_settings import DemoSettings
-from learner_service.scripted import ScriptedTracker
+from learner_service.registry import Policy
 
 log = logging.getLogger(__name__)
 DEMOS_FILE = "demonstrations.npz"  # in the run folder, beside the models and the checkpoints/ folder
@@ -84,13 +84,13 @@ def innermost(env: VecEnv) -> VecEnv:
     return env
 
 
-def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> Demonstrations:
-    """Play the scripted tracker for ``settings.steps`` env steps, storing each transition in the model's buffer.
+def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int, teacher: Policy) -> Demonstrations:
+    """Play ``teacher`` for ``settings.steps`` env steps, storing each transition in the model's buffer.
 
-    The envs must put the telemetry in ``info`` (TrackingEnv and ProxyEnv do). A model without a replay buffer
-    (on-policy) keeps only the observations and actions for :func:`clone_actions`.
+    The ground-truth tracker needs the telemetry in ``info`` (TrackingEnv and ProxyEnv put it there). A model
+    without a replay buffer (on-policy) keeps only the observations and actions for :func:`clone_actions`.
     """
-    tracker, rng = ScriptedTracker(), np.random.default_rng(seed)
+    rng = np.random.default_rng(seed)
     env = innermost(env)
     buffer = getattr(model, "replay_buffer", None)
     obs = env.reset()
@@ -100,7 +100,7 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> 
     model._last_obs = obs  # what OffPolicyAlgorithm._store_transition pairs with the next observation
     with tqdm(total=settings.steps, desc="demonstrations", unit="step", disable=None) as bar:
         for played in range(env.num_envs, settings.steps + env.num_envs, env.num_envs):
-            clean = np.stack([tracker.act(None, info) for info in infos])
+            clean = np.stack([teacher.act(_row(obs, i), info) for i, info in enumerate(infos)])
             taken = np.clip(clean + rng.normal(0.0, settings.noise, clean.shape), -1.0, 1.0).astype(np.float32)
             next_obs, rewards, dones, step_infos = env.step(taken)
             observations.append(obs)
@@ -118,6 +118,13 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int) -> 
             if bar.disable and played % max(settings.steps // 10, 1) < env.num_envs:  # no bar: a line per tenth
                 log.info("demonstrations: %d/%d steps, %d episodes ended", played, settings.steps, len(returns))
     return Demonstrations(_concat(observations), np.concatenate(actions), returns)
+
+
+def _row(observations: Any, index: int) -> Any:
+    """One env's observation out of a VecEnv's batch (dict observations key by key)."""
+    if isinstance(observations, dict):
+        return {key: value[index] for key, value in observations.items()}
+    return observations[index]
 
 
 def _concat(batches: list[Any]) -> Any:
@@ -209,12 +216,14 @@ def keep_cloning(model: Any, demos: Demonstrations, settings: DemoSettings, seed
     return model.actor.optimizer.register_step_pre_hook(add_cloning_gradient)
 
 
-def demonstrate(model: Any, env: VecEnv, settings: DemoSettings, seed: int, run_dir: Path) -> Demonstrations:
-    """Play the tracker, fill the buffer, clone its actions, train the critic: the whole head start, logged.
+def demonstrate(
+    model: Any, env: VecEnv, settings: DemoSettings, seed: int, run_dir: Path, teacher: Policy
+) -> Demonstrations:
+    """Play the teacher, fill the buffer, clone its actions, train the critic: the whole head start, logged.
 
     The demonstrations are saved as ``run_dir/`` :data:`DEMOS_FILE` for :func:`resume_cloning`.
     """
-    demos = play_tracker(model, env, settings, seed)
+    demos = play_tracker(model, env, settings, seed, teacher)
     mean = f"{np.mean(demos.returns):.1f}" if demos.returns else "n/a"
     log.info("tracker played %d steps, %d episodes ended (mean return %s)", len(demos.actions), len(demos.returns),
              mean)  # fmt: skip

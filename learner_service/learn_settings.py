@@ -40,6 +40,7 @@ class DemoSettings:
     """Flags ``--demo-*`` of `swimm learn`."""
 
     steps: int = 0  # env steps the scripted tracker plays before training (0: no demonstrations)
+    teacher: str = "scripted"  # scripted (ground truth) | scripted-camera (the CMVAE's decoded d, theta; cmvae obs)
     noise: float = 0.3  # std of the Gaussian noise on the tracker's actions while it plays (see demonstrations.py)
     bc_epochs: int = 20  # epochs fitting the policy to the tracker's actions (0: fill the replay buffer only)
     bc_batch_size: int = 256

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from learner_service.checkpoints import FINAL_MODEL
-from learner_service.command import Training
+from learner_service.command import Training, check
 from learner_service.demonstrations import (
     DEMOS_FILE,
     Demonstrations,
@@ -25,9 +25,9 @@ from learner_service.demonstrations import (
     save_demonstrations,
     train_critic,
 )
-from learner_service.envs import make_vec_env
+from learner_service.envs import make_vec_env, shared_encoder
 from learner_service.learn_settings import DemoSettings
-from learner_service.registry import make_model
+from learner_service.registry import LATENT_SCRIPTED, load_policy, make_model
 from learner_service.scripted import ScriptedTracker
 from learner_service.task import TaskSettings
 from tests.learner.test_command import tiny_settings
@@ -44,7 +44,7 @@ def played(tmp_path_factory):
     monitor = tmp_path_factory.mktemp("demo") / "train"
     env = make_vec_env("inprocess", TASK, n_envs=2, base_seed=97, monitor_path=monitor)
     model = make_model("sac", env, seed=97, overrides={"device": "cpu", "buffer_size": 1000})
-    demos = play_tracker(model, env, DemoSettings(steps=DEMO_STEPS, noise=0.3), seed=5)
+    demos = play_tracker(model, env, DemoSettings(steps=DEMO_STEPS, noise=0.3), seed=5, teacher=ScriptedTracker())
     yield model, env, demos, monitor
     env.close()
 
@@ -116,7 +116,7 @@ def test_a_kept_cloning_loss_holds_the_actor_near_the_tracker_through_training()
         try:
             model = make_model("sac", env, seed=97, overrides={"device": "cpu", "buffer_size": 1000})
             settings = DemoSettings(steps=DEMO_STEPS, bc_epochs=40, bc_batch_size=64, bc_weight=bc_weight)
-            demos = play_tracker(model, env, settings, seed=5)
+            demos = play_tracker(model, env, settings, seed=5, teacher=ScriptedTracker())
             clone_actions(model, demos, settings, seed=0)
             train_critic(model, gradient_steps=20)
 
@@ -147,6 +147,36 @@ def test_bad_demo_settings_are_refused() -> None:
         DemoSettings(bc_weight=-1.0).check()
     with pytest.raises(ValueError, match="bc_learning_rate"):
         DemoSettings(bc_learning_rate=0.0).check()
+
+
+def test_a_camera_teacher_acts_on_the_learners_own_observation() -> None:
+    """With the camera-only teacher every clean target is the latent tracker's action on the stored observation:
+    a function of what the learner sees, so cloning can fit it exactly, noise or not."""
+    task = TaskSettings(obs="cmvae", max_steps=60)
+    encoder = shared_encoder(task)
+    env = make_vec_env("inprocess", task, n_envs=1, base_seed=97, encoder=encoder)
+    try:
+        model = make_model("sac", env, seed=97, overrides={"device": "cpu", "buffer_size": 500})
+        teacher = load_policy(LATENT_SCRIPTED, None)
+        demos = play_tracker(model, env, DemoSettings(steps=80, noise=0.3), seed=5, teacher=teacher)
+    finally:
+        env.close()
+    expected = np.stack([teacher.act(observation, {}) for observation in demos.observations])
+    np.testing.assert_allclose(demos.actions, expected, rtol=0, atol=1e-6)
+    ground_truth = make_vec_env("inprocess", task, n_envs=1, base_seed=97, encoder=encoder)
+    try:
+        ground_truth.reset()
+        tracker_first = ScriptedTracker().act(None, innermost(ground_truth).reset_infos[0])
+    finally:
+        ground_truth.close()
+    assert not np.allclose(demos.actions[0], tracker_first, atol=1e-4)  # it does not read the ground truth
+
+
+def test_demo_teachers_are_checked_before_anything_starts(tmp_path) -> None:
+    with pytest.raises(ValueError, match="demo teacher must be one of scripted, scripted-camera, got 'oracle'"):
+        check(tiny_settings(tmp_path, demo=DemoSettings(steps=10, teacher="oracle")))
+    with pytest.raises(ValueError, match="needs --obs cmvae, got state"):
+        check(tiny_settings(tmp_path, demo=DemoSettings(steps=10, teacher=LATENT_SCRIPTED)))
 
 
 def test_learn_with_demonstrations_starts_from_a_filled_buffer(tmp_path) -> None:
