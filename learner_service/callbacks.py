@@ -58,9 +58,18 @@ def ending_of(info: dict[str, Any]) -> str:
 class RolloutEvalCallback(BaseCallback):
     """The paper's evaluation during training (see the module docstring); saves the best model to ``save_dir``."""
 
-    def __init__(self, eval_env: gym.Env, settings: EvalSettings, save_dir: str | Path, verbose: int = 0) -> None:
+    def __init__(
+        self,
+        eval_env: gym.Env,
+        settings: EvalSettings,
+        save_dir: str | Path,
+        verbose: int = 0,
+        started: float | None = None,
+    ) -> None:
+        """``started``: the ``time.perf_counter()`` the rows' ``wall_s`` count from (default: when training starts)."""
         super().__init__(verbose)
         settings.check()
+        self.started = started
         self.eval_env = eval_env
         self.settings = settings
         self.save_dir = Path(save_dir)
@@ -72,6 +81,8 @@ class RolloutEvalCallback(BaseCallback):
     def _init_callback(self) -> None:
         self.save_dir.mkdir(parents=True, exist_ok=True)
         self._steps_at_last = self.num_timesteps
+        if self.started is None:
+            self.started = time.perf_counter()
         score = self.save_dir / BEST_MODEL_SCORE
         if score.is_file():  # a resumed run must beat the best it already saved, not overwrite it
             self.best_mean_return = float(json.loads(score.read_text())["mean_return"])
@@ -95,6 +106,7 @@ class RolloutEvalCallback(BaseCallback):
     def evaluate(self) -> dict[str, float]:
         """Play the evaluation episodes now; log, record, and save the model if it is the best so far."""
         started = time.perf_counter()
+        wall_s = started - self.started  # the training time this evaluation's model cost, not its own
         rows = play_episodes(SB3Policy(self.model), self.eval_env, "eval", self.settings.episodes, self.settings.seed)
         summary = summarise(rows)
         violations = Counter(row["first_cause"] or "none" for row in rows)  # each episode's first violation
@@ -104,7 +116,7 @@ class RolloutEvalCallback(BaseCallback):
         for key in ("mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A"):
             self.logger.record(f"eval/{key}", summary[key])
         self.logger.record("eval/mean_ep_length", float(np.mean([row["steps"] for row in rows])))
-        self._append_row(summary, rows)
+        self._append_row(summary, rows, wall_s)
         is_best = summary["mean_return"] > self.best_mean_return
         log.info(
             "evaluation %d at %d steps: mean return %.1f +- %.1f over %d episodes (first violations %s) in %.1f s%s",
@@ -126,17 +138,22 @@ class RolloutEvalCallback(BaseCallback):
             write_json_atomically(self.save_dir / BEST_MODEL_SCORE, score)
         return summary
 
-    def _append_row(self, summary: dict[str, float], rows: list[dict[str, Any]]) -> None:
+    def _append_row(self, summary: dict[str, float], rows: list[dict[str, Any]], wall_s: float) -> None:
         path = self.save_dir / EVALUATIONS_CSV
-        fields = ["num_timesteps", "mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A", "returns"]
+        metrics = ["mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A"]
+        fields = ["num_timesteps", "wall_s", *metrics, "returns"]
         new_file = not path.is_file()
+        if not new_file:  # a resumed run's file keeps its own columns (an older one may lack wall_s)
+            with path.open(newline="") as handle:
+                fields = next(csv.reader(handle), fields)
         with path.open("a", newline="") as handle:
-            writer = csv.DictWriter(handle, fieldnames=fields)
+            writer = csv.DictWriter(handle, fieldnames=fields, extrasaction="ignore")
             if new_file:
                 writer.writeheader()
             returns = " ".join(f"{row['return']:.3f}" for row in rows)
-            metrics = {key: summary[key] for key in fields[1:-1]}
-            writer.writerow({"num_timesteps": self.num_timesteps, **metrics, "returns": returns})
+            row = {"num_timesteps": self.num_timesteps, "wall_s": round(wall_s, 1), "returns": returns}
+            row |= {key: summary[key] for key in metrics}
+            writer.writerow(row)
 
 
 # --- episode endings and throughput -----------------------------------------------------------------
@@ -289,6 +306,22 @@ class TqdmProgressCallback(BaseCallback):
     def _on_training_end(self) -> None:
         if self.bar is not None:
             self.bar.close()
+
+
+class WallClockLimit(BaseCallback):
+    """Ends training at the next step once ``limit_s`` seconds have passed since ``started`` (a wall-time budget);
+    the run is saved as after any other end."""
+
+    def __init__(self, limit_s: float, started: float) -> None:
+        super().__init__()
+        self.limit_s = limit_s
+        self.started = started
+
+    def _on_step(self) -> bool:
+        if time.perf_counter() - self.started < self.limit_s:
+            return True
+        log.info("wall-time budget of %g min spent: ending training at %d steps", self.limit_s / 60, self.num_timesteps)
+        return False
 
 
 class StopOnEvent(BaseCallback):

@@ -35,6 +35,7 @@ from learner_service.callbacks import (
     RolloutEvalCallback,
     StopOnEvent,
     TqdmProgressCallback,
+    WallClockLimit,
 )
 from learner_service.checkpoints import FINAL_MODEL, load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
@@ -113,8 +114,8 @@ def check(settings: LearnCommandSettings) -> None:
             f"{settings.algo} trains every {train_freq[0]} episode(s), which stable-baselines3 allows with one env "
             f"only; use --envs 1, or train every N steps: --hyperparams '{{train_freq: [N, step]}}'"
         )
-    if settings.envs < 1 or settings.steps < 0 or settings.checkpoint_every < 0:
-        raise ValueError("envs must be >= 1, steps and checkpoint_every >= 0")
+    if settings.envs < 1 or settings.steps < 0 or settings.checkpoint_every < 0 or settings.budget_min < 0:
+        raise ValueError("envs must be >= 1, steps, checkpoint_every and budget_min >= 0")
     if settings.resume and not Path(settings.resume).is_file():
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
 
@@ -197,6 +198,7 @@ class Training:
 
     def train(self, env: Any, eval_env: Any) -> RunResult:
         s = self.settings
+        clock = time.perf_counter()  # the budget and the evaluations' wall_s count the demonstrations too
         model = self.build_model(env)
         if s.demo.steps:
             from learner_service.demonstrations import demonstrate, resume_cloning
@@ -211,8 +213,10 @@ class Training:
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]
         evaluation = None
         if eval_env is not None:
-            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir)
+            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock)
             callbacks.append(evaluation)
+        if s.budget_min:
+            callbacks.append(WallClockLimit(s.budget_min * 60, clock))
         if s.checkpoint_every:
             callbacks.append(
                 CheckpointCallback(s.checkpoint_every, self.run_dir / "checkpoints", s.envs, s.save_replay_buffer)

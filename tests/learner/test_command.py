@@ -87,6 +87,7 @@ def test_run_folder_holds_the_run(first_run) -> None:
     evaluations = pd.read_csv(run_dir / "evaluations.csv")
     assert (evaluations["num_timesteps"] >= 100).all()
     assert score["mean_return"] == pytest.approx(evaluations["mean_return"].max())
+    assert evaluations["wall_s"].is_monotonic_increasing and (evaluations["wall_s"] > 0).all()
 
 
 def test_resume_continues_the_step_count_with_the_replay_buffer(first_run) -> None:
@@ -111,6 +112,14 @@ def test_stop_request_still_saves_the_run(tmp_path: Path) -> None:
     assert result.stopped_early and result.num_timesteps == 1
     assert (tmp_path / "run" / FINAL_MODEL).is_file()
     assert not (tmp_path / "run" / "summary.png").exists()  # no episode finished, so nothing to plot
+
+
+def test_a_wall_time_budget_ends_training_and_saves(tmp_path: Path) -> None:
+    settings = tiny_settings(tmp_path / "run", steps=100_000, budget_min=0.05)
+    settings.eval.enabled = False
+    result = Training(settings).run()
+    assert 1 <= result.num_timesteps < 100_000 and result.wall_s < 60  # 3 s of budget, then the final save
+    assert (tmp_path / "run" / FINAL_MODEL).is_file()
 
 
 def test_flags_reach_the_settings() -> None:
@@ -154,6 +163,8 @@ def test_refusals_name_what_to_change(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="train_freq"):
         check(LearnCommandSettings(envs=2))  # SAC's tuned train_freq is one episode
     check(LearnCommandSettings(envs=2, hyperparams="{train_freq: [64, step]}"))
+    with pytest.raises(ValueError, match="budget_min >= 0"):
+        check(LearnCommandSettings(budget_min=-1))
     with pytest.raises(ValueError, match="backend"):
         check(LearnCommandSettings(backend="carrier-pigeon"))
     assert cli.main(["learn", "--algo", "scripted", "--run-dir", str(tmp_path / "x")]) == 1
