@@ -1,4 +1,5 @@
-"""`swimm bench sim | encoder | train [--json] [--repeat N]`: ratios measured side by side in one run.
+"""`swimm bench sim | encoder | train [--json] [--repeat N]`: ratios measured side by side in one run;
+`swimm bench learn`: algorithms x seeds learning from scratch (bench.learn).
 
 Benchmarks are not pass/fail: they print what they measured (one JSON
 object with ``--json``) so targets can be compared across machines.
@@ -16,14 +17,16 @@ import statistics
 import sys
 from dataclasses import dataclass, field
 
+from bench.learn_settings import LearnBenchSettings
+
 log = logging.getLogger(__name__)
 
-BENCHMARKS = {"sim": "bench.sim", "encoder": "bench.encoder", "train": "bench.train"}
+BENCHMARKS = {"sim": "bench.sim", "encoder": "bench.encoder", "train": "bench.train", "learn": "bench.learn"}
 
 
 @dataclass
 class BenchSettings:
-    target: str = field(default="sim", metadata={"positional": True})  # sim | encoder | train
+    target: str = field(default="sim", metadata={"positional": True})  # sim | encoder | train | learn
     json: bool = False  # print one JSON object instead of a table
     steps: int = 0  # work per measurement; 0 = the benchmark's default
     algo: str = "sac"  # train: the learner
@@ -31,6 +34,7 @@ class BenchSettings:
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
     repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
+    learn: LearnBenchSettings = field(default_factory=LearnBenchSettings, metadata={"flatten": True})  # learn only
 
 
 def run(settings: BenchSettings) -> int:
@@ -40,6 +44,10 @@ def run(settings: BenchSettings) -> int:
         raise ValueError(f"--mode must be peer or client, got {settings.mode!r}")
     if settings.repeat < 1:
         raise ValueError(f"--repeat must be at least 1, got {settings.repeat}")
+    if settings.target == "learn":
+        if settings.repeat != 1:
+            raise ValueError("bench learn repeats over seeds (--seeds), not --repeat")
+        return report(importlib.import_module(BENCHMARKS["learn"]).run(settings.learn), settings.json)
     module = importlib.import_module(BENCHMARKS[settings.target])
     kwargs = {"steps": settings.steps} if settings.steps else {}
     if settings.target == "train":
@@ -54,13 +62,18 @@ def run(settings: BenchSettings) -> int:
         if settings.repeat > 1:
             log.info("run %d of %d: %s", index + 1, settings.repeat, headline(runs[-1]))
     result = runs[0] if settings.repeat == 1 else medians(runs) | {"repeat": settings.repeat, "runs": runs}
-    if settings.json:
+    return report(result, settings.json)
+
+
+def report(result: dict, as_json: bool) -> int:
+    """One JSON object, or a two-column table of the top-level keys (nested tables: ``--json``)."""
+    if as_json:
         sys.stdout.write(json.dumps(result) + "\n")
-    else:
-        table = {key: value for key, value in result.items() if key != "runs"}  # each run's numbers: --json
-        width = max(len(k) for k in table)
-        for key, value in table.items():
-            sys.stdout.write(f"{key:<{width}}  {value}\n")
+        return 0
+    table = {key: value for key, value in result.items() if key not in ("runs", "settings", "how")}
+    width = max(len(k) for k in table)
+    for key, value in table.items():
+        sys.stdout.write(f"{key:<{width}}  {value}\n")
     return 0
 
 

@@ -11,7 +11,9 @@ import json
 import math
 import subprocess
 import sys
+import time
 
+import pandas as pd
 import pytest
 
 pytestmark = pytest.mark.slow
@@ -64,3 +66,28 @@ def test_bench_encoder_compares_batch_one_with_many_envs() -> None:
     assert_rates(result, "batch1_images_per_s", "batched_images_per_s")
     assert result["envs"] == 4
     assert result["ratio"] == pytest.approx(result["batched_images_per_s"] / result["batch1_images_per_s"], 1e-2)
+
+
+def test_bench_learn_trains_seeds_over_real_processes_and_resumes(tmp_path) -> None:
+    """Two tiny SAC runs through `swimm up` and their final evaluations; run again, nothing is trained twice."""
+    out = tmp_path / "learn"
+    args = ("learn", "--algos", "sac", "--seeds", "97", "101", "--budget-steps", "200", "--eval-every", "100",
+            "--eval-episodes", "1", "--eval-max-steps", "40", "--final-episodes", "2", "--out", str(out))  # fmt: skip
+    summary = bench(*args, timeout_s=600)
+    sac = summary["algos"]["sac"]
+    assert sac["seeds"] == [97, 101] and len(sac["final_returns"]) == 2
+    for seed, final in zip(sac["seeds"], sac["final_returns"], strict=True):
+        episodes = pd.read_csv(out / "runs" / f"sac-{seed}" / "final-eval" / "episodes.csv")
+        assert len(episodes) == 2 and (episodes["steps"] == 40).all()
+        assert final == pytest.approx(episodes["return"].mean(), abs=0.05)
+    assert set(sac["minutes_to"]) == {"2000", "2400"} and all(len(v) == 2 for v in sac["minutes_to"].values())
+    evaluations = pd.read_csv(out / "evaluations.csv")
+    assert set(evaluations["seed"]) == {97, 101} and (evaluations["num_timesteps"] >= 100).all()
+    assert (evaluations["wall_min"] > 0).all()
+    assert (out / "learn.png").read_bytes()[:4] == b"\x89PNG"
+    assert json.loads((out / "summary.json").read_text())["algos"] == summary["algos"]
+
+    started = time.monotonic()
+    again = bench(*args, timeout_s=300)
+    assert again["algos"] == summary["algos"]  # read back, not trained again
+    assert time.monotonic() - started < 60

@@ -1,0 +1,221 @@
+"""`swimm bench learn`: can the pipeline teach an algorithm from scratch, how fast, and how much do seeds differ?
+
+Every algorithm x seed trains from scratch (no demonstrations) on cmvae observations through the distributed
+pipeline, one `swimm up` after another (router, sim, encoder and learner processes), within a step and a
+wall-time budget, evaluating deterministic episodes on the sim's eval channel every ``eval_every`` steps. Then
+each run's final model plays ``final_episodes`` deterministic episodes in-process on seeds the training never
+evaluated on (``final_seed``). The results folder:
+
+- ``runs/<algo>-<seed>/``: the run folder of `swimm up` (``evaluations.csv`` with steps and wall seconds) and
+  ``final-eval/`` (episodes.csv, summary.json);
+- ``evaluations.csv``: every run's evaluations in one table (algo, seed, steps, wall minutes, return);
+- ``summary.json``: per algorithm the seeds, final returns, IQM with its 95% bootstrap interval
+  (:mod:`bench.scores`), best evaluation, and wall minutes and steps to each return threshold;
+- ``learn.png``: mean return across seeds against env steps and against wall minutes, with 95% bootstrap bands.
+
+A run whose ``final-eval/summary.json`` exists is not trained again, so a stopped benchmark goes on where it
+stopped when run again with the same ``--out`` (``--no-resume`` trains everything afresh).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from bench.learn_settings import LearnBenchSettings
+from bench.scores import bootstrap_ci, curve_band, first_reaching, iqm
+from learner_service.callbacks import EVALUATIONS_CSV
+from learner_service.checkpoints import FINAL_MODEL
+from learner_service.learn_settings import EvalSettings, LearnCommandSettings
+from services.settings import ZenohSettings
+
+log = logging.getLogger(__name__)
+
+FINAL_EVAL = "final-eval"
+SUMMARY = "summary.json"
+FIGURE = "learn.png"
+CURVE_POINTS = 60
+NAMESPACE = "swimm/bench-learn"  # its own, so no other system on this network mistakes its processes for theirs
+
+
+def run_dir(settings: LearnBenchSettings, algo: str, seed: int) -> Path:
+    return Path(settings.out) / "runs" / f"{algo}-{seed}"
+
+
+def learn_settings(settings: LearnBenchSettings, algo: str, seed: int) -> LearnCommandSettings:
+    """One run's learner: the algorithm's shipped hyperparameters from scratch, evaluating every N steps."""
+    evaluation = EvalSettings(
+        episodes=settings.eval_episodes,
+        min_steps=0,
+        every=settings.eval_every,
+        unit="steps",
+        max_steps=settings.eval_max_steps,
+    )
+    return LearnCommandSettings(
+        zenoh=ZenohSettings(namespace=NAMESPACE),
+        algo=algo,
+        obs="cmvae",
+        seed=seed,
+        steps=settings.budget_steps,
+        budget_min=settings.budget_min,
+        run_dir=str(run_dir(settings, algo, seed)),
+        eval=evaluation,
+        checkpoint_every=0,
+        save_replay_buffer=False,
+        encoder_checkpoint=settings.encoder_checkpoint,
+    )
+
+
+def train(settings: LearnBenchSettings, algo: str, seed: int) -> None:
+    """One `swimm up` to the end of its budget; refuses to go on past a learner that failed."""
+    from services import up
+
+    learn = learn_settings(settings, algo, seed)
+    folder = Path(learn.run_dir)
+    if folder.exists():
+        shutil.rmtree(folder)  # an unfinished run restarts: a from-scratch curve cannot be stitched together
+    code = up.run(up.UpSettings(learn=learn, port=0))
+    if code != 0 or not (folder / FINAL_MODEL).is_file():
+        raise RuntimeError(f"{algo} seed {seed}: swimm up exited with {code}; see {folder / 'logs'}")
+
+
+def final_evaluation(settings: LearnBenchSettings, algo: str, seed: int) -> dict[str, Any]:
+    """The final model's deterministic episodes in-process; written to (and read back from) ``final-eval/``."""
+    from eval_service.command import EvalCommandSettings, evaluate
+
+    out = run_dir(settings, algo, seed) / FINAL_EVAL
+    evaluation = EvalCommandSettings(
+        algo=[algo],
+        checkpoint=[str(run_dir(settings, algo, seed) / FINAL_MODEL)],
+        label=[f"{algo}-{seed}"],
+        episodes=settings.final_episodes,
+        seed=settings.final_seed,
+        steps=settings.eval_max_steps,
+        obs="cmvae",
+        backend="inprocess",
+        out=str(out),
+        encoder_checkpoint=settings.encoder_checkpoint,
+        figures=False,
+    )
+    evaluate(evaluation, out)
+    return read_final(out)
+
+
+def read_final(out: Path) -> dict[str, Any]:
+    """A final evaluation's mean return, each episode's return and its Table 12 metrics (A, D, A', ..., S_A)."""
+    episodes = pd.read_csv(out / "episodes.csv")
+    (metrics,) = json.loads((out / "summary.json").read_text())["labels"].values()
+    return {"mean_return": float(episodes["return"].mean()), "returns": episodes["return"].round(3).tolist(),
+            "metrics": {key: round(float(value), 4) for key, value in metrics.items()}}  # fmt: skip
+
+
+def collect(settings: LearnBenchSettings) -> pd.DataFrame:
+    """Every finished run's evaluations as one table: algo, seed, num_timesteps, wall_min, mean_return, ..."""
+    tables = []
+    for algo in settings.algos:
+        for seed in settings.seeds:
+            path = run_dir(settings, algo, seed) / EVALUATIONS_CSV
+            if path.is_file():
+                table = pd.read_csv(path)
+                table.insert(0, "seed", seed)
+                table.insert(0, "algo", algo)
+                table["wall_min"] = table["wall_s"] / 60.0
+                tables.append(table)
+    return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+
+
+def summarise(settings: LearnBenchSettings, evaluations: pd.DataFrame, finals: dict[tuple[str, int], dict]) -> dict:
+    """The JSON summary: per algorithm, per-seed numbers in the order of ``seeds`` and their aggregates."""
+    algos = {}
+    for algo in settings.algos:
+        seeds = [seed for seed in settings.seeds if (algo, seed) in finals]
+        finals_of = [finals[(algo, seed)]["mean_return"] for seed in seeds]
+        runs = [evaluations[(evaluations["algo"] == algo) & (evaluations["seed"] == seed)] for seed in seeds]
+        interval = bootstrap_ci(finals_of)
+        algos[algo] = {
+            "seeds": seeds,
+            "final_returns": [round(value, 1) for value in finals_of],
+            "final_iqm": round(float(iqm(finals_of)), 1) if seeds else None,
+            "final_iqm_ci95": [round(value, 1) for value in interval] if interval else None,
+            "final_metrics": [finals[(algo, seed)]["metrics"] for seed in seeds],
+            "best_eval_returns": [round(float(run["mean_return"].max()), 1) for run in runs],
+            "steps": [int(run["num_timesteps"].max()) for run in runs],
+            "wall_min": [round(float(run["wall_min"].max()), 1) for run in runs],
+            "minutes_to": {f"{t:g}": _rounded([first_reaching(run, t, "wall_min") for run in runs])
+                           for t in settings.thresholds},
+            "steps_to": {f"{t:g}": [first_reaching(run, t, "num_timesteps") for run in runs]
+                         for t in settings.thresholds},
+        }  # fmt: skip
+    return {
+        "algos": algos,
+        "settings": dataclasses.asdict(settings),
+        "how": "final_returns: each seed's final model, mean of final_episodes deterministic episodes (seed "
+        "final_seed); IQM and its 95% percentile bootstrap over seeds; minutes_to / steps_to: the first "
+        "training evaluation (eval_episodes episodes, seed 113) at or above the return, null if never",
+    }
+
+
+def _rounded(values: list[float | None]) -> list[float | None]:
+    return [None if value is None else round(value, 1) for value in values]
+
+
+def learning_figure(evaluations: pd.DataFrame) -> Any:
+    """Two panels, return against env steps and against wall minutes: each algorithm's mean across seeds and its
+    95% bootstrap band."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True)
+    for x, axis, label in (("num_timesteps", axes[0], "env steps"), ("wall_min", axes[1], "wall minutes")):
+        for algo, table in evaluations.groupby("algo", sort=False):
+            runs = [run for _, run in table.groupby("seed")]
+            grid = np.linspace(table[x].min(), table[x].max(), CURVE_POINTS)
+            band = curve_band(runs, x, grid)
+            line = axis.plot(band[x], band["mean"], label=f"{algo} ({len(runs)} seeds)")[0]
+            axis.fill_between(band[x], band["low"], band["high"], color=line.get_color(), alpha=0.2)
+        axis.set_xlabel(label)
+        axis.grid(alpha=0.3)
+    axes[0].set_ylabel("evaluation return (mean of seeds, 95% bootstrap band)")
+    axes[0].legend(loc="lower right")
+    figure.suptitle("Learning from scratch on cmvae observations, distributed pipeline")
+    figure.tight_layout()
+    return figure
+
+
+def run(settings: LearnBenchSettings) -> dict[str, Any]:
+    """Train what is missing, evaluate it, write the results folder; returns the summary."""
+    from tqdm import tqdm
+
+    settings.check()
+    out = Path(settings.out)
+    out.mkdir(parents=True, exist_ok=True)
+    finals: dict[tuple[str, int], dict] = {}
+    pairs = [(algo, seed) for algo in settings.algos for seed in settings.seeds]
+    for algo, seed in tqdm(pairs, desc="bench learn", unit="run", disable=None):
+        final = run_dir(settings, algo, seed) / FINAL_EVAL
+        if settings.resume and (final / "summary.json").is_file():
+            log.info("%s seed %d: finished earlier, kept", algo, seed)
+            finals[(algo, seed)] = read_final(final)
+            continue
+        log.info("%s seed %d: training from scratch (%d steps or %g min at most)", algo, seed,
+                 settings.budget_steps, settings.budget_min)  # fmt: skip
+        train(settings, algo, seed)
+        finals[(algo, seed)] = final_evaluation(settings, algo, seed)
+        log.info("%s seed %d: final return %.1f", algo, seed, finals[(algo, seed)]["mean_return"])
+    evaluations = collect(settings)
+    evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
+    summary = summarise(settings, evaluations, finals)
+    (out / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+    if not evaluations.empty:
+        learning_figure(evaluations).savefig(out / FIGURE, dpi=110)
+    log.info("results in %s (%s, %s, %s)", out, SUMMARY, EVALUATIONS_CSV, FIGURE)
+    return summary
