@@ -46,7 +46,12 @@ COMMANDS: dict[str, Command] = {
         "encoder_service.export:ExportEncoderSettings", "encoder_service.export:run", "shrink a CMVAE for shipping"
     ),
     "up": Command("services.up:UpSettings", "services.up:run", "launch router, sim, encoder, learner locally"),
-    "bench": Command("bench.command:BenchSettings", "bench.command:run", "run a benchmark: sim | encoder | train | learn"),
+    "status": Command(
+        "services.status:StatusSettings", "services.status:run", "who is live in a namespace, and doing what"
+    ),
+    "bench": Command(
+        "bench.command:BenchSettings", "bench.command:run", "run a benchmark: sim | encoder | train | learn"
+    ),
 }
 
 

@@ -1,0 +1,156 @@
+"""`swimm status`: who is live in a namespace and what each is doing, like `docker compose ps`.
+
+Three looks at the network, all read-only:
+
+- the liveliness tokens under ``<ns>/@live/**``: every sim, encoder, learner and evaluator holding a session;
+- the counters sims and encoders publish on ``<ns>/metrics/**`` every 2 s, listened to for ``window_s`` so that two
+  snapshots give a rate (steps/s, images/s) and the newest one a last-seen age;
+- the ``info`` of every env (``<ns>/*/*/ctl``): its sim, who holds it, its episode and step.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgpack
+import zenoh
+
+from services.control import survey
+from services.keys import Keys
+from services.session import build_config, describe_endpoints, open_session
+from services.settings import ZenohSettings
+
+RATE_COUNTERS = {"sim": ("steps", "steps/s"), "encoder": ("images", "images/s")}
+
+
+@dataclass
+class StatusSettings:
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
+    json: bool = False  # print one JSON object instead of tables
+    window_s: float = 4.5  # seconds to listen to the services' metrics (published every 2 s: two give a rate)
+
+    def check(self) -> None:
+        if self.window_s <= 0:
+            raise ValueError(f"--window-s must be > 0, got {self.window_s}")
+
+
+def live_members(session: zenoh.Session, keys: Keys) -> set[tuple[str, str]]:
+    """(role, id) of every liveliness token in the namespace."""
+    members = set()
+    for reply in session.liveliness().get(f"{keys.namespace}/@live/**", timeout=2.0):
+        if reply.ok is not None:
+            role, ident = str(reply.ok.key_expr).split("/")[-2:]
+            members.add((role, ident))
+    return members
+
+
+def listen_to_metrics(session: zenoh.Session, keys: Keys, window_s: float) -> dict[tuple[str, str], list[dict]]:
+    """Every metrics snapshot published during ``window_s``, per (role, id), oldest first."""
+    snapshots: dict[tuple[str, str], list[dict]] = {}
+    lock = threading.Lock()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        try:
+            body = msgpack.unpackb(sample.payload.to_bytes())
+        except (ValueError, msgpack.UnpackException):
+            return  # not ours to judge here; the publisher's own logs say more
+        if isinstance(body, dict) and "role" in body and "id" in body:
+            with lock:
+                snapshots.setdefault((str(body["role"]), str(body["id"])), []).append(body)
+
+    subscriber = session.declare_subscriber(keys.all_metrics(), on_sample)
+    try:
+        time.sleep(window_s)
+    finally:
+        subscriber.undeclare()
+    with lock:
+        return {key: list(values) for key, values in snapshots.items()}
+
+
+def rate(snapshots: list[dict], counter: str) -> float | None:
+    """``counter``'s increase per second between the first and the newest snapshot; None with fewer than two."""
+    if len(snapshots) < 2:
+        return None
+    first, last = snapshots[0], snapshots[-1]
+    elapsed = float(last["t"]) - float(first["t"])
+    if elapsed <= 0:
+        return None
+    return (float(last.get(counter, 0)) - float(first.get(counter, 0))) / elapsed
+
+
+def gather(settings: StatusSettings, session: zenoh.Session) -> dict[str, Any]:
+    """The namespace's services and envs, as ``swimm status --json`` prints them."""
+    keys = Keys(settings.zenoh.namespace)
+    members = live_members(session, keys)
+    metrics = listen_to_metrics(session, keys, settings.window_s)
+    now = time.time()
+    services = []
+    for role, ident in sorted(members | set(metrics)):
+        snapshots = metrics.get((role, ident), [])
+        entry: dict[str, Any] = {"role": role, "id": ident, "live": (role, ident) in members}
+        if snapshots:
+            entry["last_seen_s"] = round(now - float(snapshots[-1]["t"]), 1)
+            counter, unit = RATE_COUNTERS.get(role, (None, None))
+            value = rate(snapshots, counter) if counter else None
+            if value is not None:
+                entry["rate"], entry["rate_unit"] = round(value, 1), unit
+            entry["counters"] = {k: v for k, v in snapshots[-1].items() if k not in ("role", "id", "t")}
+        services.append(entry)
+    envs = [
+        {key: info.get(key) for key in ("channel", "env", "sim", "holder", "ep", "seq")}
+        for info in survey(session, f"{keys.namespace}/*/*/ctl", timeout_s=2.0)
+        if "env" in info
+    ]
+    envs.sort(key=lambda env: (str(env["channel"]), str(env["env"]).zfill(6), str(env["sim"])))
+    return {"namespace": keys.namespace, "services": services, "envs": envs}
+
+
+def format_status(status: dict[str, Any]) -> str:
+    """Two plain tables: the services, then the envs."""
+    lines = [f"namespace {status['namespace']}", ""]
+    rows = [("ROLE", "ID", "LIVE", "LAST SEEN", "RATE")]
+    for entry in status["services"]:
+        seen = f"{entry['last_seen_s']:.1f} s ago" if "last_seen_s" in entry else "-"
+        rated = f"{entry['rate']:.1f} {entry['rate_unit']}" if "rate" in entry else "-"
+        rows.append((entry["role"], entry["id"], "yes" if entry["live"] else "no", seen, rated))
+    lines += _table(rows)
+    if status["envs"]:
+        lines.append("")
+        rows = [("ENV", "SIM", "HELD BY", "EPISODE", "STEP")]
+        for env in status["envs"]:
+            holder = env["holder"] or "free"
+            rows.append((f"{env['channel']}/{env['env']}", str(env["sim"]), holder, str(env["ep"]), str(env["seq"])))
+        lines += _table(rows)
+    return "\n".join(lines) + "\n"
+
+
+def _table(rows: list[tuple[str, ...]]) -> list[str]:
+    widths = [max(len(str(row[i])) for row in rows) for i in range(len(rows[0]))]
+    return ["  ".join(str(cell).ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip() for row in rows]
+
+
+def run(settings: StatusSettings) -> int:
+    """Print the status; exit 1, saying where it looked, when nothing in the namespace answers."""
+    settings.check()
+    session = open_session(settings.zenoh, role="status")
+    try:
+        status = gather(settings, session)
+    finally:
+        session.close()
+    if settings.json:
+        sys.stdout.write(json.dumps(status) + "\n")
+    else:
+        sys.stdout.write(format_status(status))
+    if not status["services"] and not status["envs"]:
+        where = describe_endpoints(build_config(settings.zenoh))
+        sys.stderr.write(
+            f"nothing live in namespace {settings.zenoh.namespace} (connected to {where}); is `swimm up` (or a sim) "
+            "running there? Pass the same --connect and --namespace\n"
+        )
+        return 1
+    return 0
