@@ -31,9 +31,8 @@ import pandas as pd
 
 from bench.learn_settings import LearnBenchSettings
 from bench.scores import bootstrap_ci, curve_band, first_reaching, iqm
-from learner_service.callbacks import EVALUATIONS_CSV
-from learner_service.checkpoints import FINAL_MODEL
 from learner_service.learn_settings import EvalSettings, LearnCommandSettings
+from learner_service.progress import EVALUATIONS_CSV, FINAL_MODEL
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)

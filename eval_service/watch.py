@@ -28,12 +28,10 @@ from typing import Any
 from eval_service.evaluator import Contender
 from eval_service.live import LiveFeed
 from eval_service.publish import ResultPublisher
-from learner_service.progress import file_sha256
+from learner_service.progress import BEST_MODEL, BEST_MODEL_SCORE, file_sha256
 
 log = logging.getLogger(__name__)
 
-BEST_MODEL = "best_model.zip"  # learner_service.callbacks.BEST_MODEL (not imported: that pulls in SB3 callbacks)
-BEST_MODEL_SCORE = "best_model.json"
 RUN_SETTINGS = "settings.json"
 RUN_FINISHED = "result.json"
 WATCH_TABLE = "watch.csv"

@@ -34,7 +34,15 @@ from tqdm import tqdm
 from eval_service.evaluator import play_episodes
 from eval_service.metrics import summarise
 from learner_service.learn_settings import EvalSettings
-from learner_service.progress import file_sha256, progress_postfix, replace_atomically, write_json_atomically
+from learner_service.progress import (
+    BEST_MODEL,
+    BEST_MODEL_SCORE,
+    EVALUATIONS_CSV,
+    file_sha256,
+    progress_postfix,
+    replace_atomically,
+    write_json_atomically,
+)
 from learner_service.registry import SB3Policy
 from learner_service.task import CAUSE_COLLISION, CAUSE_DISTANCE, CAUSE_VISIBILITY
 
@@ -42,9 +50,6 @@ log = logging.getLogger(__name__)
 
 CAUSE_TIME_LIMIT = "time_limit"  # what an episode that ended with an empty ``info["cause"]`` ran into
 CAUSES = (CAUSE_DISTANCE, CAUSE_VISIBILITY, CAUSE_COLLISION, CAUSE_TIME_LIMIT)
-BEST_MODEL = "best_model.zip"
-BEST_MODEL_SCORE = "best_model.json"
-EVALUATIONS_CSV = "evaluations.csv"
 
 
 def ending_of(info: dict[str, Any]) -> str:

@@ -17,7 +17,6 @@ from learner_service.registry import resolve_algorithm
 
 log = logging.getLogger(__name__)
 
-FINAL_MODEL = "final_model.zip"
 _STEPS_NAME = re.compile(r"(?P<prefix>.*)_(?P<steps>\d+)_steps")
 
 

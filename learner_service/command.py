@@ -37,10 +37,10 @@ from learner_service.callbacks import (
     TqdmProgressCallback,
     WallClockLimit,
 )
-from learner_service.checkpoints import FINAL_MODEL, load_for_resume, save_model
+from learner_service.checkpoints import load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
-from learner_service.progress import PROGRESS_FILE
+from learner_service.progress import FINAL_MODEL, PROGRESS_FILE
 from learner_service.registry import (
     LATENT_SCRIPTED,
     SCRIPTED_NAMES,

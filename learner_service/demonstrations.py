@@ -46,10 +46,10 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from tqdm import tqdm
 
 from learner_service.learn_settings import DemoSettings
+from learner_service.progress import DEMOS_FILE
 from learner_service.registry import Policy
 
 log = logging.getLogger(__name__)
-DEMOS_FILE = "demonstrations.npz"  # in the run folder, beside the models and the checkpoints/ folder
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
-"""The live numbers of a training run as a small JSON file, written by the learner and read by `swimm up`.
+"""A training run's folder: the names of its files, and the live numbers `swimm up` and watchers read from it.
 
-A file rather than a Zenoh topic: the run folder already exists, a finished run keeps its last numbers, and a
-watcher needs no session. Kept free of heavy imports so `swimm up` (in services/) can read it.
+The learner writes its progress as a small JSON file rather than a Zenoh topic: the run folder already exists,
+a finished run keeps its last numbers, and a watcher needs no session. Kept free of heavy imports so that
+`swimm up`, `swimm eval --watch` and benchmarks name the files from here instead of copying the names.
 """
 
 from __future__ import annotations
@@ -14,6 +15,12 @@ from pathlib import Path
 from typing import Any
 
 PROGRESS_FILE = "progress.json"
+BEST_MODEL = "best_model.zip"  # the evaluation callback's best model so far
+BEST_MODEL_SCORE = "best_model.json"  # its evaluation, with the zip's SHA-256
+EVALUATIONS_CSV = "evaluations.csv"  # one row per evaluation
+FINAL_MODEL = "final_model.zip"  # the model as training ended
+DEMOS_FILE = "demonstrations.npz"  # the scripted tracker's demonstrations, for a resumed run's cloning loss
+LEARN_CONFIG = "learn.yaml"  # the settings `swimm up` handed to its learner
 
 
 def replace_atomically(path: Path, write: Callable[[Path], Any]) -> None:
@@ -42,11 +49,29 @@ def read_progress(run_dir: Path) -> dict[str, Any] | None:
         return None
 
 
-def progress_postfix(snapshot: dict[str, Any]) -> dict[str, Any]:
+def latest_evaluation(run_dir: Path) -> tuple[int, float] | None:
+    """(steps, mean return) of the run's newest evaluation, or None before the first."""
+    try:
+        lines = (run_dir / EVALUATIONS_CSV).read_text().splitlines()
+    except OSError:
+        return None
+    if len(lines) < 2:
+        return None
+    row = dict(zip(lines[0].split(","), lines[-1].split(","), strict=False))
+    try:
+        return int(row["num_timesteps"]), float(row["mean_return"])
+    except (KeyError, ValueError):  # a row being written
+        return None
+
+
+def progress_postfix(snapshot: dict[str, Any], evaluation: tuple[int, float] | None = None) -> dict[str, Any]:
     """The short numbers a progress bar shows beside itself (`swimm learn` and `swimm up` alike)."""
     mean = snapshot.get("mean_recent_return")
-    return {
+    postfix = {
         "ep": snapshot.get("episodes", 0),
         "ret": "n/a" if mean is None else f"{mean:.0f}",
         "steps/s": f"{snapshot.get('env_steps_per_s', 0.0):.0f}",
     }
+    if evaluation is not None:
+        postfix["eval"] = f"{evaluation[1]:.0f}@{evaluation[0]}"
+    return postfix

@@ -12,6 +12,7 @@ import importlib
 import logging
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from services import settings as settings_mod
@@ -25,6 +26,7 @@ class Command:
     settings: str  # "module:Class" of the settings dataclass
     run: str  # "module:function" taking the settings
     help: str
+    default_config: str = ""  # a settings file beside the packages, read when no --config is given
 
 
 COMMANDS: dict[str, Command] = {
@@ -45,7 +47,12 @@ COMMANDS: dict[str, Command] = {
     "export-encoder": Command(
         "encoder_service.export:ExportEncoderSettings", "encoder_service.export:run", "shrink a CMVAE for shipping"
     ),
-    "up": Command("services.up:UpSettings", "services.up:run", "launch router, sim, encoder, learner locally"),
+    "up": Command(
+        "services.up:UpSettings",
+        "services.up:run",
+        "launch router, sim, encoder, learner (shipped recipe)",
+        default_config="learner_service/models/sac_cmvae.yaml",
+    ),
     "status": Command(
         "services.status:StatusSettings", "services.status:run", "who is live in a namespace, and doing what"
     ),
@@ -72,6 +79,16 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def config_file(command: str, given: str | None) -> str | None:
+    """The settings file of a run: ``--config`` if given, else the command's default (logged), else none."""
+    default = COMMANDS[command].default_config
+    if given or not default:
+        return given
+    path = Path(__file__).resolve().parents[1] / default  # installed beside services/ as package data
+    log.info("settings from %s (--config FILE replaces them; flags and SWIMM_* still override)", default)
+    return str(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     command = next((a for a in argv if not a.startswith("-")), None)
@@ -80,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     spec = COMMANDS[args.command]
     setup_logging(args.command, args.log_level)
     try:
-        settings = settings_mod.load(_resolve(spec.settings), args, args.config)
+        settings = settings_mod.load(_resolve(spec.settings), args, config_file(args.command, args.config))
         result = _resolve(spec.run)(settings)
     except KeyboardInterrupt:
         return 130

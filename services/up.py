@@ -21,6 +21,7 @@ encoders, the sim and the router. The run folder keeps the learner's outputs and
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import socket
 import sys
@@ -36,7 +37,14 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 
 import encoder_service
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
-from learner_service.progress import progress_postfix, read_progress
+from learner_service.progress import (
+    BEST_MODEL,
+    BEST_MODEL_SCORE,
+    LEARN_CONFIG,
+    latest_evaluation,
+    progress_postfix,
+    read_progress,
+)
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
 from services.presence import Roster
@@ -48,7 +56,6 @@ log = logging.getLogger(__name__)
 
 #: encoder_service.inference.DEFAULT_CHECKPOINT, found without importing torch into this process.
 SHIPPED_CMVAE = Path(encoder_service.__file__).parent / "models" / "cmvae.pt"
-LEARN_CONFIG = "learn.yaml"
 WATCH_PERIOD_S = 0.5
 
 
@@ -204,7 +211,7 @@ class LocalSystem:
                         if not interactive and time.monotonic() >= next_line:
                             next_line = time.monotonic() + self.learn.log_interval_s
                             steps = f"{progress['num_timesteps']}/{progress['total_timesteps']} steps"
-                            log.info("learner: %s, %s", steps, progress_postfix(progress))
+                            log.info("learner: %s, %s", steps, self.postfix(progress))
                     self.stop.wait(WATCH_PERIOD_S)
         except ServiceDied:
             self.stop_learner(learner)
@@ -221,11 +228,14 @@ class LocalSystem:
             log.error("the learner exited with %d; its log ends:\n%s", code, learner.log_tail())
         return code
 
-    @staticmethod
-    def show(bar: tqdm, progress: dict[str, Any]) -> None:
+    def postfix(self, progress: dict[str, Any]) -> dict[str, Any]:
+        """The bar's numbers: episodes, recent return, rate, and the latest evaluation (return@steps)."""
+        return progress_postfix(progress, latest_evaluation(self.run_dir))
+
+    def show(self, bar: tqdm, progress: dict[str, Any]) -> None:
         bar.total = progress["total_timesteps"]
         bar.update(progress["num_timesteps"] - bar.n)
-        bar.set_postfix(progress_postfix(progress), refresh=True)
+        bar.set_postfix(self.postfix(progress), refresh=True)
 
     def stop_learner(self, learner: Service) -> None:
         log.info("stopping the learner (up to %.0f s to save)", self.settings.stop_timeout_s)
@@ -269,4 +279,24 @@ def run(settings: UpSettings) -> int:
         run_dir,
         run_dir / "logs",
     )
+    if code == 0:
+        sys.stdout.write(where_the_policy_is(run_dir, learn))
     return code
+
+
+def where_the_policy_is(run_dir: Path, learn: LearnCommandSettings) -> str:
+    """What a finished run leaves a user: the best model, its evaluation, and the command that evaluates it."""
+    score_path = run_dir / BEST_MODEL_SCORE
+    if not score_path.is_file():
+        return f"no evaluation ran; the final model is in {run_dir}\n"
+    score = json.loads(score_path.read_text())
+    command = (
+        f"swimm eval --backend inprocess --algo {learn.algo} --obs {learn.obs} --checkpoint {run_dir / BEST_MODEL}"
+    )
+    if learn.obs == "cmvae" and learn.encoder_checkpoint:
+        command += f" --encoder-checkpoint {learn.encoder_checkpoint}"
+    return (
+        f"policy: {run_dir / BEST_MODEL} (evaluation return {score['mean_return']:.0f} at {score['num_timesteps']} "
+        "steps)\n"
+        f"evaluate it: {command} --episodes 20 --seed 127\n"
+    )

@@ -23,7 +23,7 @@ TINY_SAC = "{learning_starts: 50, gradient_steps: 1, batch_size: 32, buffer_size
 
 def up_args(run_dir: Path, namespace: str, *extra: str) -> list[str]:
     return ["--port", "0", "--namespace", namespace, "--run-dir", str(run_dir), "--hyperparams", TINY_SAC,
-            "--max-steps", "100", "--log-interval-s", "5", *extra]  # fmt: skip
+            "--max-steps", "100", "--log-interval-s", "5", "--demo-steps", "0", *extra]  # fmt: skip
 
 
 def wait_exit(service: Service, timeout_s: float) -> int:

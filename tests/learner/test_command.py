@@ -14,11 +14,11 @@ import torch
 from stable_baselines3 import SAC
 
 from encoder_service.model import CMVAE, make_checkpoint
-from learner_service.callbacks import BEST_MODEL, BEST_MODEL_SCORE
-from learner_service.checkpoints import FINAL_MODEL, load_for_resume, replay_buffer_path
+from learner_service.checkpoints import load_for_resume, replay_buffer_path
 from learner_service.command import LearnCommandSettings, RunResult, Training, check
 from learner_service.envs import make_vec_env
 from learner_service.learn_settings import EvalSettings
+from learner_service.progress import BEST_MODEL, BEST_MODEL_SCORE, FINAL_MODEL, latest_evaluation
 from learner_service.task import TaskSettings
 from services import cli
 from services import settings as settings_mod
@@ -88,6 +88,10 @@ def test_run_folder_holds_the_run(first_run) -> None:
     assert (evaluations["num_timesteps"] >= 100).all()
     assert score["mean_return"] == pytest.approx(evaluations["mean_return"].max())
     assert evaluations["wall_s"].is_monotonic_increasing and (evaluations["wall_s"] > 0).all()
+    steps, mean_return = latest_evaluation(run_dir)  # what `swimm up`'s bar shows
+    assert steps == evaluations["num_timesteps"].iloc[-1] and mean_return == pytest.approx(
+        evaluations["mean_return"].iloc[-1]
+    )
 
 
 def test_resume_continues_the_step_count_with_the_replay_buffer(first_run) -> None:

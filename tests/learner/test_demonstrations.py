@@ -12,10 +12,8 @@ import pandas as pd
 import pytest
 import torch
 
-from learner_service.checkpoints import FINAL_MODEL
 from learner_service.command import Training, check
 from learner_service.demonstrations import (
-    DEMOS_FILE,
     Demonstrations,
     clone_actions,
     innermost,
@@ -27,6 +25,7 @@ from learner_service.demonstrations import (
 )
 from learner_service.envs import make_vec_env, shared_encoder
 from learner_service.learn_settings import DemoSettings
+from learner_service.progress import DEMOS_FILE, FINAL_MODEL
 from learner_service.registry import LATENT_SCRIPTED, load_policy, make_model
 from learner_service.scripted import ScriptedTracker
 from learner_service.task import TaskSettings

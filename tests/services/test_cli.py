@@ -114,3 +114,20 @@ def test_flags_override_the_yaml_file(spawn, free_port, tmp_path):
     router = spawn("router", "--config", str(config), "--listen", f"tcp/127.0.0.1:{flag_port}")
     assert wait_for_port("127.0.0.1", flag_port, timeout_s=20), router.log_tail()
     assert not wait_for_port("127.0.0.1", file_port, timeout_s=0.2)
+
+
+def test_up_runs_the_shipped_recipe_unless_given_a_settings_file(tmp_path) -> None:
+    from services import settings as settings_mod
+    from services.cli import build_parser, config_file
+    from services.up import UpSettings
+
+    def up_settings(*argv: str) -> UpSettings:
+        args = build_parser("up").parse_args(["up", *argv])
+        return settings_mod.load(UpSettings, args, config_file("up", args.config), environ={})
+
+    recipe = up_settings()
+    assert recipe.learn.demo.steps == 24000 and recipe.learn.steps == 20000  # learner_service/models/sac_cmvae.yaml
+    assert up_settings("--seed", "101").learn.seed == 101  # flags still override the recipe
+    spec = up_settings("--config", "learner_service/configs/sac_spec.yaml")
+    assert spec.learn.demo.steps == 0 and spec.learn.steps == 1_000_000 and spec.learn.hyperparams == ""
+    assert config_file("sim", None) is None
