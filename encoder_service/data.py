@@ -84,6 +84,20 @@ class CMVAEDataset:
             labels[chosen] = self._labels[shard][indices[chosen] - self._starts[shard]]
         return labels
 
+    def read_poses(self, indices: np.ndarray) -> np.ndarray:
+        """The rows' poses (N, 12; sim_service.dataset.POSE_NAMES: rover x, y, z, roll, pitch, yaw, then the
+        target's, degrees), read from the shards' ``poses.npy``."""
+        indices = np.asarray(indices, dtype=np.int64)
+        poses = np.empty((len(indices), 12), dtype=np.float32)
+        shard_of = np.searchsorted(self._starts, indices, side="right") - 1
+        for shard in np.unique(shard_of):
+            chosen = shard_of == shard
+            path = self.root / f"{self.meta['shards'][shard]}.poses.npy"
+            if not path.is_file():
+                raise DatasetFormatError(f"{path} is missing: this dataset holds no poses")
+            poses[chosen] = np.load(path, mmap_mode="r")[indices[chosen] - self._starts[shard]]
+        return poses
+
     def read(self, indices: np.ndarray) -> Batch:
         """Rows ``indices`` (any order) as one in-memory batch, in that order.
 

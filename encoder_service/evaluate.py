@@ -36,6 +36,7 @@ from encoder_service.model import (
     tensor_to_images,
 )
 from encoder_service.train import resolve_device
+from services.geometry import camera_centred
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +120,28 @@ def state_metrics(encoded: EncodedSet) -> dict[str, dict[str, float]]:
     return {
         "mae": {UNIT_SUFFIX[name]: float(value) for name, value in zip(LABEL_NAMES, mae, strict=True)},
         "mae_normalised": {name: float(value) for name, value in zip(LABEL_NAMES, mae / widths, strict=True)},
+    }
+
+
+def camera_label_check(encoded: EncodedSet, poses: np.ndarray) -> dict[str, float]:
+    """Would labels measured from the camera (0.235 m ahead of the rover's centre) suit the encoder better?
+
+    The SPEC measures d and theta from the rover's centre; the camera sees from its nose. If the encoder's azimuth
+    errors followed the gap between the two, part of its error would be the labels' and camera-centred labels
+    would remove it: ``theta_error_share_of_gap`` is that part (R^2 of the signed error on the gap). Also the
+    azimuth MAE against camera-centred labels, and the gap itself.
+    """
+    _, camera_azimuth = camera_centred(poses[:, 0:2], poses[:, 5], poses[:, 6:8])
+    rover_azimuth = encoded.labels[:, 1]
+    gap = (camera_azimuth - rover_azimuth + 180.0) % 360.0 - 180.0  # both near 0 in practice; wrapped anyway
+    error = encoded.predicted[:, 1] - rover_azimuth
+    share = float(np.corrcoef(error, gap)[0, 1] ** 2) if gap.std() > 0 and error.std() > 0 else 0.0
+    return {
+        "theta_mae_rover_deg": float(np.abs(error).mean()),
+        "theta_mae_camera_deg": float(np.abs(encoded.predicted[:, 1] - camera_azimuth).mean()),
+        "gap_mean_abs_deg": float(np.abs(gap).mean()),
+        "gap_max_abs_deg": float(np.abs(gap).max()),
+        "theta_error_share_of_gap": share,
     }
 
 
@@ -269,6 +292,7 @@ def run(settings: EvalEncoderSettings) -> int:
         "n_z": model.n_z,
         **state_metrics(encoded),
         "psi": psi_breakdown(encoded),
+        "camera_labels": camera_label_check(encoded, dataset.read_poses(rows)),
         "image_mae_255": encoded.image_mae,
         "latent_std": [float(value) for value in encoded.mu.std(axis=0)],
         "settings": asdict(settings),

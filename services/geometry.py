@@ -21,6 +21,9 @@ ALPHA_DEG = HFOV_DEG / 2
 
 OPT_D = 6.0
 MAX_D = 4.0
+#: The nose camera sits this far ahead of the rover's centre (sim_service/assets: camera "nose"), where the SPEC
+#: measures d and theta from.
+CAMERA_AHEAD_M = 0.235
 
 
 @dataclass(frozen=True)
@@ -65,3 +68,18 @@ def relative_geometry(t: Telemetry) -> RelativeGeometry:
     azimuth = wrap_deg(bearing - rover_yaw)
     psi = wrap_deg(yaw_of(t.target_forward) - rover_yaw)
     return RelativeGeometry(d=d, theta=abs(azimuth), azimuth=azimuth, psi=psi)
+
+
+def camera_centred(rover_xy, rover_yaw_deg, target_xy) -> tuple:
+    """(d, signed azimuth in degrees) of the target seen from the camera rather than the rover's centre.
+
+    Vectorised: arrays of rover positions (N, 2), headings (N,) and target positions (N, 2) give arrays.
+    """
+    import numpy as np  # the core's other functions need no numpy
+
+    yaw = np.radians(np.asarray(rover_yaw_deg, dtype=float))
+    forward = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
+    h = np.asarray(target_xy, dtype=float) - (np.asarray(rover_xy, dtype=float) + CAMERA_AHEAD_M * forward)
+    ahead = (forward * h).sum(axis=-1)
+    left = forward[..., 0] * h[..., 1] - forward[..., 1] * h[..., 0]
+    return np.hypot(h[..., 0], h[..., 1]), np.degrees(np.arctan2(left, ahead))

@@ -33,13 +33,25 @@ def draw_frames(labels: np.ndarray) -> np.ndarray:
     return frames
 
 
+def poses_of(labels: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Rover and target poses (degrees) that put the target at each row's d and azimuth from the rover's centre."""
+    poses = np.zeros((len(labels), 12), dtype=np.float32)
+    poses[:, 0:2] = rng.uniform(-30, 30, (len(labels), 2))
+    poses[:, 5] = rng.uniform(-180, 180, len(labels))
+    bearing = np.radians(poses[:, 5] + labels[:, 1])
+    poses[:, 6] = poses[:, 0] + labels[:, 0] * np.cos(bearing)
+    poses[:, 7] = poses[:, 1] + labels[:, 0] * np.sin(bearing)
+    poses[:, 11] = poses[:, 5] + labels[:, 2]
+    return poses
+
+
 def write_dataset(root: Path, count: int, seed: int, shard_size: int, noise: float = 0.0) -> Path:
     """Write ``count`` frames in shards of ``shard_size``; ``noise`` > 0 adds Gaussian pixel noise (same poses)."""
     rng = np.random.default_rng(seed)
     labels = np.stack(
         [rng.uniform(2, 10, count), rng.uniform(-ALPHA_DEG, ALPHA_DEG, count), rng.uniform(-180, 180, count)], axis=1
     ).astype(np.float32)
-    poses = rng.normal(size=(count, 12)).astype(np.float32)
+    poses = poses_of(labels, rng)
     frames = draw_frames(labels)
     if noise > 0:
         jitter = np.random.default_rng(seed + 1).normal(0.0, noise, frames.shape)

@@ -53,6 +53,10 @@ def test_clean_and_noisy_metrics_and_figures(setup: dict[str, Path], tmp_path: P
     assert 0 < metrics["image_mae_255"] < 255
     assert len(metrics["latent_std"]) == 10
     assert 0 <= metrics["psi"]["median_deg"] <= 180 and 0 <= metrics["psi"]["reversed_share"] <= 1
+    camera = metrics["camera_labels"]
+    assert camera["theta_mae_rover_deg"] == pytest.approx(metrics["mae"]["theta_deg"], rel=1e-5)
+    assert 0 < camera["gap_mean_abs_deg"] <= camera["gap_max_abs_deg"] < 6  # 0.235 m ahead, targets 2-10 m away
+    assert 0 <= camera["theta_error_share_of_gap"] <= 1 and camera["theta_mae_camera_deg"] > 0
 
     noisy = metrics["noisy"]
     assert set(noisy["latent_drift"]) == {"z0", "z1", "z2"} and len(noisy["latent_drift_all"]) == 10

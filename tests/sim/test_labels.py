@@ -7,14 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from services.geometry import ALPHA_DEG
+from services.geometry import ALPHA_DEG, CAMERA_AHEAD_M, camera_centred
 from sim_service.dataset import SamplingRanges, labels_and_pose, sample_pose
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
 SIZE = 64
 FOCAL_PX = (SIZE / 2) / math.tan(math.radians(ALPHA_DEG))  # the pinhole's focal length in pixels
-CAMERA_AHEAD_M = 0.235  # the nose camera's offset along the rover's forward axis (assets/world.xml)
 
 
 def column_azimuth(u: float) -> float:
@@ -24,9 +23,9 @@ def column_azimuth(u: float) -> float:
 
 def camera_azimuth(telemetry) -> float:
     """The target centre's azimuth seen from the camera rather than from the rover's centre."""
-    forward = np.asarray(telemetry.rover_forward)
-    h = np.asarray(telemetry.target_pos) - (np.asarray(telemetry.rover_pos) + CAMERA_AHEAD_M * forward)
-    return math.degrees(math.atan2(forward[0] * h[1] - forward[1] * h[0], forward[0] * h[0] + forward[1] * h[1]))
+    rover_yaw = math.degrees(math.atan2(telemetry.rover_forward[1], telemetry.rover_forward[0]))
+    _, azimuth = camera_centred(np.asarray(telemetry.rover_pos[:2]), rover_yaw, np.asarray(telemetry.target_pos[:2]))
+    return float(azimuth)
 
 
 @pytest.fixture(scope="module")
@@ -73,5 +72,13 @@ def test_the_mask_needs_a_rendering_world() -> None:
     try:
         with pytest.raises(RuntimeError, match="rendering world"):
             world.target_mask()
+    finally:
+        world.close()
+
+
+def test_the_camera_offset_is_the_models_nose_camera() -> None:
+    world = World(WorldSettings(image_size=SIZE))
+    try:
+        assert world.model.camera("nose").pos[0] == pytest.approx(CAMERA_AHEAD_M)
     finally:
         world.close()
