@@ -47,6 +47,11 @@ COMMANDS: dict[str, Command] = {
     "export-encoder": Command(
         "encoder_service.export:ExportEncoderSettings", "encoder_service.export:run", "shrink a CMVAE for shipping"
     ),
+    "export": Command(
+        "learner_service.export:ExportSettings",
+        "learner_service.export:run",
+        "a policy as one ONNX file, frame to action",
+    ),
     "up": Command(
         "services.up:UpSettings",
         "services.up:run",

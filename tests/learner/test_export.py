@@ -1,0 +1,93 @@
+"""`swimm export` end to end on the shipped policy: the ONNX file agrees with the Python path on real frames,
+carries its contract, runs without torch or stable-baselines3, and a bad request leaves no file."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnxruntime
+import pytest
+
+from learner_service.envs import make_vec_env
+from learner_service.export import ExportSettings, episode_frames, run
+from learner_service.registry import make_model
+from learner_service.task import TaskSettings
+
+FRAMES = 120
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("export") / "policy.onnx"
+    assert run(ExportSettings(out=str(out), check_frames=FRAMES)) == 0
+    return out
+
+
+def test_the_file_agrees_with_the_python_path_and_reports_it(exported: Path) -> None:
+    report = json.loads(exported.with_suffix(".json").read_text())
+    assert report["frames_checked"] == FRAMES and report["max_action_difference"] <= 1e-4
+    assert report["bytes"] == exported.stat().st_size
+    assert report["onnx_ms_per_frame"] > 0 and report["torch_ms_per_frame"] > 0
+    assert not exported.with_name(exported.name + ".partial").exists()
+
+
+def test_the_contract_is_in_the_metadata_and_the_batch_is_free(exported: Path) -> None:
+    session = onnxruntime.InferenceSession(str(exported), providers=["CPUExecutionProvider"])
+    meta = session.get_modelmeta().custom_metadata_map
+    contract = json.loads(meta["swimm.contract"])
+    assert contract["action_names"] == ["surge", "yaw"] and contract["control_rate_hz"] == 50
+    assert meta["swimm.algo"] == "sac" and len(meta["swimm.policy_sha256"]) == 64
+    assert [i.name for i in session.get_inputs()] == ["frame", "action_history"]
+    frames = np.random.default_rng(0).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    history = np.random.default_rng(1).uniform(-1, 1, (3, 20)).astype(np.float32)
+    action, next_history = session.run(None, {"frame": frames, "action_history": history})
+    assert action.shape == (3, 2) and np.all(np.abs(action) <= 1.0)
+    np.testing.assert_array_equal(next_history[:, :18], history[:, 2:])  # ActPrev shifts by one action...
+    np.testing.assert_array_equal(next_history[:, 18:], action)  # ...and ends with the one just chosen
+
+
+def test_it_runs_where_neither_torch_nor_stable_baselines3_is_installed(exported: Path) -> None:
+    script = (
+        "import sys; sys.modules['torch'] = None; sys.modules['stable_baselines3'] = None\n"
+        "import numpy as np, onnxruntime\n"
+        f"session = onnxruntime.InferenceSession({str(exported)!r}, providers=['CPUExecutionProvider'])\n"
+        "action, _ = session.run(None, {'frame': np.zeros((1, 64, 64, 3), np.uint8),"
+        " 'action_history': np.zeros((1, 20), np.float32)})\n"
+        "print(action.shape)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip() == "(1, 2)"
+
+
+def test_the_recorded_episode_is_the_python_paths_own(exported: Path) -> None:
+    """The frames the check replays are those the model acted on: ActPrev ends with the previous action."""
+    from stable_baselines3 import SAC
+
+    from learner_service.export import SHIPPED_POLICY
+    from learner_service.task import TrackingTask
+
+    model = SAC.load(SHIPPED_POLICY, device="cpu")
+    recorded = episode_frames(model, TrackingTask(TaskSettings(obs="cmvae")), Path(
+        "encoder_service/models/cmvae.pt"), 30, 9001)  # fmt: skip
+    np.testing.assert_allclose(recorded["action_history"][1:, -2:], np.clip(recorded["action"][:-1], -1, 1))
+    assert recorded["frame"].shape == (30, 64, 64, 3) and len(np.unique(recorded["frame"][:, 32, 32, 0])) > 1
+
+
+def test_bad_requests_name_the_problem_and_leave_no_file(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="policy checkpoint .*nowhere.zip does not exist"):
+        run(ExportSettings(checkpoint=str(tmp_path / "nowhere.zip"), out=str(tmp_path / "a.onnx")))
+    env = make_vec_env("inprocess", TaskSettings(obs="state", max_steps=20), n_envs=1, base_seed=1)
+    try:
+        make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100}).save(tmp_path / "state.zip")
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="only camera-only \\(cmvae\\) policies export"):
+        run(ExportSettings(checkpoint=str(tmp_path / "state.zip"), out=str(tmp_path / "b.onnx")))
+    with pytest.raises(ValueError, match="not kept"):
+        run(ExportSettings(out=str(tmp_path / "c.onnx"), check_frames=20, tolerance=1e-12))
+    assert not list(tmp_path.glob("*.onnx*"))
