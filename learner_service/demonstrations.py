@@ -33,6 +33,7 @@ the buffer's actions around the tracker's, which the critic needs to rank action
 
 from __future__ import annotations
 
+import copy
 import logging
 import shutil
 from dataclasses import dataclass
@@ -47,7 +48,7 @@ from tqdm import tqdm
 
 from learner_service.learn_settings import DemoSettings
 from learner_service.progress import DEMOS_FILE
-from learner_service.registry import Policy
+from learner_service.registry import Policy, deterministic_action
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +98,6 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int, tea
     infos = list(env.reset_infos)
     observations, actions, returns = [], [], []
     running = np.zeros(env.num_envs)
-    model._last_obs = obs  # what OffPolicyAlgorithm._store_transition pairs with the next observation
     with tqdm(total=settings.steps, desc="demonstrations", unit="step", disable=None) as bar:
         for played in range(env.num_envs, settings.steps + env.num_envs, env.num_envs):
             clean = np.stack([teacher.act(_row(obs, i), info) for i, info in enumerate(infos)])
@@ -106,7 +106,7 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int, tea
             observations.append(obs)
             actions.append(clean)
             if buffer is not None:
-                model._store_transition(buffer, taken, next_obs, rewards, dones, step_infos)
+                store(buffer, model.policy.scale_action(taken), obs, next_obs, rewards, dones, step_infos)
             running += rewards
             for index in np.flatnonzero(dones):
                 returns.append(float(running[index]))
@@ -118,6 +118,22 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int, tea
             if bar.disable and played % max(settings.steps // 10, 1) < env.num_envs:  # no bar: a line per tenth
                 log.info("demonstrations: %d/%d steps, %d episodes ended", played, settings.steps, len(returns))
     return Demonstrations(_concat(observations), np.concatenate(actions), returns)
+
+
+def store(buffer: Any, actions: np.ndarray, obs: Any, next_obs: Any, rewards: Any, dones: Any, infos: list) -> None:
+    """One VecEnv step into a replay buffer (its public ``add``), as an off-policy learner stores its own: an env
+    that just reset returned its new episode's first observation, so its transition ends in the terminal one."""
+    ended = copy.deepcopy(next_obs)
+    for index in np.flatnonzero(dones):
+        terminal = infos[index].get("terminal_observation")
+        if terminal is None:
+            continue
+        if isinstance(ended, dict):
+            for key in ended:
+                ended[key][index] = terminal[key]
+        else:
+            ended[index] = terminal
+    buffer.add(obs, ended, actions, rewards, dones, infos)
 
 
 def _row(observations: Any, index: int) -> Any:
@@ -136,7 +152,7 @@ def _concat(batches: list[Any]) -> Any:
 def clone_actions(model: Any, demos: Demonstrations, settings: DemoSettings, seed: int) -> list[float]:
     """Fit the policy's deterministic action to the tracker's by mean squared error; the loss of each epoch.
 
-    Works for any stable-baselines3 policy whose ``_predict`` is differentiable (SAC, TD3, PPO, A2C): only the
+    Works for any stable-baselines3 policy whose deterministic action is differentiable (SAC, TD3, PPO, A2C): only the
     parameters on the action's path receive gradients, so a critic is left as it is. A TD3-style target actor is
     synced to the fitted actor.
     """
@@ -169,7 +185,7 @@ def clone_actions(model: Any, demos: Demonstrations, settings: DemoSettings, see
 def cloning_loss(policy: Any, demos: Demonstrations, targets: torch.Tensor, rows: np.ndarray) -> torch.Tensor:
     """Mean squared error between the policy's deterministic actions and the tracker's, on demonstration ``rows``."""
     obs_tensor, _ = policy.obs_to_tensor(_rows(demos.observations, rows))
-    return torch.nn.functional.mse_loss(policy._predict(obs_tensor, deterministic=True), targets[rows])
+    return torch.nn.functional.mse_loss(deterministic_action(policy, obs_tensor), targets[rows])
 
 
 def _rows(observations: Any, rows: np.ndarray) -> Any:

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
 from sim_service.settings import WorldSettings
 
@@ -66,9 +67,7 @@ class CameraToAction(torch.nn.Module):
     def forward(self, frame: torch.Tensor, action_history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         images = frame.permute(0, 3, 1, 2).float() / 127.5 - 1.0  # encoder_service.model.images_to_tensor
         mu, _ = self.encoder(images)
-        actions = self.policy(torch.cat([mu, action_history], dim=1), deterministic=True)
-        if isinstance(actions, tuple):  # on-policy ActorCriticPolicy.forward: (actions, values, log_prob)
-            actions = actions[0]
+        actions = deterministic_action(self.policy, torch.cat([mu, action_history], dim=1))
         # What BasePolicy.predict does after the network: back from the squashed [-1, 1] or clip to the bounds.
         if self.policy.squash_output:
             actions = self.low + 0.5 * (actions + 1.0) * (self.high - self.low)
@@ -164,7 +163,6 @@ def verify(path: Path, recorded: dict[str, np.ndarray], tolerance: float) -> dic
 def run(settings: ExportSettings) -> int:
     from encoder_service.inference import DEFAULT_CHECKPOINT
     from encoder_service.model import load_model
-    from learner_service.registry import resolve_algorithm
 
     if settings.check_frames < 1 or settings.tolerance <= 0:
         raise ValueError("check_frames must be >= 1 and tolerance > 0")

@@ -58,6 +58,13 @@ class SB3Policy:
         return np.asarray(action, dtype=np.float32)
 
 
+def deterministic_action(policy: Any, obs: torch.Tensor) -> torch.Tensor:
+    """A stable-baselines3 policy's deterministic action as a differentiable tensor, before ``predict``'s scaling and
+    clipping: its ``forward`` (off-policy policies return the action, on-policy ones (action, value, log-prob))."""
+    actions = policy(obs, deterministic=True)
+    return actions[0] if isinstance(actions, tuple) else actions
+
+
 def algorithm_names() -> list[str]:
     """Every algorithm known by name: the YAML files' stems and the scripted baseline."""
     return sorted([path.stem for path in HYPERPARAMS_DIR.glob("*.yaml")] + list(SCRIPTED_NAMES))
