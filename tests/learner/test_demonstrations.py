@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import yaml
 
 from learner_service.command import Training, check
 from learner_service.demonstrations import (
@@ -239,3 +240,18 @@ def test_the_shipped_policys_recipe_loads_as_swimm_up_settings() -> None:
     assert (up.learn.algo, up.learn.obs, up.learn.backend) == ("sac", "cmvae", "zenoh")
     assert up.learn.demo.steps > 0 and up.learn.demo.critic_steps > 0
     assert parse_hyperparams(up.learn.hyperparams)["policy_kwargs"]["log_std_init"] == -4.0
+
+
+def test_the_noise_robust_recipe_names_files_that_ship() -> None:
+    from learner_service.command import check
+    from services import settings as settings_mod
+    from services.up import UpSettings, encoder_checkpoint
+
+    root = Path(__file__).resolve().parents[2]
+    up = settings_mod.load(UpSettings, None, root / "learner_service" / "models" / "sac_cmvae_robust.yaml", environ={})
+    check(up.learn)
+    assert up.learn.demo.teacher == LATENT_SCRIPTED and up.learn.obs == "cmvae"
+    assert encoder_checkpoint(up.learn).name == "cmvae_robust.pt"  # refuses a missing file
+    sim = yaml.safe_load((root / up.sim_config).read_text())
+    assert sim["noise_randomise"] is True and sim["noise_preset"] == "murky"
+    assert (root / "learner_service" / "models" / "sac_cmvae_robust.zip").is_file()
