@@ -72,6 +72,7 @@ class EvalCommandSettings:
     max_retries: int = 10
     encoder_checkpoint: str = ""  # in-process cmvae: the CMVAE (default: the shipped one)
     device: str = "auto"  # torch device of the policies
+    threads: int = 1  # torch CPU threads; 1 keeps an idle-spinning pool off the sim's core; 0 = torch's default
     watch: str = ""  # a `swimm learn` run folder: evaluate each new best_model.zip it saves, until it finishes
     watch_interval_s: float = 5.0  # how often the watched folder is checked
     live_port: int = -1  # serve the live view on this port (0: any free port; -1: no live view)
@@ -147,6 +148,10 @@ def load_policies(settings: EvalCommandSettings, entries: list[Contender]) -> di
     def checkpoint(entry: Contender) -> str | None:
         return (settings.encoder_checkpoint or None) if entry.algo == LATENT_SCRIPTED else entry.checkpoint
 
+    if settings.threads > 0:
+        import torch
+
+        torch.set_num_threads(settings.threads)  # before the policies and the CMVAE run (docs/eval.md, threads)
     return {entry.label: load_policy(entry.algo, checkpoint(entry), device=settings.device) for entry in entries}
 
 
