@@ -74,7 +74,7 @@ def learn_settings(settings: LearnBenchSettings, algo: str, seed: int) -> LearnC
 
 def train(settings: LearnBenchSettings, algo: str, seed: int) -> None:
     """One `swimm up` to the end of its budget; refuses to go on past a learner that failed."""
-    from services import up
+    from learner_service import up
 
     learn = learn_settings(settings, algo, seed)
     folder = Path(learn.run_dir)

@@ -53,8 +53,8 @@ COMMANDS: dict[str, Command] = {
         "a policy as one ONNX file, frame to action",
     ),
     "up": Command(
-        "services.up:UpSettings",
-        "services.up:run",
+        "learner_service.up:UpSettings",
+        "learner_service.up:run",
         "launch router, sim, encoder, learner (shipped recipe)",
         default_config="learner_service/models/sac_cmvae.yaml",
     ),

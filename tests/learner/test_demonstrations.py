@@ -231,8 +231,8 @@ def test_a_resumed_run_keeps_the_cloning_loss_on_the_first_runs_demonstrations(t
 
 def test_the_shipped_policys_recipe_loads_as_swimm_up_settings() -> None:
     from learner_service.command import check, parse_hyperparams
+    from learner_service.up import UpSettings
     from services import settings as settings_mod
-    from services.up import UpSettings
 
     recipe = Path(__file__).resolve().parents[2] / "learner_service" / "models" / "sac_cmvae.yaml"
     up = settings_mod.load(UpSettings, None, recipe, environ={})
@@ -244,8 +244,8 @@ def test_the_shipped_policys_recipe_loads_as_swimm_up_settings() -> None:
 
 def test_the_noise_robust_recipe_names_files_that_ship() -> None:
     from learner_service.command import check
+    from learner_service.up import UpSettings, encoder_checkpoint
     from services import settings as settings_mod
-    from services.up import UpSettings, encoder_checkpoint
 
     root = Path(__file__).resolve().parents[2]
     up = settings_mod.load(UpSettings, None, root / "learner_service" / "models" / "sac_cmvae_robust.yaml", environ={})

@@ -117,9 +117,9 @@ def test_flags_override_the_yaml_file(spawn, free_port, tmp_path):
 
 
 def test_up_runs_the_shipped_recipe_unless_given_a_settings_file(tmp_path) -> None:
+    from learner_service.up import UpSettings
     from services import settings as settings_mod
     from services.cli import build_parser, config_file
-    from services.up import UpSettings
 
     def up_settings(*argv: str) -> UpSettings:
         args = build_parser("up").parse_args(["up", *argv])

@@ -33,7 +33,7 @@ SIDES = {
     ),
     "sim image (no torch)": (
         {"torch", "stable_baselines3", "gymnasium"},
-        ["sim_service.responder", "sim_service.dataset", "sim_service.world", "services.cli", "services.up"],
+        ["sim_service.responder", "sim_service.dataset", "sim_service.world", "services.cli", "learner_service.up"],
     ),
     "shared core (neither)": (
         {"torch", "mujoco", "stable_baselines3", "gymnasium", "cv2"},

@@ -6,7 +6,7 @@ import socket
 
 import pytest
 
-from services.up import check_port_free
+from learner_service.up import check_port_free
 
 
 def _listener() -> tuple[socket.socket, int]:
