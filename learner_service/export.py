@@ -49,6 +49,7 @@ class ExportSettings:
     check_frames: int = 1000  # frames of a real in-process episode both paths must agree on
     check_seed: int = 9001  # the episode's seed
     tolerance: float = 1e-4  # largest allowed |onnx - python| action difference
+    threads: int = 1  # torch CPU threads of the Python path (docs/eval.md: one is faster beside other work)
 
 
 class CameraToAction(torch.nn.Module):
@@ -166,6 +167,8 @@ def run(settings: ExportSettings) -> int:
 
     if settings.check_frames < 1 or settings.tolerance <= 0:
         raise ValueError("check_frames must be >= 1 and tolerance > 0")
+    if settings.threads > 0:
+        torch.set_num_threads(settings.threads)
     policy_path = Path(settings.checkpoint) if settings.checkpoint else SHIPPED_POLICY
     encoder_path = Path(settings.encoder_checkpoint) if settings.encoder_checkpoint else DEFAULT_CHECKPOINT
     for what, path in (("policy checkpoint", policy_path), ("CMVAE checkpoint", encoder_path)):
