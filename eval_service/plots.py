@@ -1,14 +1,14 @@
-"""PNG figures of evaluation and training runs: returns per episode, behaviour metrics, paths, learning curves.
+"""PNG figures of evaluation runs: returns per episode, behaviour metrics, paths (training runs' learning curves:
+learner_service.plots).
 
-Plotting only: the numbers come from the evaluator's per-step CSV, its per-episode summary rows and the
-learner's monitor files (column names in notes/interfaces.md), as pandas DataFrames or files. Each
+Plotting only: the numbers come from the evaluator's per-step CSV and its per-episode summary rows, as pandas
+DataFrames or files. Each
 ``*_figure`` builds a `matplotlib.figure.Figure` without pyplot (no global figure registry, no display,
 PNGs rendered by Agg) so tests and notebooks can inspect it; each ``plot_*`` saves one and returns the path.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from collections.abc import Iterable, Mapping, Sequence
@@ -21,15 +21,12 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
+from learner_service.plots import CAUSE_STYLES, PathLike, require_columns, save_figure
+
 log = logging.getLogger(__name__)
 
-PathLike = str | Path
-
-# Why an episode went wrong: the summary's flag column, and one colour and marker per cause in every figure.
+# Why an episode went wrong: the summary's flag column (colours and markers: learner_service.plots.CAUSE_STYLES).
 VIOLATION_FLAGS = {"distance": "distance_exceeded", "visibility": "left_view", "collision": "collided"}
-CAUSE_STYLES = {"distance": ("tab:red", "x"), "visibility": ("tab:orange", "v"), "collision": ("black", "s")}
-TIME_LIMIT = "time limit"  # monitor rows whose cause is empty: the episode ran to its last step
-CAUSE_COLOURS = {**{cause: colour for cause, (colour, _) in CAUSE_STYLES.items()}, TIME_LIMIT: "tab:gray"}
 
 # The paper's Table 12 metrics, in its order, with what each bar measures.
 METRIC_MEANINGS = {
@@ -45,12 +42,11 @@ METRIC_MEANINGS = {
 
 EPISODE_COLUMNS = ("label", "episode", "return", *VIOLATION_FLAGS.values())
 STEP_COLUMNS = ("label", "episode", "step", "rover_x", "rover_y", "rover_yaw", "target_x", "target_y")
-MONITOR_COLUMNS = ("r", "l")
 
 
 def plot_returns(episodes_df: pd.DataFrame, path: PathLike) -> Path:
     """Return per episode for each label, episodes with violations marked by cause (the paper's Figures 13-14)."""
-    return _save(returns_figure(episodes_df), path)
+    return save_figure(returns_figure(episodes_df), path)
 
 
 def plot_metrics(
@@ -60,28 +56,17 @@ def plot_metrics(
     reference_label: str = "reference",
 ) -> Path:
     """Grouped bars: one panel per behaviour metric, one bar per label, the reference (e.g. paper SAC) beside."""
-    return _save(metrics_figure(summary, reference, reference_label), path)
+    return save_figure(metrics_figure(summary, reference, reference_label), path)
 
 
 def plot_trajectory(steps_df: pd.DataFrame, label: str, episode: int, path: PathLike, arrow_every: int = 100) -> Path:
     """Rover and dolphin paths of one episode seen from above, rover heading arrows every ``arrow_every`` steps."""
-    return _save(trajectory_figure(steps_df, label, episode, arrow_every), path)
-
-
-def plot_training(
-    monitor: pd.DataFrame | PathLike | Sequence[PathLike],
-    path: PathLike,
-    window: int = 20,
-    evaluations: pd.DataFrame | None = None,
-) -> Path:
-    """Learning curve (reward per episode against training steps) and how episodes ended along the run;
-    ``evaluations`` (a run folder's evaluations.csv) adds the evaluation callback's mean returns."""
-    return _save(training_figure(monitor, window, evaluations), path)
+    return save_figure(trajectory_figure(steps_df, label, episode, arrow_every), path)
 
 
 def returns_figure(episodes_df: pd.DataFrame) -> Figure:
     """One line per label (return against episode) and one marker series per violation cause."""
-    _require(episodes_df, EPISODE_COLUMNS, "episode summary")
+    require_columns(episodes_df, EPISODE_COLUMNS, "episode summary")
     fig = Figure(figsize=(9, 4.5))
     ax = fig.add_subplot()
     for label, rows in _groups(episodes_df):
@@ -135,7 +120,7 @@ def metrics_figure(
 
 def trajectory_figure(steps_df: pd.DataFrame, label: str, episode: int, arrow_every: int = 100) -> Figure:
     """Both paths in the horizontal plane (equal aspect, so turns and distances look as they were)."""
-    _require(steps_df, STEP_COLUMNS, "per-step table")
+    require_columns(steps_df, STEP_COLUMNS, "per-step table")
     if arrow_every < 1:
         raise ValueError(f"arrow_every must be >= 1, got {arrow_every}")
     rows = steps_df[(steps_df["label"].astype(str) == str(label)) & (steps_df["episode"] == episode)]
@@ -177,68 +162,6 @@ def trajectory_figure(steps_df: pd.DataFrame, label: str, episode: int, arrow_ev
     return fig
 
 
-def training_figure(
-    monitor: pd.DataFrame | PathLike | Sequence[PathLike], window: int = 20, evaluations: pd.DataFrame | None = None
-) -> Figure:
-    """Reward per episode with a rolling mean above (and each evaluation's mean and sd of its deterministic
-    episodes, where given: training episodes are stochastic, so the two differ), stacked counts of how
-    episodes ended below."""
-    episodes = monitor.copy() if isinstance(monitor, pd.DataFrame) else read_monitor(monitor)
-    _require(episodes, MONITOR_COLUMNS, "monitor table")
-    if episodes.empty:
-        raise ValueError("monitor table has no episodes")
-    if "t" in episodes:
-        episodes = episodes.sort_values("t", kind="stable")
-    steps = episodes["l"].cumsum().to_numpy(dtype=float)
-    rewards = episodes["r"].to_numpy(dtype=float)
-    window = max(1, min(window, len(episodes)))
-    fig = Figure(figsize=(9, 6.5))
-    top, bottom = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [2, 1]})
-    top.scatter(steps, rewards, s=6, alpha=0.35, color="tab:blue", label="episode reward")
-    top.plot(
-        steps,
-        pd.Series(rewards).rolling(window, min_periods=1).mean(),
-        color="tab:red",
-        linewidth=1.5,
-        label=f"rolling mean ({window} episodes)",
-    )
-    if evaluations is not None and not evaluations.empty:
-        _require(evaluations, ("num_timesteps", "mean_return", "std_return"), "evaluations table")
-        x, y, sd = (evaluations[c].to_numpy(dtype=float) for c in ("num_timesteps", "mean_return", "std_return"))
-        top.errorbar(x, y, yerr=sd, fmt="D", color="black", markersize=5, capsize=3, label="evaluation (mean, sd)")
-    top.set_title(f"Training: reward per episode ({len(episodes)} episodes, {int(steps[-1])} steps)")
-    top.set_ylabel("episode reward (sum of per-step rewards)")
-    top.grid(alpha=0.3)
-    top.legend(fontsize=8)
-    _cause_bars(bottom, steps, _causes(episodes))
-    bottom.set_xlabel("training steps (environment steps)")
-    bottom.set_ylabel("episodes ending per bin")
-    bottom.set_title("How episodes ended")
-    bottom.legend(fontsize=8)
-    fig.tight_layout()
-    return fig
-
-
-def read_monitor(paths: PathLike | Iterable[PathLike]) -> pd.DataFrame:
-    """Episodes from one or more monitor CSV files: a '#' JSON header line, then r, l, t (and extras such as cause).
-
-    ``t`` counts from each file's own ``t_start``; adding it puts episodes of parallel environments on one clock.
-    """
-    paths = [paths] if isinstance(paths, str | Path) else list(paths)
-    if not paths:
-        raise ValueError("no monitor files given")
-    frames = []
-    for path in map(Path, paths):
-        with path.open() as handle:
-            first_line = handle.readline()
-        has_header = first_line.startswith("#")
-        frame = pd.read_csv(path, skiprows=1 if has_header else 0)
-        if has_header and "t" in frame:
-            frame["t"] += float(json.loads(first_line[1:]).get("t_start", 0.0))
-        frames.append(frame)
-    return pd.concat(frames, ignore_index=True)
-
-
 def _metric_panel(ax: Axes, metric: str, bars: list[tuple[str, float, str, str]]) -> None:
     names = [name for name, *_ in bars]
     values = [float(value) for _, value, _, _ in bars]
@@ -276,37 +199,6 @@ def _mark_violations(ax: Axes, x: pd.Series, y: pd.Series, cause: str, count: st
     ax.scatter(x, y, color=colour, marker=marker, label=f"{cause} violated ({count})", **style)
 
 
-def _causes(episodes: pd.DataFrame) -> pd.Series:
-    if "cause" not in episodes:
-        log.info("monitor table has no 'cause' column; counting every episode as reaching the time limit")
-        return pd.Series(TIME_LIMIT, index=episodes.index)
-    causes = episodes["cause"].astype(object).fillna("").astype(str).str.strip()
-    return causes.where(causes != "", TIME_LIMIT)
-
-
-def _cause_bars(ax: Axes, steps: np.ndarray, causes: pd.Series, max_bins: int = 20) -> None:
-    """Counts of each ending per equal-width bin of training steps, stacked."""
-    bins = min(max_bins, len(steps))
-    edges = np.linspace(0.0, steps[-1], bins + 1)
-    order = [c for c in CAUSE_COLOURS if c in set(causes)] + sorted(set(causes) - set(CAUSE_COLOURS))
-    fallback = iter(["tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"] * len(order))
-    below = np.zeros(bins)
-    for cause in order:
-        counts, _ = np.histogram(steps[(causes == cause).to_numpy()], bins=edges)
-        ax.bar(
-            edges[:-1],
-            counts,
-            width=np.diff(edges),
-            bottom=below,
-            align="edge",
-            edgecolor="white",
-            linewidth=0.4,
-            color=CAUSE_COLOURS.get(cause) or next(fallback),
-            label=cause,
-        )
-        below += counts
-
-
 def _label_colours(labels: Sequence[str]) -> dict[str, str]:
     return {label: f"C{i % 10}" for i, label in enumerate(labels)}
 
@@ -324,17 +216,3 @@ def _flags(values: pd.Series) -> pd.Series:
     if pd.api.types.is_numeric_dtype(values):
         return values.fillna(0) != 0
     return values.astype(str).str.strip().str.lower().isin(("true", "1", "yes"))
-
-
-def _require(df: pd.DataFrame, columns: Sequence[str], what: str) -> None:
-    missing = [c for c in columns if c not in df.columns]
-    if missing:
-        raise ValueError(f"{what} lacks columns {missing}")
-
-
-def _save(fig: Figure, path: PathLike) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    log.info("wrote %s", path)
-    return path

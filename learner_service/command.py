@@ -278,7 +278,7 @@ class Training:
         """summary.png from the monitor CSV; a run that finished no episode has nothing to plot (logged)."""
         import pandas as pd
 
-        from eval_service.plots import plot_training, read_monitor
+        from learner_service.plots import plot_training, read_monitor
 
         monitors = self.monitor_files()
         try:

@@ -8,7 +8,7 @@ same thing either way, so the only difference between a distributed and an in-pr
 
 Sub-env i has base seed ``base_seed + i`` in both. Both are wrapped in one VecMonitor that records each
 episode's reward, length, time and termination ``cause`` (empty for the time limit) in one CSV, which the
-summary plot (:func:`eval_service.plots.plot_training`) reads. One VecMonitor for the vector rather than a
+summary plot (:func:`learner_service.plots.plot_training`) reads. One VecMonitor for the vector rather than a
 Monitor per sub-env, because the ProxyVecEnv's sub-envs are not separate gymnasium envs one could wrap.
 """
 

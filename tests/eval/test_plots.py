@@ -13,6 +13,7 @@ import pytest
 from matplotlib.quiver import Quiver
 
 from eval_service import plots
+from learner_service import plots as training_plots
 
 PAPER_SAC = {
     "A": 2.67e-2,
@@ -191,30 +192,30 @@ def _monitors(tmp_path: Path) -> list[Path]:
 
 
 def test_read_monitor_puts_parallel_files_on_one_clock(tmp_path):
-    episodes = plots.read_monitor(_monitors(tmp_path))
+    episodes = training_plots.read_monitor(_monitors(tmp_path))
     ordered = episodes.sort_values("t", kind="stable")
     assert ordered["r"].tolist() == [10.0, 20.0, 15.0, 30.0, 25.0]  # t_start + t: 1001, 1002, 1002.5, 1003, 1003.5
     assert episodes["cause"].fillna("").tolist() == ["distance", "", "visibility", "collision", ""]
 
 
 def test_plot_training_writes_png(tmp_path):
-    path = plots.plot_training(_monitors(tmp_path), tmp_path / "training.png")
+    path = training_plots.plot_training(_monitors(tmp_path), tmp_path / "training.png")
     _assert_png(path, 900, 650)
 
 
 def test_training_figure_rolling_mean_and_stacked_causes(tmp_path):
-    top, bottom = plots.training_figure(_monitors(tmp_path), window=2).axes
+    top, bottom = training_plots.training_figure(_monitors(tmp_path), window=2).axes
     (mean_line,) = top.get_lines()
     np.testing.assert_allclose(mean_line.get_xdata(), [100, 300, 450, 750, 3750])  # cumulative steps
     np.testing.assert_allclose(mean_line.get_ydata(), [10.0, 15.0, 17.5, 22.5, 27.5])
     counts = {bars.get_label(): sum(patch.get_height() for patch in bars) for bars in bottom.containers}
-    assert counts == {"distance": 1, "visibility": 1, "collision": 1, plots.TIME_LIMIT: 2}
+    assert counts == {"distance": 1, "visibility": 1, "collision": 1, training_plots.TIME_LIMIT: 2}
     assert {text.get_text() for text in bottom.get_legend().get_texts()} == set(counts)
 
 
 def test_training_figure_shows_each_evaluation_with_its_spread(tmp_path):
     evaluations = pd.DataFrame({"num_timesteps": [200, 3000], "mean_return": [12.0, 40.0], "std_return": [1.0, 5.0]})
-    top, _ = plots.training_figure(_monitors(tmp_path), window=2, evaluations=evaluations).axes
+    top, _ = training_plots.training_figure(_monitors(tmp_path), window=2, evaluations=evaluations).axes
     (points,) = [c for c in top.containers if c.get_label() == "evaluation (mean, sd)"]
     line, _, (bars,) = points
     np.testing.assert_allclose(line.get_xdata(), [200, 3000])
@@ -222,12 +223,12 @@ def test_training_figure_shows_each_evaluation_with_its_spread(tmp_path):
     spans = [segment[:, 1] for segment in bars.get_segments()]
     np.testing.assert_allclose(spans, [[11.0, 13.0], [35.0, 45.0]])
     with pytest.raises(ValueError, match="evaluations table"):
-        plots.training_figure(_monitors(tmp_path), evaluations=pd.DataFrame({"steps": [1]}))
+        training_plots.training_figure(_monitors(tmp_path), evaluations=pd.DataFrame({"steps": [1]}))
 
 
 def test_training_figure_from_dataframe_without_cause():
     frame = pd.DataFrame({"r": np.linspace(-100, 100, 30), "l": 1000})
-    top, bottom = plots.training_figure(frame, window=10).axes
+    top, bottom = training_plots.training_figure(frame, window=10).axes
     assert top.get_lines()[0].get_ydata()[-1] == pytest.approx(np.linspace(-100, 100, 30)[-10:].mean())
-    assert {text.get_text() for text in bottom.get_legend().get_texts()} == {plots.TIME_LIMIT}
+    assert {text.get_text() for text in bottom.get_legend().get_texts()} == {training_plots.TIME_LIMIT}
     assert sum(patch.get_height() for patch in bottom.patches) == 30
