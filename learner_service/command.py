@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from stable_baselines3.common.utils import configure_logger
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from learner_service.callbacks import (
@@ -200,6 +201,9 @@ class Training:
         s = self.settings
         clock = time.perf_counter()  # the budget and the evaluations' wall_s count the demonstrations too
         model = self.build_model(env)
+        tb_log_name = s.algo.rsplit(":", 1)[-1].upper()
+        # The run's logger now rather than inside learn(): the demonstrations' critic warm-up records its losses too.
+        model.set_logger(configure_logger(model.verbose, model.tensorboard_log, tb_log_name, not s.resume))
         if s.demo.steps:
             from learner_service.demonstrations import demonstrate, resume_cloning
 
@@ -232,7 +236,7 @@ class Training:
                     self.steps,
                     callback=callbacks,
                     reset_num_timesteps=not s.resume,
-                    tb_log_name=s.algo.rsplit(":", 1)[-1].upper(),
+                    tb_log_name=tb_log_name,
                 )
         finally:
             save_model(model, self.run_dir / FINAL_MODEL, s.save_replay_buffer)

@@ -203,8 +203,10 @@ def train_critic(model: Any, gradient_steps: int) -> None:
     frozen = [p for p in model.actor.parameters() if p.requires_grad]
     for parameter in frozen:
         parameter.requires_grad_(False)
-    if getattr(model, "_logger", None) is None:
-        model._logger = Logger(folder=None, output_formats=[])  # train() records its losses; learn() sets the real one
+    try:
+        model.logger  # noqa: B018 (train() records its losses; `swimm learn` sets the run's logger before this)
+    except AttributeError:
+        model.set_logger(Logger(folder=None, output_formats=[]))
     try:
         model.train(gradient_steps=gradient_steps, batch_size=model.batch_size)
     finally:
