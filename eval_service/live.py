@@ -102,22 +102,9 @@ def _plain(row: dict[str, Any]) -> dict[str, Any]:
 
 
 def tap_frames(env: Any) -> Callable[[], np.ndarray | None]:
-    """A getter of the last camera frame ``env`` observed (None where the world does not render).
-
-    Both tracking envs (in-process and proxy) build each step's task input in ``env._frame(...)``; the image
-    stays out of ``info`` on purpose (it would be copied into every SB3 info dict), so the view wraps that
-    one method of this env instance instead.
-    """
-    build = env._frame
-    last: list[np.ndarray | None] = [None]
-
-    def capture(*args: Any) -> Any:
-        frame = build(*args)
-        last[0] = frame.image
-        return frame
-
-    env._frame = capture
-    return lambda: last[0]
+    """A getter of the last camera frame ``env`` observed (None where the world does not render): the tracking
+    envs' Gymnasium ``render()`` (render mode rgb_array)."""
+    return env.render
 
 
 class LiveView:

@@ -36,7 +36,8 @@ class TrackingEnv(gym.Env):
     one, the default :class:`encoder_service.inference.LatentEncoder` checkpoint is loaded at the first reset.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"]}
+    render_mode = "rgb_array"  # render(): the last camera frame (None before the first, or in a non-rendering world)
 
     def __init__(
         self,
@@ -56,6 +57,7 @@ class TrackingEnv(gym.Env):
         self.base_seed = base_seed
         self.episode = 0
         self._encoder = encoder
+        self._last_image: np.ndarray | None = None
 
     @property
     def encoder(self) -> Any:
@@ -97,7 +99,12 @@ class TrackingEnv(gym.Env):
         info |= {"ep": self.episode}
         return obs, reward, terminated, self.task.time_up, info
 
+    def render(self) -> np.ndarray | None:
+        """The last camera frame (uint8 RGB), kept out of ``info`` so SB3 does not copy it into every step's info."""
+        return self._last_image
+
     def _frame(self, telemetry: Telemetry, image: np.ndarray | None) -> Frame:
+        self._last_image = image
         if self.task.settings.obs != "cmvae":
             return Frame(telemetry, image=image)
         mu, logvar = self.encoder.encode(image[None])

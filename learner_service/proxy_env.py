@@ -79,7 +79,10 @@ class ProxyEnv(gym.Env):
     env, and the liveliness token this env holds means the sim frees it anyway if this process dies.
     """
 
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"]}
+    render_mode = (
+        "rgb_array"  # render(): the last camera frame the sim sent (None before the first, or if it sends none)
+    )
 
     def __init__(
         self,
@@ -97,6 +100,7 @@ class ProxyEnv(gym.Env):
         self.env_id = check_chunk(env if env is not None else proxy.envs[0], "env id")
         self.base_seed = base_seed
         self.episode = 0
+        self._last_image: np.ndarray | None = None
         self.holder = new_holder_id(proxy.role)
         self.keys = Keys(proxy.zenoh.namespace)
         self._owns_session = session is None
@@ -196,7 +200,12 @@ class ProxyEnv(gym.Env):
         return self._link
 
     def _frame(self, reply: Reply) -> Frame:
+        self._last_image = reply.image
         return Frame(reply.telemetry, image=reply.image, mu=reply.mu, logvar=reply.logvar)
+
+    def render(self) -> np.ndarray | None:
+        """The last camera frame (uint8 RGB), kept out of ``info`` so SB3 does not copy it into every step's info."""
+        return self._last_image
 
     @property
     def retries(self) -> int:

@@ -110,8 +110,10 @@ def test_image_observation_is_the_rendered_frame() -> None:
     assert env.observation_space.contains(obs)
     np.testing.assert_array_equal(obs["image"], image)
     assert image.std() > 0  # a real frame, not a blank buffer
+    np.testing.assert_array_equal(env.render(), image)  # render() gives the frame the observation came from
     obs, *_ = env.step((0.2, -0.1))
     np.testing.assert_allclose(obs["actions"][-2:], [0.2, -0.1], atol=1e-7)
+    np.testing.assert_array_equal(env.render(), obs["image"])
     env.close()
 
 
