@@ -25,8 +25,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import zenoh
-from stable_baselines3.common.vec_env import DummyVecEnv
-from stable_baselines3.common.vec_env.base_vec_env import VecEnvStepReturn
+from stable_baselines3.common.env_util import is_wrapped
+from stable_baselines3.common.vec_env import VecEnv
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from learner_service.link import RemoteEnvLink, Reply, new_holder_id
 from learner_service.task import NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
@@ -227,12 +228,13 @@ class ProxyEnv(gym.Env):
             self.session.close()
 
 
-class ProxyVecEnv(DummyVecEnv):
+class ProxyVecEnv(VecEnv):
     """One :class:`ProxyEnv` per ``proxy.envs`` entry on one shared session, as a stable-baselines3 VecEnv.
 
     ``step_async`` sends all actions at once and ``step_wait`` gathers the replies, so the remote steps overlap.
     SB3's auto-reset semantics hold (``info["terminal_observation"]``, ``info["TimeLimit.truncated"]``), and
-    sub-env i has base seed ``base_seed + i``, exactly as a DummyVecEnv of TrackingEnvs would.
+    sub-env i has base seed ``base_seed + i``, exactly as a DummyVecEnv of TrackingEnvs would. A VecEnv of its
+    own (the public base class only): the observations are stacked here, not in DummyVecEnv's private buffers.
     """
 
     def __init__(
@@ -255,27 +257,59 @@ class ProxyVecEnv(DummyVecEnv):
             if self._owns_session:
                 self.session.close()
             raise
-        super().__init__([lambda env=env: env for env in claimed])
+        self.envs = claimed
+        super().__init__(len(claimed), claimed[0].observation_space, claimed[0].action_space)
+
+    def reset(self) -> VecEnvObs:
+        observations = []
+        for index, env in enumerate(self.envs):
+            options = {"options": self._options[index]} if self._options[index] else {}
+            obs, self.reset_infos[index] = env.reset(seed=self._seeds[index], **options)
+            observations.append(obs)
+        self._reset_seeds()  # VecEnv's own: a seed or options given through seed()/set_options() apply once
+        self._reset_options()
+        return self._stack(observations)
 
     def step_async(self, actions: np.ndarray) -> None:
-        self.actions = actions
         for env, action in zip(self.envs, actions, strict=True):
             env.send_step(action)
 
     def step_wait(self) -> VecEnvStepReturn:
+        observations, rewards, dones, infos = [], np.zeros(self.num_envs, np.float32), np.zeros(self.num_envs, bool), []
         for index, env in enumerate(self.envs):
-            obs, self.buf_rews[index], terminated, truncated, self.buf_infos[index] = env.finish_step()
-            self.buf_dones[index] = terminated or truncated
-            self.buf_infos[index]["TimeLimit.truncated"] = truncated and not terminated
-            if self.buf_dones[index]:
-                self.buf_infos[index]["terminal_observation"] = obs
+            obs, rewards[index], terminated, truncated, info = env.finish_step()
+            dones[index] = terminated or truncated
+            info["TimeLimit.truncated"] = truncated and not terminated
+            if dones[index]:
+                info["terminal_observation"] = obs
                 obs, self.reset_infos[index] = env.reset()
-            self._save_obs(index, obs)
-        # No deepcopy of the infos (DummyVecEnv's costs ~0.2-0.4 ms a step here): each step's info is a new dict
-        # (TrackingTask.info) holding immutable values, and the next step replaces it rather than changing it.
-        return self._obs_from_buf(), np.copy(self.buf_rews), np.copy(self.buf_dones), list(self.buf_infos)
+            observations.append(obs)
+            infos.append(info)  # each step's info is a new dict (TrackingTask.info): no copy needed
+        return self._stack(observations), rewards, dones, infos
+
+    def _stack(self, observations: list[Any]) -> VecEnvObs:
+        if isinstance(observations[0], dict):
+            return {key: np.stack([obs[key] for obs in observations]) for key in observations[0]}
+        return np.stack(observations)
 
     def close(self) -> None:
-        super().close()
+        for env in self.envs:
+            env.close()
         if self._owns_session and not self.session.is_closed():
             self.session.close()
+
+    def get_images(self) -> list[np.ndarray | None]:
+        return [env.render() for env in self.envs]
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        return [getattr(self.envs[i], attr_name) for i in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        for i in self._get_indices(indices):
+            setattr(self.envs[i], attr_name, value)
+
+    def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any):
+        return [getattr(self.envs[i], method_name)(*method_args, **method_kwargs) for i in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type[gym.Wrapper], indices: VecEnvIndices = None) -> list[bool]:
+        return [is_wrapped(self.envs[i], wrapper_class) for i in self._get_indices(indices)]
