@@ -51,7 +51,8 @@ already_installed() {
     location=$("$PYTHON" -m pip show swimm 2>/dev/null | sed -n 's/^Editable project location: //p')
     [ -n "$location" ] && [ "$location" -ef . ] && "$PYTHON" -c '
 import importlib.util, sys
-extras = ("zenoh", "mujoco", "cv2", "torch", "stable_baselines3", "gymnasium", "pandas", "pytest_timeout", "ruff")
+extras = ("zenoh", "mujoco", "cv2", "torch", "stable_baselines3", "gymnasium", "pandas", "scipy", "onnx", "onnxruntime",
+          "pytest_timeout", "ruff", "importlinter")
 sys.exit(not all(importlib.util.find_spec(name) for name in extras))'
 }
 
