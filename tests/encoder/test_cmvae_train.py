@@ -175,7 +175,9 @@ def test_ctrl_c_or_sigterm_keeps_the_finished_epochs_and_writes_the_summary(
     out = tmp_path / "interrupted"
     command = [sys.executable, "-m", "services.cli", "train-encoder", "--dataset", str(dataset_dir), "--out", str(out)]
     command += ["--epochs", "1000", "--val-fraction", "0.25", "--device", "cpu", "--no-tensorboard"]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # As from a terminal: a test run started in the background by a script ignores SIGINT, and children inherit that.
+    restore_ctrl_c = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, preexec_fn=restore_ctrl_c)
     try:
         deadline = time.monotonic() + 120
         while not (out / "last.pt").is_file():
