@@ -19,10 +19,12 @@ stopped when run again with the same ``--out`` (``--no-resume`` trains everythin
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +82,8 @@ def train(settings: LearnBenchSettings, algo: str, seed: int) -> None:
     folder = Path(learn.run_dir)
     if folder.exists():
         shutil.rmtree(folder)  # an unfinished run restarts: a from-scratch curve cannot be stitched together
-    code = up.run(up.UpSettings(learn=learn, port=0))
+    with contextlib.redirect_stdout(sys.stderr):  # stdout carries the benchmark's JSON alone (--json)
+        code = up.run(up.UpSettings(learn=learn, port=0))
     if code != 0 or not (folder / FINAL_MODEL).is_file():
         raise RuntimeError(f"{algo} seed {seed}: swimm up exited with {code}; see {folder / 'logs'}")
 
