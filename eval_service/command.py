@@ -38,6 +38,7 @@ from eval_service.live_tap import EnvTap, parse_env
 from eval_service.metrics import summarise
 from eval_service.publish import ResultPublisher
 from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
+from learner_service.export import SHIPPED_POLICY
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
 from services.settings import ZenohSettings, to_dict
@@ -106,7 +107,6 @@ def check(settings: EvalCommandSettings) -> None:
 
 
 #: The trained policy shipped with the project (see docs/learner.md for the run that made it).
-SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "learner_service" / "models" / "sac_cmvae.zip"
 
 
 def task_settings(settings: EvalCommandSettings) -> TaskSettings:

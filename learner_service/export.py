@@ -17,7 +17,6 @@ model choosing every action, and onnxruntime must give the same actions from the
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import time
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learner_service.progress import file_sha256
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
 from sim_service.settings import WorldSettings
@@ -75,10 +75,6 @@ class CameraToAction(torch.nn.Module):
         action = torch.minimum(torch.maximum(actions, self.low), self.high)
         next_history = torch.cat([action_history[:, action.shape[1] :], action], dim=1)
         return action, next_history
-
-
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def contract(settings: ExportSettings, policy_path: Path, encoder_path: Path, task: TrackingTask) -> dict[str, str]:
