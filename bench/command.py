@@ -30,7 +30,8 @@ class BenchSettings:
     json: bool = False  # print one JSON object instead of a table
     steps: int = 0  # work per measurement; 0 = the benchmark's default
     algo: str = "sac"  # train: the learner
-    envs: int = 16  # encoder: environments in the batched measurement
+    envs: int = 0  # encoder: environments in the batched measurement (default 16); train: the distributed envs (1)
+    group_size: int = -1  # train: envs stepped as one message each way; -1 = half of --envs (from 4 envs)
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
     repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
@@ -54,7 +55,8 @@ def run(settings: BenchSettings) -> int:
         kwargs["algo"] = settings.algo
         kwargs["mode"] = settings.mode
         kwargs["low_latency"] = settings.low_latency
-    if settings.target == "encoder":
+        kwargs["group_size"] = settings.group_size
+    if settings.envs and settings.target in ("encoder", "train"):
         kwargs["envs"] = settings.envs
     runs = []
     for index in range(settings.repeat):

@@ -37,7 +37,7 @@ from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.envs import make_vec_env
 from learner_service.proxy_env import ProxySettings
-from learner_service.registry import make_model
+from learner_service.registry import make_model, training_callbacks
 from learner_service.task import TaskSettings
 from services.procs import ProcessGroup, low_latency_flags
 from services.settings import ZenohSettings
@@ -48,6 +48,8 @@ NAMESPACE = "swimm/bench-train"
 SEED = 97  # the SPEC's first training seed
 TORCH_THREADS = 1  # see the module docstring
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
+DEFAULT_STEPS = 1500  # one env: about 30 of the first, short, episodes
+DEFAULT_VEC_STEPS = 4000  # several envs: their episodes are as short, but the first vector steps are a start-up
 
 
 def encoder_checkpoint(folder: Path) -> Path:
@@ -85,6 +87,11 @@ def process_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
+def default_group_size(envs: int) -> int:
+    """Envs per message for a benchmark of ``envs`` envs: two groups in flight (one group for 1-3 envs)."""
+    return envs // 2 if envs >= 4 else 0
+
+
 @dataclass(frozen=True)
 class TrainingRun:
     steps: int
@@ -105,13 +112,16 @@ class TrainingRun:
 def train(algo: str, vec_env, steps: int, services: dict[str, int]) -> TrainingRun:
     """Time ``model.learn(steps)`` and the CPU it costs the learner and the ``services`` (name: pid).
 
-    SAC trains per episode, so it may run a little past ``steps``.
+    SAC trains per episode (on several envs through learner_service/episodic.py), so it may run a little past
+    ``steps``.
     """
-    model = make_model(algo, vec_env, seed=SEED, overrides={"device": "cpu", "verbose": 0, "stats_window_size": 10**6})
+    overrides = {"device": "cpu", "verbose": 0, "stats_window_size": 10**6}
+    model = make_model(algo, vec_env, seed=SEED, overrides=overrides)
     clock = RolloutClock()
+    callbacks = [clock, *training_callbacks(algo, overrides, vec_env.num_envs)]
     cpu_before = {name: process_cpu_s(pid) for name, pid in services.items()}
     learner_cpu, started = time.process_time(), time.perf_counter()
-    model.learn(total_timesteps=steps, callback=clock)
+    model.learn(total_timesteps=steps, callback=callbacks)
     elapsed, learner_cpu = time.perf_counter() - started, time.process_time() - learner_cpu
     cpu = {"learner": learner_cpu} | {name: process_cpu_s(pid) - cpu_before[name] for name, pid in services.items()}
     episodes = [(round(float(info["r"]), 4), int(info["l"])) for info in model.ep_info_buffer]
@@ -119,7 +129,21 @@ def train(algo: str, vec_env, steps: int, services: dict[str, int]) -> TrainingR
     return TrainingRun(model.num_timesteps, elapsed, clock.rollout_s, episodes, cpu_ms)
 
 
-def run(steps: int = 1500, algo: str = "sac", mode: str = "peer", low_latency: bool = False) -> dict:
+def run(
+    steps: int = 0,
+    algo: str = "sac",
+    mode: str = "peer",
+    low_latency: bool = False,
+    envs: int = 1,
+    group_size: int = -1,
+) -> dict:
+    """``steps`` 0: :data:`DEFAULT_STEPS` with one env, :data:`DEFAULT_VEC_STEPS` with several; ``group_size`` -1:
+    :func:`default_group_size`."""
+    if envs < 1:
+        raise ValueError(f"--envs must be at least 1, got {envs}")
+    if group_size < 0:
+        group_size = default_group_size(envs)
+    steps = steps or (DEFAULT_STEPS if envs == 1 else DEFAULT_VEC_STEPS)
     torch.set_num_threads(TORCH_THREADS)
     task = TaskSettings(obs="cmvae")
     with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
@@ -127,12 +151,12 @@ def run(steps: int = 1500, algo: str = "sac", mode: str = "peer", low_latency: b
         flags = low_latency_flags(low_latency)
         endpoint = group.start_router(flags=flags)
         common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE, *flags)
-        group.start("sim", "sim", *common, "--eval-envs", "0")
+        group.start("sim", "sim", *common, "--train-envs", str(envs), "--eval-envs", "0")
         group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS))
         zenoh = ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency)
-        proxy = ProxySettings(zenoh=zenoh)
+        proxy = ProxySettings(zenoh=zenoh, group_size=group_size)
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
-        distributed_env = make_vec_env("zenoh", task, proxy, base_seed=SEED)
+        distributed_env = make_vec_env("zenoh", task, proxy, n_envs=envs, base_seed=SEED)
         try:
             inprocess_env = make_vec_env("inprocess", task, base_seed=SEED, encoder=LatentEncoder(checkpoint))
             try:
@@ -145,6 +169,8 @@ def run(steps: int = 1500, algo: str = "sac", mode: str = "peer", low_latency: b
         group.check_alive()
     return {
         "algo": algo,
+        "envs": envs,
+        "group_size": group_size,
         "topology": mode,
         "transport": "low-latency" if low_latency else "standard",
         "inprocess_steps_per_s": round(inprocess.steps_per_s, 1),
@@ -160,5 +186,6 @@ def run(steps: int = 1500, algo: str = "sac", mode: str = "peer", low_latency: b
         "distributed_cpu_ms_per_step": distributed.cpu_ms_per_step,
         "steps": distributed.steps,
         "episodes": len(distributed.episodes),
-        "same_episodes": distributed.episodes == inprocess.episodes,  # the same seed gave the same training run
+        # The same seed gave the same training run (one env only: several envs play other episodes).
+        **({"same_episodes": distributed.episodes == inprocess.episodes} if envs == 1 else {}),
     }

@@ -30,9 +30,9 @@ import numpy as np
 import zenoh
 
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
-from services.keys import Keys
+from services.keys import GROUPS, Keys
 from services.lifecycle import serve_until_signalled
-from services.messages import BadMessage, ErrorMsg, LatentMsg, ObservationMsg, stamp_of
+from services.messages import BadMessage, BatchItem, BatchMsg, ErrorMsg, LatentMsg, ObservationMsg, stamp_of
 from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce
 from services.session import open_session
@@ -140,6 +140,16 @@ class _Decoded:
     obs: ObservationMsg
 
 
+@dataclass
+class _Group:
+    """A group's observations (sim -> here) on their way to being one message of latents (here -> learner)."""
+
+    frame: _Frame
+    channel: str
+    batch: BatchMsg
+    observations: list[ObservationMsg | None]  # None where the item is an error, passed on as it came
+
+
 class EncoderService:
     def __init__(self, settings: EncoderSettings) -> None:
         self.settings = settings
@@ -161,6 +171,9 @@ class EncoderService:
         self.session = open_session(self.settings.zenoh, role="encoder")
         self._worker.start()
         self._subscriber = self.session.declare_subscriber(self.inbox_key, self._on_frame)
+        self._group_subscriber = self.session.declare_subscriber(
+            self.keys.encoder_group_inbox(self.ident), self._on_frame
+        )
         self._metrics_publisher = MetricsPublisher(
             self.session, self.keys, "encoder", self.ident, self.metrics, self.settings.metrics_period_s
         )
@@ -204,25 +217,72 @@ class EncoderService:
             return None
         return _Decoded(frame, channel, obs)
 
+    def _decode_group(self, frame: _Frame) -> _Group | None:
+        try:
+            channel, _ = self.keys.parse_group_key(frame.key)
+            batch = BatchMsg.decode(frame.payload)
+        except (BadMessage, ValueError) as exc:  # no env to answer: the learner's retry will name the step
+            self.metrics.count("errors_refused")
+            log.warning("refused a group of frames on %s: %s", frame.key, exc)
+            return None
+        observations: list[ObservationMsg | None] = []
+        for item in batch.items:
+            obs = None
+            if not item.error:
+                try:
+                    obs = ObservationMsg.decode(item.payload, IMAGE_SHAPE)
+                except BadMessage as exc:
+                    self.metrics.count("errors_refused")
+                    log.warning("refused the frame of %s/%s in group %s: %s", channel, item.env, batch.group, exc)
+            observations.append(obs)
+        return _Group(frame, channel, batch, observations)
+
     def _encode(self, batch: list[_Frame]) -> None:
-        decoded = [item for frame in batch if (item := self._decode(frame)) is not None]
-        if not decoded:
+        """One forward pass for every frame of the batch, single or in groups; then one reply per single frame and
+        one per group."""
+        singles: list[_Decoded] = []
+        groups: list[_Group] = []
+        for frame in batch:
+            if f"/{GROUPS}/" in frame.key:
+                if (group := self._decode_group(frame)) is not None:
+                    groups.append(group)
+            elif (item := self._decode(frame)) is not None:
+                singles.append(item)
+        images = [item.obs.image for item in singles]
+        images += [obs.image for group in groups for obs in group.observations if obs is not None]
+        if not images:
             return
-        mu, logvar = self.encoder.encode(np.stack([item.obs.image for item in decoded]))
-        self.metrics.record_batch(len(decoded))
-        for row, item in enumerate(decoded):
-            obs = item.obs
-            latent = LatentMsg(
-                env=obs.env,
-                ep=obs.ep,
-                seq=obs.seq,
-                telemetry=obs.telemetry,
-                mu=tuple(mu[row].tolist()),
-                logvar=tuple(logvar[row].tolist()),
-                encoder=self.ident,
-            )
-            self._publisher(self.keys.latent(item.channel, obs.env)).put(latent.encode())
+        mu, logvar = self.encoder.encode(np.stack(images))
+        self.metrics.record_batch(len(images))
+        rows = iter(range(len(images)))
+        for item in singles:
+            row = next(rows)
+            latent = self._latent(item.obs, mu[row], logvar[row])
+            self._publisher(self.keys.latent(item.channel, item.obs.env)).put(latent.encode())
             self.metrics.observe_ms("latency", (time.perf_counter() - item.frame.received_at) * 1e3)
+        for group in groups:
+            items = []
+            for source, obs in zip(group.batch.items, group.observations, strict=True):
+                if obs is None:
+                    error = source.error or f"encoder {self.ident} refused the frame"
+                    items.append(BatchItem(source.env, source.ep, source.seq, error=error))
+                    continue
+                row = next(rows)
+                items.append(BatchItem(obs.env, obs.ep, obs.seq, self._latent(obs, mu[row], logvar[row]).encode()))
+            reply = BatchMsg(group.batch.group, self.ident, tuple(items))
+            self._publisher(self.keys.group_latent(group.channel, group.batch.group)).put(reply.encode())
+            self.metrics.observe_ms("latency", (time.perf_counter() - group.frame.received_at) * 1e3)
+
+    def _latent(self, obs: ObservationMsg, mu: np.ndarray, logvar: np.ndarray) -> LatentMsg:
+        return LatentMsg(
+            env=obs.env,
+            ep=obs.ep,
+            seq=obs.seq,
+            telemetry=obs.telemetry,
+            mu=tuple(mu.tolist()),
+            logvar=tuple(logvar.tolist()),
+            encoder=self.ident,
+        )
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         if key not in self._publishers:
@@ -249,6 +309,7 @@ class EncoderService:
     def stop(self) -> None:
         self._token.undeclare()  # leave the roster first so learners route elsewhere
         self._subscriber.undeclare()
+        self._group_subscriber.undeclare()
         self.batcher.close()
         self._worker.join(timeout=10)
         self._metrics_publisher.close()

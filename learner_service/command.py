@@ -40,6 +40,7 @@ from learner_service.callbacks import (
 )
 from learner_service.checkpoints import load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
+from learner_service.episodic import episodic_schedule
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
 from learner_service.progress import FINAL_MODEL, PROGRESS_FILE
 from learner_service.registry import (
@@ -50,6 +51,7 @@ from learner_service.registry import (
     make_model,
     merge_overrides,
     resolve_algorithm,
+    training_callbacks,
 )
 from learner_service.task import TaskSettings
 from services.lifecycle import stop_on_signals
@@ -109,12 +111,9 @@ def check(settings: LearnCommandSettings) -> None:
     if settings.demo.teacher == LATENT_SCRIPTED and settings.obs != "cmvae":
         raise ValueError(f"demo teacher {LATENT_SCRIPTED} reads the latent: it needs --obs cmvae, got {settings.obs}")
     _, defaults = resolve_algorithm(settings.algo)
-    train_freq = merge_overrides(defaults, parse_hyperparams(settings.hyperparams)).get("train_freq")
-    if settings.envs > 1 and isinstance(train_freq, list | tuple) and str(train_freq[-1]).startswith("episode"):
-        raise ValueError(
-            f"{settings.algo} trains every {train_freq[0]} episode(s), which stable-baselines3 allows with one env "
-            f"only; use --envs 1, or train every N steps: --hyperparams '{{train_freq: [N, step]}}'"
-        )
+    episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
+    if settings.group_size < 0:
+        raise ValueError(f"group_size must be >= 0 (0: each env its own messages), got {settings.group_size}")
     if settings.envs < 1 or settings.steps < 0 or settings.checkpoint_every < 0 or settings.budget_min < 0:
         raise ValueError("envs must be >= 1, steps, checkpoint_every and budget_min >= 0")
     if settings.resume and not Path(settings.resume).is_file():
@@ -144,6 +143,7 @@ class Training:
             step_timeout_s=self.settings.step_timeout_s,
             max_retries=self.settings.max_retries,
             role="learner",
+            group_size=self.settings.group_size if channel == "train" else 0,
         )
 
     def run(self) -> RunResult:
@@ -215,6 +215,7 @@ class Training:
         start_steps = model.num_timesteps
         stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]
+        callbacks += training_callbacks(s.algo, self.overrides, s.envs)
         evaluation = None
         if eval_env is not None:
             evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock)

@@ -65,6 +65,7 @@ class LearnCommandSettings:
     steps: int = 0  # training env steps (more when resuming); 0 = the algorithm's n_timesteps (1e6)
     budget_min: float = 0.0  # wall-time budget in minutes (model building and demonstrations count); 0 = none
     envs: int = 1  # parallel envs (train channel ids 0..envs-1 when distributed)
+    group_size: int = 0  # distributed: envs stepped as one message each way (e.g. envs/2: two groups); 0 = none
     seed: int = 97  # model seed and base seed of env 0 (env i: seed + i)
     backend: str = "zenoh"  # zenoh (a running sim/encoder) | inprocess (World in this process)
     run_dir: str = ""  # default runs/<algo>-<obs>-<UTC time>

@@ -41,6 +41,8 @@ from services.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
 
+SimAction = tuple[float, float, float, float]  # (sway, heave, surge, yaw), as ActionMsg carries it
+
 
 class StepTimeout(TimeoutError):
     """No reply after every retry; the message names the service that is missing."""
@@ -63,6 +65,25 @@ class Reply:
 def rendezvous_choice(env_key: str, members: set[str]) -> str:
     """The member with the highest hash for this env: stable, and only the dead member's envs move."""
     return max(members, key=lambda m: hashlib.blake2b(f"{env_key}|{m}".encode(), digest_size=8).digest())
+
+
+def choose_route(encoders: Roster | None, key: str, wait_s: float) -> str:
+    """Where a step's observation goes: ``direct`` without encoders, else the live encoder rendezvous hashing
+    picks for ``key`` (waiting up to ``wait_s`` for one to come back if none is live)."""
+    if encoders is None:
+        return DIRECT_ROUTE
+    members = encoders.members() or encoders.wait_for(1, timeout_s=wait_s)
+    return rendezvous_choice(key, members)
+
+
+def decode_reply(payload: bytes, encoded: bool) -> Reply:
+    """A step's reply: the encoder's latent (``encoded``) or the sim's observation; BadMessage if unreadable."""
+    if encoded:
+        msg = LatentMsg.decode(payload)
+        mu, logvar = np.asarray(msg.mu, np.float32), np.asarray(msg.logvar, np.float32)
+        return Reply(msg.ep, msg.seq, msg.telemetry, None, mu, logvar)
+    obs = ObservationMsg.decode(payload)
+    return Reply(obs.ep, obs.seq, obs.telemetry, obs.image, None, None)
 
 
 def new_holder_id(role: str) -> str:
@@ -111,23 +132,10 @@ class RemoteEnvLink:
     # --- incoming messages, decoded where the Inbox hands them over -----------------------------
     def _read_reply(self, sample: zenoh.Sample) -> Reply | None:
         try:
-            if self.encoded:
-                msg = LatentMsg.decode(sample.payload.to_bytes())
-                reply = Reply(
-                    msg.ep,
-                    msg.seq,
-                    msg.telemetry,
-                    None,
-                    np.asarray(msg.mu, np.float32),
-                    np.asarray(msg.logvar, np.float32),
-                )
-            else:
-                obs = ObservationMsg.decode(sample.payload.to_bytes())
-                reply = Reply(obs.ep, obs.seq, obs.telemetry, obs.image, None, None)
+            return decode_reply(sample.payload.to_bytes(), self.encoded)
         except BadMessage as exc:
             log.warning("%s: dropped an unreadable reply: %s", self.name, exc)
             return None
-        return reply
 
     def _read_error(self, sample: zenoh.Sample) -> ErrorMsg | None:
         try:
@@ -155,13 +163,7 @@ class RemoteEnvLink:
             log.warning("%s: release failed: %s", self.name, exc)
 
     def _route(self) -> str:
-        if not self.encoded:
-            return DIRECT_ROUTE
-        assert self.encoders is not None
-        members = self.encoders.members()
-        if not members:
-            members = self.encoders.wait_for(1, timeout_s=self.step_timeout_s * self.max_retries)
-        return rendezvous_choice(f"{self.channel}/{self.env}", members)
+        return choose_route(self.encoders if self.encoded else None, self.name, self.step_timeout_s * self.max_retries)
 
     # --- stepping ----------------------------------------------------------------------------------
     def send_reset(self, ep: int, seed: int, noise: bool | dict | None = None) -> None:
@@ -174,10 +176,21 @@ class RemoteEnvLink:
         except control.ControlTimeout as exc:  # a busy or restarting sim: wait() re-sends it, like a step
             log.warning("%s: reset unanswered (%s); will retry", self.name, exc)
 
-    def send_action(self, action: tuple[float, float, float, float], dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
+    def send_action(self, action: SimAction, dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
+        self.stage_action(action, dive_mode)
+        self._send()
+
+    def stage_action(self, action: SimAction, dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
+        """The next step's action, to be sent by a :class:`learner_service.group_link.GroupLink` with its group's."""
         self.seq += 1
         self._pending = ("action", (action, dive_mode))
-        self._send()
+
+    def action_message(self, route: str) -> ActionMsg:
+        """The staged action as it goes out, to ``route`` (the same (ep, seq) each time: a retry is a repeat)."""
+        if self._pending is None or self._pending[0] != "action":
+            raise RuntimeError(f"{self.name}: no action staged")
+        action, dive_mode = self._pending[1]
+        return ActionMsg(ep=self.ep, seq=self.seq, action=action, dive_mode=dive_mode, route=route, sender=self.holder)
 
     def _send(self) -> None:
         assert self._pending is not None
@@ -198,11 +211,7 @@ class RemoteEnvLink:
                 **noise_field,
             )
         else:
-            action, dive_mode = args
-            msg = ActionMsg(
-                ep=self.ep, seq=self.seq, action=action, dive_mode=dive_mode, route=route, sender=self.holder
-            )
-            self._publisher.put(msg.encode())
+            self._publisher.put(self.action_message(route).encode())
 
     def wait(self) -> Reply:
         """The reply to the last send; re-sends the same (ep, seq) on each timeout."""

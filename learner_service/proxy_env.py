@@ -29,7 +29,8 @@ from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from learner_service.link import RemoteEnvLink, Reply, new_holder_id
+from learner_service.group_link import GroupLink
+from learner_service.link import RemoteEnvLink, Reply, SimAction, new_holder_id
 from learner_service.task import NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
 from services.control import ControlError
 from services.keys import CHANNELS, Keys, check_chunk
@@ -55,6 +56,7 @@ class ProxySettings:
     max_retries: int = 10  # re-sends before StepTimeout
     poll_ms: float = 0.0  # poll for each reply this long, then nap (services/polling.py)
     role: str = "learner"  # liveliness role of the holder: "learner" or "eval"
+    group_size: int = 0  # envs stepped as one message each way (ProxyVecEnv); 0 = each env its own messages
 
     def check(self) -> None:
         """Refuse settings that could only fail later, with a message that says what to change."""
@@ -68,6 +70,8 @@ class ProxySettings:
             check_chunk(env, "env id")
         if self.step_timeout_s <= 0 or self.max_retries < 0:
             raise ValueError("step_timeout_s must be > 0 and max_retries >= 0")
+        if self.group_size < 0:
+            raise ValueError(f"group_size must be >= 0 (0: no groups), got {self.group_size}")
 
 
 class ProxyEnv(gym.Env):
@@ -161,7 +165,7 @@ class ProxyEnv(gym.Env):
             self.base_seed, self.episode = seed, 0
         self.episode += 1
         world_seed = episode_seed(self.base_seed, self.episode)
-        link = self._connected_link()
+        link = self.link
         link.send_reset(link.ep + 1, world_seed, noise=(options or {}).get(NOISE_OPTION))
         reply = link.wait()
         self._pending_action = None
@@ -177,25 +181,31 @@ class ProxyEnv(gym.Env):
     # --- the two halves of a step, for ProxyVecEnv ---------------------------------------------------
     def send_step(self, action: Any) -> None:
         """Send the action; the reply is collected by :meth:`finish_step`."""
+        self.link.send_action(self.begin_step(action))
+
+    def begin_step(self, action: Any) -> SimAction:
+        """Check the action and mark the step in flight; the sim's action, for the caller (or a group) to send."""
         if self.episode == 0:
             raise RuntimeError("call reset() before step()")
         if self._pending_action is not None:
             raise RuntimeError(f"{self.name}: a step is already in flight; finish it first")
         sim_action = self.task.to_sim_action(action)  # validates before anything is sent
-        self._connected_link().send_action(sim_action)
         self._pending_action = np.asarray(action)
+        return sim_action
 
-    def finish_step(self) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+    def finish_step(self, reply: Reply | None = None) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """The step in flight, from ``reply`` (its group's) or from waiting for it on this env's link."""
         if self._pending_action is None:
             raise RuntimeError(f"{self.name}: no step in flight")
-        reply = self._connected_link().wait()
+        reply = reply if reply is not None else self.link.wait()
         action, self._pending_action = self._pending_action, None
         obs, reward, terminated, info = self.task.step(action, self._frame(reply))
         info |= {"ep": self.episode}
         return obs, reward, terminated, self.task.time_up, info
 
     # --- helpers -------------------------------------------------------------------------------------
-    def _connected_link(self) -> RemoteEnvLink:
+    @property
+    def link(self) -> RemoteEnvLink:
         if self._link is None:
             raise RuntimeError(f"{self.name}: this env is closed")
         return self._link
@@ -258,7 +268,18 @@ class ProxyVecEnv(VecEnv):
                 self.session.close()
             raise
         self.envs = claimed
+        self.groups = self._make_groups(proxy) if proxy.group_size else []
         super().__init__(len(claimed), claimed[0].observation_space, claimed[0].action_space)
+
+    def _make_groups(self, proxy: ProxySettings) -> list[GroupLink]:
+        """Consecutive envs, ``group_size`` to a group (the last may be smaller), named after this learner."""
+        size = proxy.group_size
+        holder = self.envs[0].holder
+        return [
+            GroupLink(self.session, self.envs[0].keys, f"{holder}.{start // size}",
+                      [env.link for env in self.envs[start : start + size]], self.envs[0].link.encoders, proxy.poll_ms)
+            for start in range(0, len(self.envs), size)
+        ]  # fmt: skip
 
     def reset(self) -> VecEnvObs:
         observations = []
@@ -271,13 +292,27 @@ class ProxyVecEnv(VecEnv):
         return self._stack(observations)
 
     def step_async(self, actions: np.ndarray) -> None:
-        for env, action in zip(self.envs, actions, strict=True):
-            env.send_step(action)
+        """Every env's action goes out before any reply is awaited; with groups, one message per group."""
+        if not self.groups:
+            for env, action in zip(self.envs, actions, strict=True):
+                env.send_step(action)
+            return
+        sim_actions = [env.begin_step(action) for env, action in zip(self.envs, actions, strict=True)]
+        start = 0
+        for group in self.groups:
+            group.send(sim_actions[start : start + len(group.links)])
+            start += len(group.links)
+
+    def _replies(self) -> list[Reply | None]:
+        """Each env's reply, gathered group by group (None without groups: each env waits on its own link)."""
+        if not self.groups:
+            return [None] * self.num_envs
+        return [reply for group in self.groups for reply in group.wait()]
 
     def step_wait(self) -> VecEnvStepReturn:
         observations, rewards, dones, infos = [], np.zeros(self.num_envs, np.float32), np.zeros(self.num_envs, bool), []
-        for index, env in enumerate(self.envs):
-            obs, rewards[index], terminated, truncated, info = env.finish_step()
+        for index, (env, reply) in enumerate(zip(self.envs, self._replies(), strict=True)):
+            obs, rewards[index], terminated, truncated, info = env.finish_step(reply)
             dones[index] = terminated or truncated
             info["TimeLimit.truncated"] = truncated and not terminated
             if dones[index]:
@@ -293,6 +328,8 @@ class ProxyVecEnv(VecEnv):
         return np.stack(observations)
 
     def close(self) -> None:
+        for group in self.groups:
+            group.close()
         for env in self.envs:
             env.close()
         if self._owns_session and not self.session.is_closed():

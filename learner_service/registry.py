@@ -24,9 +24,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 import yaml
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise, NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.utils import LinearSchedule
 
+from learner_service.episodic import episodic_callbacks, vectorised_kwargs
 from learner_service.scripted import LatentTracker, ScriptedTracker
 
 log = logging.getLogger(__name__)
@@ -186,12 +188,21 @@ def make_model(
     """A new model of ``algo`` on ``env`` (a gymnasium env or an SB3 VecEnv) with the tuned defaults and overrides.
 
     ``overrides`` may also carry ``policy`` (e.g. "CnnPolicy") to replace the one chosen from the observation space.
+    A per-episode ``train_freq`` on several envs is run by :func:`training_callbacks`' callback
+    (learner_service/episodic.py): pass those to ``learn()``.
     """
     cls, defaults = resolve_algorithm(algo)
-    kwargs = resolve_kwargs(merge_overrides(defaults, overrides), env.action_space)
+    merged = vectorised_kwargs(merge_overrides(defaults, overrides), getattr(env, "num_envs", 1))
+    kwargs = resolve_kwargs(merged, env.action_space)
     policy = kwargs.pop("policy", default_policy(env.observation_space))
     log.info("building %s (%s) with policy %s, seed %d, settings %s", algo, cls.__name__, policy, seed, kwargs)
     return cls(policy, env, seed=seed, tensorboard_log=tensorboard_log, **kwargs)
+
+
+def training_callbacks(algo: str, overrides: dict[str, Any] | None, n_envs: int) -> list[BaseCallback]:
+    """The callbacks a model of ``algo`` built by :func:`make_model` on ``n_envs`` envs needs in ``learn()``."""
+    _, defaults = resolve_algorithm(algo)
+    return episodic_callbacks(merge_overrides(defaults, overrides), n_envs)
 
 
 def load_policy(algo: str, checkpoint: str | Path | None, env: Any = None, device: str = "auto") -> Policy:

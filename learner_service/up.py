@@ -2,7 +2,7 @@
 
     swimm up                                   # SAC on cmvae observations with the shipped CMVAE
     swimm up --obs state --steps 20000         # ground-truth observations: no encoder is started
-    swimm up --encoders 2 --envs 4 --hyperparams "{train_freq: [64, step]}"
+    swimm up --encoders 2 --envs 8 --group-size 4
 
 Every `swimm learn` flag is a `swimm up` flag too (``--algo``, ``--steps``, ``--eval-*``, ``--run-dir`` ...)
 and is handed to the learner through ``<run>/learn.yaml``; ``--connect`` and ``--mode`` are ignored, as every

@@ -7,6 +7,12 @@ Step pipeline (pub/sub)::
     <ns>/<channel>/<env>/latent            encoder -> learner
     <ns>/<channel>/<env>/err               any service -> sender: refusals with their reason
 
+Groups of envs stepped as one (``<group>`` named by the learner that drives them)::
+
+    <ns>/<channel>/groups/<group>/action       learner -> sim: a BatchMsg of the group's actions
+    <ns>/<channel>/groups/<group>/obs/<route>  sim -> encoder <route> (or learner, "direct"): their observations
+    <ns>/<channel>/groups/<group>/latent       encoder -> learner: their latents
+
 Control and presence::
 
     <ns>/<channel>/<env>/ctl               queryable: claim, release, reset, seed, info
@@ -24,6 +30,7 @@ import re
 from dataclasses import dataclass
 
 CHANNELS = ("train", "eval")
+GROUPS = "groups"  # the key chunk of grouped steps; one key level deeper than an env's, so wildcards keep them apart
 _CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
@@ -55,6 +62,34 @@ class Keys:
 
     def ctl(self, channel: str, env: str) -> str:
         return f"{self._env(channel, env)}/ctl"
+
+    def _group(self, channel: str, group: str) -> str:
+        return f"{self.namespace}/{channel}/{GROUPS}/{group}"
+
+    def group_action(self, channel: str, group: str) -> str:
+        return f"{self._group(channel, group)}/action"
+
+    def group_obs(self, channel: str, group: str, route: str) -> str:
+        return f"{self._group(channel, group)}/obs/{route}"
+
+    def group_latent(self, channel: str, group: str) -> str:
+        return f"{self._group(channel, group)}/latent"
+
+    def group_actions(self, channel: str) -> str:
+        """Every group's actions on one channel (what a sim serving that channel listens to)."""
+        return f"{self.namespace}/{channel}/{GROUPS}/*/action"
+
+    def encoder_group_inbox(self, encoder_id: str) -> str:
+        """Every group's observations routed to one encoder."""
+        return f"{self.namespace}/*/{GROUPS}/*/obs/{encoder_id}"
+
+    def parse_group_key(self, key: str) -> tuple[str, str]:
+        """(channel, group) of a group key such as ``<ns>/train/groups/learner-1.0/obs/enc-1``."""
+        prefix = self.namespace + "/"
+        parts = key[len(prefix) :].split("/") if key.startswith(prefix) else []
+        if len(parts) < 4 or parts[0] not in CHANNELS or parts[1] != GROUPS:
+            raise ValueError(f"{key!r} is not a group key of namespace {self.namespace!r}")
+        return parts[0], parts[2]
 
     def encoder_inbox(self, encoder_id: str) -> str:
         """Every observation routed to one encoder, whatever its channel and env."""

@@ -290,6 +290,61 @@ class ErrorMsg:
         )
 
 
+@dataclass(frozen=True)
+class BatchItem:
+    """One env's part of a :class:`BatchMsg`: its message as it would travel alone, or why it was refused."""
+
+    env: str
+    ep: int
+    seq: int
+    payload: bytes = b""  # an encoded ActionMsg, ObservationMsg or LatentMsg
+    error: str = ""  # set instead of ``payload`` when the sender refused this env's step
+
+
+@dataclass(frozen=True)
+class BatchMsg:
+    """A group of envs' messages travelling as one (issue of pipelined collection, docs/architecture.md).
+
+    A learner sends its group's actions in one message; the sim steps them in order and answers with one message
+    of their observations; an encoder encodes those in one forward pass and answers with one of latents. Each
+    item keeps its env's own (ep, seq), so retries and duplicate dropping work per env exactly as for one env.
+    """
+
+    group: str
+    sender: str
+    items: tuple[BatchItem, ...]
+    sent_at: float = field(default_factory=time.time)
+
+    def encode(self) -> bytes:
+        items = [[item.env, item.ep, item.seq, item.payload, item.error] for item in self.items]
+        return _pack_stamped(0, 0, self.sent_at, group=self.group, sender=self.sender, items=items)
+
+    @classmethod
+    def decode(cls, payload: bytes) -> BatchMsg:
+        body = unpack(payload)
+        raw = body.get("items")
+        if not isinstance(raw, list) or not raw:
+            raise BadMessage("field 'items' must be a non-empty list")
+        items = []
+        for index, entry in enumerate(raw):
+            if not isinstance(entry, list) or len(entry) != 5:
+                raise BadMessage(f"item {index} must be [env, ep, seq, payload, error], got {entry!r:.80}")
+            env, ep, seq, item_payload, error = entry
+            fields_ = {"env": env, "ep": ep, "seq": seq, "error": error}
+            if not isinstance(item_payload, bytes):
+                raise BadMessage(f"item {index}'s payload must be bytes, got {type(item_payload).__name__}")
+            items.append(
+                BatchItem(
+                    _str(fields_, "env"),
+                    _int(fields_, "ep"),
+                    _int(fields_, "seq"),
+                    item_payload,
+                    _str(fields_, "error"),
+                )  # fmt: skip
+            )
+        return cls(_str(body, "group"), _str(body, "sender", ""), tuple(items), _time(body))
+
+
 def encode_request(op: str, **args: Any) -> bytes:
     """A control request (claim, release, reset, info, seed) sent to ``<ns>/<channel>/<env>/ctl``."""
     return _pack({"v": PROTOCOL_VERSION, "t": time.time(), "op": op, **args})

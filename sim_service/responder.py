@@ -23,7 +23,16 @@ import zenoh
 from services import control
 from services.keys import Keys
 from services.lifecycle import serve_until_signalled
-from services.messages import ActionMsg, BadMessage, ErrorMsg, stamp_of, unpack
+from services.messages import (
+    DIRECT_ROUTE,
+    ActionMsg,
+    BadMessage,
+    BatchItem,
+    BatchMsg,
+    ErrorMsg,
+    stamp_of,
+    unpack,
+)
 from services.metrics import Metrics, MetricsPublisher
 from services.polling import Inbox, prepare_to_poll
 from services.presence import Roster, announce, live_now
@@ -55,9 +64,10 @@ class SimSettings:
 
 @dataclass
 class _Request:
-    kind: str  # "action" | "ctl" | "lapse"
+    kind: str  # "action" | "group" | "ctl" | "lapse"
     env: LockstepEnv | None
     payload: bytes = b""
+    key: str = ""  # a group's key, which names its channel and group
     query: zenoh.Query | None = None
     gone: set[str] = field(default_factory=set)
     received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
@@ -118,6 +128,14 @@ class SimResponder:
                     lambda q, e=env: self._inbox.put(_Request("ctl", e, query=q)),
                 )
             )
+        for channel in {env.channel for env in self._envs}:
+            self._declared.append(
+                self._inbox.subscribe(
+                    self.session,
+                    self.keys.group_actions(channel),
+                    lambda sample: _Request("group", None, sample.payload.to_bytes(), key=str(sample.key_expr)),
+                )
+            )
         self._token = announce(self.session, self.keys, "sim", self.ident)
         self._metrics_publisher = MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics)
         log.info(
@@ -153,6 +171,7 @@ class SimResponder:
         for channel, count in (("train", self.settings.train_envs), ("eval", self.settings.eval_envs)):
             for index in range(count):
                 self._envs.append(LockstepEnv(channel, str(index), World(self.settings.world)))
+        self._by_name = {(env.channel, env.env): env for env in self._envs}
 
     def _work(self) -> None:
         self._build_envs()
@@ -204,6 +223,8 @@ class SimResponder:
         try:
             if request.kind == "action":
                 self._handle_action(request)
+            elif request.kind == "group":
+                self._handle_group(request)
             elif request.kind == "ctl":
                 self._handle_ctl(request)
             elif request.kind == "lapse":
@@ -230,6 +251,40 @@ class SimResponder:
             self._refuse(env, str(exc), msg.ep, msg.seq, msg.sender)
             return
         self._publish(env, env.route, outcome, request.received_at)
+
+    def _handle_group(self, request: _Request) -> None:
+        """A group's actions: each env steps as a single action would step it, and one message answers them all,
+        each item the observation (or refusal) its env would have sent alone."""
+        try:
+            batch = BatchMsg.decode(request.payload)
+            channel, group = self.keys.parse_group_key(request.key)
+        except (BadMessage, ValueError) as exc:  # no one to answer: the learner's timeout names the step
+            self.metrics.count("errors_refused")
+            log.warning("refused a group of actions: %s", exc)
+            return
+        items, route = [], DIRECT_ROUTE
+        for item in batch.items:
+            env = self._by_name.get((channel, item.env))
+            try:
+                msg = ActionMsg.decode(item.payload)
+                route = msg.route
+                if env is None:
+                    raise Refusal(f"env {channel}/{item.env} is not served by sim {self.ident}")
+                if self.settings.realtime:
+                    raise Refusal("a real-time sim takes actions one env at a time, not in groups")
+                outcome = env.act(msg)
+            except (BadMessage, Refusal) as exc:
+                self.metrics.count("errors_refused")
+                log.warning("refused the action of %s/%s in group %s: %s", channel, item.env, group, exc)
+                items.append(BatchItem(item.env, item.ep, item.seq, error=str(exc)))
+                continue
+            items.append(BatchItem(item.env, item.ep, item.seq, outcome.payload))
+            self.metrics.count("replays" if outcome.replayed else "steps")
+            self._unprepared.add(env)
+        reply = BatchMsg(group, self.ident, tuple(items))
+        self._publisher(self.keys.group_obs(channel, group, route)).put(reply.encode())
+        self.metrics.count("groups")
+        self.metrics.observe_ms("step", (time.perf_counter() - request.received_at) * 1e3 / len(batch.items))
 
     def _tick_realtime(self) -> None:
         for env in self._envs:
@@ -277,13 +332,15 @@ class SimResponder:
             log.warning("refused control request on %s: %s", env.name, exc)
             control.reply(query, False, error=str(exc))
 
-    def _publish(self, env: LockstepEnv, route: str, outcome: Outcome, received_at: float) -> None:
-        key = self.keys.obs(env.channel, env.env, route)
+    def _publisher(self, key: str) -> zenoh.Publisher:
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
             self._publishers[key] = publisher
-        publisher.put(outcome.payload)
+        return publisher
+
+    def _publish(self, env: LockstepEnv, route: str, outcome: Outcome, received_at: float) -> None:
+        self._publisher(self.keys.obs(env.channel, env.env, route)).put(outcome.payload)
         self.metrics.count("replays" if outcome.replayed else "steps")
         self.metrics.observe_ms("step", (time.perf_counter() - received_at) * 1e3)
         if not self.settings.realtime:

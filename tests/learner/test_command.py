@@ -164,9 +164,9 @@ def test_flags_reach_the_settings() -> None:
 
 
 def test_refusals_name_what_to_change(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="train_freq"):
-        check(LearnCommandSettings(envs=2))  # SAC's tuned train_freq is one episode
-    check(LearnCommandSettings(envs=2, hyperparams="{train_freq: [64, step]}"))
+    check(LearnCommandSettings(envs=2))  # SAC's per-episode training runs on several envs (learner_service/episodic.py)
+    with pytest.raises(ValueError, match="gradient_steps -1"):
+        check(LearnCommandSettings(envs=2, hyperparams="{gradient_steps: -1}"))
     with pytest.raises(ValueError, match="budget_min >= 0"):
         check(LearnCommandSettings(budget_min=-1))
     with pytest.raises(ValueError, match="backend"):

@@ -108,3 +108,19 @@ def test_parse_env_key_refuses_keys_outside_the_step_pipeline(key):
 def test_last_chunk_is_the_id_after_the_last_slash():
     assert Keys.last_chunk(KEYS.live("encoder", "enc-7")) == "enc-7"
     assert Keys.last_chunk(KEYS.obs("train", "0", "direct")) == "direct"
+
+
+def test_group_keys_stay_apart_from_env_keys_and_reach_their_encoder():
+    group_inbox = zenoh.KeyExpr(KEYS.encoder_group_inbox("enc-1"))
+    env_inbox = zenoh.KeyExpr(KEYS.encoder_inbox("enc-1"))
+    grouped = zenoh.KeyExpr(KEYS.group_obs("train", "learner-1.0", "enc-1"))
+    assert group_inbox.intersects(grouped) and not env_inbox.intersects(grouped)
+    assert not group_inbox.intersects(zenoh.KeyExpr(KEYS.obs("train", "0", "enc-1")))
+    assert not group_inbox.intersects(zenoh.KeyExpr(KEYS.group_obs("train", "learner-1.0", "enc-2")))
+    actions = zenoh.KeyExpr(KEYS.group_actions("eval"))
+    assert actions.intersects(zenoh.KeyExpr(KEYS.group_action("eval", "g")))
+    assert not actions.intersects(zenoh.KeyExpr(KEYS.group_action("train", "g")))
+    assert not actions.intersects(zenoh.KeyExpr(KEYS.action("eval", "groups")))  # an env that happens to be so named
+    assert KEYS.parse_group_key(KEYS.group_latent("eval", "learner-1.2")) == ("eval", "learner-1.2")
+    with pytest.raises(ValueError, match="not a group key"):
+        KEYS.parse_group_key(KEYS.obs("train", "0", "enc-1"))

@@ -13,6 +13,8 @@ from services.messages import (
     PROTOCOL_VERSION,
     ActionMsg,
     BadMessage,
+    BatchItem,
+    BatchMsg,
     DiveMode,
     ErrorMsg,
     LatentMsg,
@@ -309,3 +311,28 @@ def test_a_refused_message_gives_its_step_and_sender_where_they_can_be_read():
     assert stamp_of(unreadable_step) == (0, 0, "")
     odd_sender = msgpack.packb({"v": PROTOCOL_VERSION, "ep": 3, "seq": 7, "sender": 5})
     assert stamp_of(odd_sender) == (3, 7, "")
+
+
+def test_a_batch_round_trips_its_items_payloads_and_errors():
+    action = ActionMsg(ep=3, seq=7, action=(0.0, 0.1, 0.5, -0.25), route="enc-1", sender="learner-x").encode()
+    batch = BatchMsg("learner-x.0", "learner-x", (BatchItem("0", 3, 7, action), BatchItem("1", 2, 9, error="held")))
+    decoded = BatchMsg.decode(batch.encode())
+    assert decoded == batch
+    assert ActionMsg.decode(decoded.items[0].payload).action == (0.0, 0.1, 0.5, -0.25)
+
+
+@pytest.mark.parametrize(
+    ("items", "reason"),
+    [
+        ([], "non-empty list"),
+        ("0", "non-empty list"),
+        ([["0", 1, 2, b""]], r"item 0 must be \[env, ep, seq, payload, error\]"),
+        ([["0", -1, 2, b"", ""]], "'ep' must be a non-negative integer"),
+        ([["0", 1, 2, "text", ""]], "item 0's payload must be bytes"),
+        ([["0", 1, 2, b"", 5]], "'error' must be a string"),
+    ],
+)
+def test_a_bad_batch_is_refused_naming_what_is_wrong(items, reason):
+    payload = msgpack.packb({"v": PROTOCOL_VERSION, "ep": 0, "seq": 0, "group": "g", "items": items})
+    with pytest.raises(BadMessage, match=reason):
+        BatchMsg.decode(payload)

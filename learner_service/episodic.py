@@ -1,0 +1,91 @@
+"""Per-episode training with several envs: the SPEC's update-to-data ratio whatever the number of envs.
+
+The SPEC's SAC takes 64 gradient steps after every episode (``train_freq: [1, episode]``), which stable-baselines3
+allows with one env only ("You must use only one env when doing episodic training"). With N envs, episodes end at
+different steps, so here the model collects one vector step at a time and trains nothing itself
+(``gradient_steps: 0``, SB3's "no training" case), and :class:`EpisodicTraining` takes ``gradient_steps`` for each
+episode that ended, after the step that ended it. One env or eight, a finished episode buys the same number of
+gradient steps: the same updates per env step as the SPEC's single-env run on the same episodes.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+log = logging.getLogger(__name__)
+
+EPISODE_UNITS = ("episode", "episodes")
+
+
+@dataclass(frozen=True)
+class EpisodicSchedule:
+    episodes: int  # train after every this many finished episodes
+    gradient_steps: int  # per training, as SB3's gradient_steps
+
+
+def episodic_schedule(kwargs: Mapping[str, Any], n_envs: int) -> EpisodicSchedule | None:
+    """The schedule to run by :class:`EpisodicTraining` when ``kwargs`` train per episode and there are several
+    envs; None when SB3 can run ``kwargs`` as they are."""
+    train_freq = kwargs.get("train_freq")
+    if n_envs < 2 or not isinstance(train_freq, list | tuple) or str(train_freq[-1]) not in EPISODE_UNITS:
+        return None
+    gradient_steps = int(kwargs.get("gradient_steps", 1))
+    if gradient_steps < 0:
+        raise ValueError(
+            "gradient_steps -1 (as many as the rollout's steps) has no per-episode meaning with several envs; "
+            "give a number of gradient steps per episode"
+        )
+    return EpisodicSchedule(int(train_freq[0]), gradient_steps)
+
+
+def vectorised_kwargs(kwargs: Mapping[str, Any], n_envs: int) -> dict[str, Any]:
+    """``kwargs`` for SB3 with ``n_envs`` envs: a per-episode schedule becomes one vector step per rollout and no
+    training of SB3's own (:class:`EpisodicTraining` does it); anything else is returned unchanged."""
+    schedule = episodic_schedule(kwargs, n_envs)
+    if schedule is None:
+        return dict(kwargs)
+    log.info(
+        "%d envs: %d gradient step(s) after every %d finished episode(s), taken by EpisodicTraining",
+        n_envs,
+        schedule.gradient_steps,
+        schedule.episodes,
+    )
+    return {**kwargs, "train_freq": (1, "step"), "gradient_steps": 0}
+
+
+class EpisodicTraining(BaseCallback):
+    """Takes ``schedule.gradient_steps`` for every ``schedule.episodes`` episodes that ended, once the model is past
+    its ``learning_starts`` (episodes that end before then buy nothing, as in SB3's own loop)."""
+
+    def __init__(self, schedule: EpisodicSchedule) -> None:
+        super().__init__()
+        self.schedule = schedule
+        self.ended = 0  # finished episodes not yet trained on
+        self.gradient_steps_taken = 0
+
+    def _on_step(self) -> bool:
+        self.ended += int(np.count_nonzero(self.locals["dones"]))
+        return True
+
+    def _on_rollout_end(self) -> None:
+        """After SB3 has stored the rollout's transitions, so the episodes' last steps are in the buffer."""
+        if self.num_timesteps <= self.model.learning_starts:
+            self.ended = 0
+            return
+        updates, self.ended = divmod(self.ended, self.schedule.episodes)
+        if updates:
+            steps = updates * self.schedule.gradient_steps
+            self.model.train(gradient_steps=steps, batch_size=self.model.batch_size)
+            self.gradient_steps_taken += steps
+
+
+def episodic_callbacks(kwargs: Mapping[str, Any], n_envs: int) -> list[BaseCallback]:
+    """The callback a model built with :func:`vectorised_kwargs` needs to train, or none."""
+    schedule = episodic_schedule(kwargs, n_envs)
+    return [] if schedule is None else [EpisodicTraining(schedule)]
