@@ -31,7 +31,9 @@ class BenchSettings:
     steps: int = 0  # work per measurement; 0 = the benchmark's default
     algo: str = "sac"  # train: the learner
     envs: int = 0  # encoder: environments in the batched measurement (default 16); train: the distributed envs (1)
-    group_size: int = -1  # train: envs stepped as one message each way; -1 = half of --envs (from 4 envs)
+    group_size: int = -1  # train: envs stepped as one message each way; -1 = one group per sim (from 4 envs)
+    policy: str = "auto"  # train: auto (sac: the shipped policy, steady state; else scratch) | scratch | a model zip
+    sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
     repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
@@ -56,6 +58,8 @@ def run(settings: BenchSettings) -> int:
         kwargs["mode"] = settings.mode
         kwargs["low_latency"] = settings.low_latency
         kwargs["group_size"] = settings.group_size
+        kwargs["sims"] = settings.sims
+        kwargs["policy"] = settings.policy
     if settings.envs and settings.target in ("encoder", "train"):
         kwargs["envs"] = settings.envs
     runs = []

@@ -35,10 +35,14 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
+from learner_service.checkpoints import load_for_resume
 from learner_service.envs import make_vec_env
+from learner_service.export import SHIPPED_POLICY
+from learner_service.learn_settings import LearnCommandSettings
 from learner_service.proxy_env import ProxySettings
 from learner_service.registry import make_model, training_callbacks
 from learner_service.task import TaskSettings
+from learner_service.up import group_size_for, sim_shares
 from services.procs import ProcessGroup, low_latency_flags
 from services.settings import ZenohSettings
 
@@ -48,8 +52,9 @@ NAMESPACE = "swimm/bench-train"
 SEED = 97  # the SPEC's first training seed
 TORCH_THREADS = 1  # see the module docstring
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
-DEFAULT_STEPS = 1500  # one env: about 30 of the first, short, episodes
-DEFAULT_VEC_STEPS = 4000  # several envs: their episodes are as short, but the first vector steps are a start-up
+SCRATCH_STEPS = 1500  # from scratch, one env: about 30 of the first, short, episodes
+SCRATCH_VEC_STEPS = 4000  # from scratch, several envs: as short episodes, and the first vector steps are a start-up
+STEADY_EPISODES = 2  # from a trained policy: full-length episodes per env, each ending with its gradient steps
 
 
 def encoder_checkpoint(folder: Path) -> Path:
@@ -87,9 +92,35 @@ def process_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
-def default_group_size(envs: int) -> int:
-    """Envs per message for a benchmark of ``envs`` envs: two groups in flight (one group for 1-3 envs)."""
-    return envs // 2 if envs >= 4 else 0
+def starting_policy(algo: str, policy: str) -> Path | None:
+    """What both halves train on from: ``"auto"`` is the shipped SAC policy for ``sac`` (steady state: episodes as
+    long as a tracking policy makes them, as in most of a run, not the first minutes' short ones) and a new model
+    for other algorithms; ``"scratch"`` a new model; anything else a saved model of ``algo``."""
+    if policy == "scratch" or (policy == "auto" and (algo != "sac" or not SHIPPED_POLICY.is_file())):
+        return None
+    path = SHIPPED_POLICY if policy == "auto" else Path(policy)
+    if not path.is_file():
+        raise FileNotFoundError(f"--policy {path}: no such saved model (or use --policy scratch)")
+    return path
+
+
+def default_steps(envs: int, start: Path | None) -> int:
+    """Steps per half: from scratch, the first episodes; from a policy, :data:`STEADY_EPISODES` full episodes of
+    every env."""
+    if start is None:
+        return SCRATCH_STEPS if envs == 1 else SCRATCH_VEC_STEPS
+    return STEADY_EPISODES * TaskSettings().max_steps * envs
+
+
+def default_layout(envs: int, sims: int = 0, group_size: int = -1) -> tuple[int, int]:
+    """(sims, group size) for ``envs`` envs, each as given or, from 4 envs on (an even number), two sims, one per
+    core, each stepping one group of half the envs; fewer envs: one sim, each env its own messages."""
+    if sims == 0:
+        sims = 2 if envs >= 4 and envs % 2 == 0 else 1
+    share = sim_shares(envs, sims)[0][1]
+    if group_size < 0:
+        group_size = share if envs >= 4 else 0
+    return sims, group_size_for(LearnCommandSettings(envs=envs, group_size=group_size), sims)
 
 
 @dataclass(frozen=True)
@@ -109,14 +140,19 @@ class TrainingRun:
         return self.steps / self.rollout_seconds
 
 
-def train(algo: str, vec_env, steps: int, services: dict[str, int]) -> TrainingRun:
-    """Time ``model.learn(steps)`` and the CPU it costs the learner and the ``services`` (name: pid).
+def train(algo: str, vec_env, steps: int, services: dict[str, int], policy: Path | None = None) -> TrainingRun:
+    """Time ``model.learn(steps)`` of a new model, or of ``policy`` trained on, and the CPU it costs the learner and
+    the ``services`` (name: pid).
 
     SAC trains per episode (on several envs through learner_service/episodic.py), so it may run a little past
     ``steps``.
     """
     overrides = {"device": "cpu", "verbose": 0, "stats_window_size": 10**6}
-    model = make_model(algo, vec_env, seed=SEED, overrides=overrides)
+    if policy is None:
+        model = make_model(algo, vec_env, seed=SEED, overrides=overrides)
+    else:
+        model = load_for_resume(algo, policy, vec_env, device="cpu", overrides=overrides, verbose=0)
+        model.set_random_seed(SEED)
     clock = RolloutClock()
     callbacks = [clock, *training_callbacks(algo, overrides, vec_env.num_envs)]
     cpu_before = {name: process_cpu_s(pid) for name, pid in services.items()}
@@ -136,14 +172,16 @@ def run(
     low_latency: bool = False,
     envs: int = 1,
     group_size: int = -1,
+    sims: int = 0,
+    policy: str = "auto",
 ) -> dict:
-    """``steps`` 0: :data:`DEFAULT_STEPS` with one env, :data:`DEFAULT_VEC_STEPS` with several; ``group_size`` -1:
-    :func:`default_group_size`."""
+    """``steps`` 0: :func:`default_steps`; ``sims`` 0 and ``group_size`` -1: :func:`default_layout`; ``policy``: see
+    :func:`starting_policy`."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
-    if group_size < 0:
-        group_size = default_group_size(envs)
-    steps = steps or (DEFAULT_STEPS if envs == 1 else DEFAULT_VEC_STEPS)
+    sims, group_size = default_layout(envs, sims, group_size)
+    start = starting_policy(algo, policy)
+    steps = steps or default_steps(envs, start)
     torch.set_num_threads(TORCH_THREADS)
     task = TaskSettings(obs="cmvae")
     with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
@@ -151,7 +189,9 @@ def run(
         flags = low_latency_flags(low_latency)
         endpoint = group.start_router(flags=flags)
         common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE, *flags)
-        group.start("sim", "sim", *common, "--train-envs", str(envs), "--eval-envs", "0")
+        for index, (first, count) in enumerate(sim_shares(envs, sims)):
+            group.start(f"sim-{index}", "sim", *common, "--train-envs", str(count), "--first-train-env", str(first),
+                        "--eval-envs", "0", "--ident", f"sim-{index}")  # fmt: skip
         group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS))
         zenoh = ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency)
         proxy = ProxySettings(zenoh=zenoh, group_size=group_size)
@@ -160,16 +200,19 @@ def run(
         try:
             inprocess_env = make_vec_env("inprocess", task, base_seed=SEED, encoder=LatentEncoder(checkpoint))
             try:
-                inprocess = train(algo, inprocess_env, steps, services={})
+                inprocess = train(algo, inprocess_env, steps, services={}, policy=start)
             finally:
                 inprocess_env.close()
-            distributed = train(algo, distributed_env, steps, {s.name: s.process.pid for s in group.services})
+            pids = {s.name: s.process.pid for s in group.services}
+            distributed = train(algo, distributed_env, steps, pids, policy=start)
         finally:
             distributed_env.close()
         group.check_alive()
     return {
         "algo": algo,
         "envs": envs,
+        "start": "scratch" if start is None else str(start),
+        "sims": sims,
         "group_size": group_size,
         "topology": mode,
         "transport": "low-latency" if low_latency else "standard",

@@ -13,7 +13,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-from learner_service.registry import resolve_algorithm
+from learner_service.episodic import schedule_objects
+from learner_service.registry import merge_overrides, resolve_algorithm
 
 log = logging.getLogger(__name__)
 
@@ -45,17 +46,23 @@ def save_model(model: Any, path: str | Path, replay_buffer: bool = True) -> Path
     return path
 
 
-def load_for_resume(algo: str, path: str | Path, env: Any, device: str = "auto", **kwargs: Any) -> Any:
+def load_for_resume(
+    algo: str, path: str | Path, env: Any, device: str = "auto", overrides: dict[str, Any] | None = None, **kwargs: Any
+) -> Any:
     """A saved model of ``algo`` on ``env``, with its replay buffer if one lies beside it, ready to learn on.
 
-    ``kwargs`` set model attributes at load (e.g. ``tensorboard_log``). Train it on with
-    ``learn(..., reset_num_timesteps=False)`` so its step count (and schedules) continue.
+    It trains by the schedule a new model of ``algo`` with ``overrides`` would (``train_freq``, ``gradient_steps``,
+    on ``env``'s number of envs: learner_service/episodic.py), so pass ``learn()`` the same
+    :func:`learner_service.registry.training_callbacks`. ``kwargs`` set model attributes at load (e.g.
+    ``tensorboard_log``). Train it on with ``learn(..., reset_num_timesteps=False)`` so its step count (and
+    schedules) continue.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"cannot resume: {path} does not exist")
-    cls, _ = resolve_algorithm(algo)
-    model = cls.load(path, env=env, device=device, **kwargs)
+    cls, defaults = resolve_algorithm(algo)
+    schedule = schedule_objects(merge_overrides(defaults, overrides), getattr(env, "num_envs", 1))
+    model = cls.load(path, env=env, device=device, custom_objects=schedule, **kwargs)
     buffer = replay_buffer_path(path)
     if has_replay_buffer(model):
         if buffer.is_file():

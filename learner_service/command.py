@@ -192,7 +192,9 @@ class Training:
             torch.set_num_threads(s.threads)
         tensorboard = str(self.run_dir / "tensorboard")
         if s.resume:
-            return load_for_resume(s.algo, s.resume, env, device=s.device, tensorboard_log=tensorboard)
+            return load_for_resume(
+                s.algo, s.resume, env, device=s.device, overrides=self.overrides, tensorboard_log=tensorboard
+            )
         return make_model(
             s.algo, env, s.seed, overrides=self.overrides | {"device": s.device}, tensorboard_log=tensorboard
         )

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 log = logging.getLogger(__name__)
 
@@ -89,3 +90,17 @@ def episodic_callbacks(kwargs: Mapping[str, Any], n_envs: int) -> list[BaseCallb
     """The callback a model built with :func:`vectorised_kwargs` needs to train, or none."""
     schedule = episodic_schedule(kwargs, n_envs)
     return [] if schedule is None else [EpisodicTraining(schedule)]
+
+
+def schedule_objects(kwargs: Mapping[str, Any], n_envs: int) -> dict[str, Any]:
+    """``custom_objects`` for SB3's ``load``: the training schedule of ``kwargs`` on ``n_envs`` envs, in place of the
+    one the model was saved with (SB3 keeps a saved model's own otherwise)."""
+    vectorised = vectorised_kwargs(kwargs, n_envs)
+    if "train_freq" not in vectorised:
+        return {}
+    frequency, unit = vectorised["train_freq"] if isinstance(vectorised["train_freq"], list | tuple) else (
+        vectorised["train_freq"], "step")  # fmt: skip
+    objects = {"train_freq": TrainFreq(int(frequency), TrainFrequencyUnit(str(unit).rstrip("s")))}
+    if "gradient_steps" in vectorised:
+        objects["gradient_steps"] = int(vectorised["gradient_steps"])
+    return objects

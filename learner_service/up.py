@@ -64,10 +64,35 @@ class UpSettings:
     learn: LearnCommandSettings = field(default_factory=LearnCommandSettings, metadata={"flatten": True})
     port: int = 7447  # the router's TCP port on 127.0.0.1; 0 = any free port
     encoders: int = 1  # encoder processes (cmvae only)
+    sims: int = 1  # sim processes, the train envs split between them in equal ranges (the eval envs on the first)
     sim_eval_envs: int = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
     topology: str = "peer"  # peer: processes link directly once the router introduces them; client: all via the router
     stop_timeout_s: float = 180.0  # how long the learner may take to save after SIGTERM before it is killed
     sim_config: str = ""  # a `swimm sim` settings file for the sim it starts (e.g. its image noise)
+
+
+def sim_shares(envs: int, sims: int) -> list[tuple[int, int]]:
+    """(first train env, count) of each of ``sims`` sims: equal, contiguous ranges of ids 0..envs-1."""
+    if sims < 1 or envs % sims:
+        raise ValueError(f"--sims must be >= 1 and divide --envs into equal shares (got {sims} sims, {envs} envs)")
+    share = envs // sims
+    return [(index * share, share) for index in range(sims)]
+
+
+def group_size_for(learn: LearnCommandSettings, sims: int) -> int:
+    """The learner's group size: as asked, or one group per sim when several sims serve the envs (a group is
+    stepped by one sim, so groups must not straddle two)."""
+    if sims == 1:
+        return learn.group_size
+    share = learn.envs // sims
+    if learn.group_size == 0:
+        return share
+    if share % learn.group_size:
+        raise ValueError(
+            f"--group-size {learn.group_size} does not divide the {share} envs of each of the {sims} sims: a group "
+            "is stepped by one sim, so each sim's share must be whole groups"
+        )
+    return learn.group_size
 
 
 class ServiceDied(RuntimeError):
@@ -124,10 +149,14 @@ class LocalSystem:
         endpoint = self.group.start_router(self.settings.port or None, flags=low_latency)
         common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
         common += low_latency
-        sim_args = ["--train-envs", str(self.learn.envs), "--eval-envs", str(self.settings.sim_eval_envs)]
-        if self.settings.sim_config:
-            sim_args += ["--config", self.settings.sim_config]
-        self.group.start("sim", "sim", *common, *sim_args)
+        config = ["--config", self.settings.sim_config] if self.settings.sim_config else []
+        shares = sim_shares(self.learn.envs, self.settings.sims)
+        for index, (first, count) in enumerate(shares):
+            eval_envs = self.settings.sim_eval_envs if index == 0 else 0
+            sim_args = ["--train-envs", str(count), "--first-train-env", str(first), "--eval-envs", str(eval_envs)]
+            if len(shares) > 1:
+                sim_args += ["--ident", f"sim-{index}"]
+            self.group.start("sim" if len(shares) == 1 else f"sim-{index}", "sim", *common, *sim_args, *config)
         encoders = self.settings.encoders if checkpoint is not None else 0
         for index in range(encoders):
             name = "encoder" if encoders == 1 else f"encoder-{index}"
@@ -135,7 +164,7 @@ class LocalSystem:
         watcher = ZenohSettings(connect=[endpoint], namespace=self.namespace, startup_timeout_s=self.wait_s)
         session = open_session(watcher, role="up")
         try:
-            self.wait_for_role(session, "sim", 1)
+            self.wait_for_role(session, "sim", len(shares))
             if encoders:
                 self.wait_for_role(session, "encoder", encoders)
         finally:
@@ -250,6 +279,9 @@ def run(settings: UpSettings) -> int:
         log.info("swimm up always trains through the services; --backend %s is ignored", learn.backend)
     if settings.sim_config and not Path(settings.sim_config).is_file():
         raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
+    sim_shares(learn.envs, settings.sims)  # refuses a split that leaves envs over
+    learn = dataclasses.replace(learn, group_size=group_size_for(learn, settings.sims))
+    settings = dataclasses.replace(settings, learn=learn)
     checkpoint = encoder_checkpoint(learn)
     run_dir = Path(learn.run_dir) if learn.run_dir else default_run_dir(learn)
     run_dir.mkdir(parents=True, exist_ok=True)

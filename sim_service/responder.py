@@ -56,6 +56,7 @@ class SimSettings:
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
     train_envs: int = 1
     eval_envs: int = 1
+    first_train_env: int = 0  # train env ids start here: sims serving one run side by side take disjoint ranges
     realtime: bool = False  # physics keeps running at physics_dt; the last action is held
     ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
     claim_grace_s: float = 10.0  # a claim lapses when its holder's token stays gone this long
@@ -93,6 +94,8 @@ def check_fits_low_latency(settings: SimSettings) -> None:
 
 class SimResponder:
     def __init__(self, settings: SimSettings) -> None:
+        if min(settings.train_envs, settings.eval_envs, settings.first_train_env) < 0:
+            raise ValueError("train_envs, eval_envs and first_train_env must be >= 0")
         check_fits_low_latency(settings)
         self.settings = settings
         self.keys = Keys(settings.zenoh.namespace)
@@ -168,8 +171,9 @@ class SimResponder:
 
     # --- the worker -----------------------------------------------------------------------------
     def _build_envs(self) -> None:
+        first = {"train": self.settings.first_train_env, "eval": 0}
         for channel, count in (("train", self.settings.train_envs), ("eval", self.settings.eval_envs)):
-            for index in range(count):
+            for index in range(first[channel], first[channel] + count):
                 self._envs.append(LockstepEnv(channel, str(index), World(self.settings.world)))
         self._by_name = {(env.channel, env.env): env for env in self._envs}
 
@@ -254,7 +258,8 @@ class SimResponder:
 
     def _handle_group(self, request: _Request) -> None:
         """A group's actions: each env steps as a single action would step it, and one message answers them all,
-        each item the observation (or refusal) its env would have sent alone."""
+        each item the observation (or refusal) its env would have sent alone. A group is one sim's: one that holds
+        none of this sim's envs is left to the others, and an env of it this sim does not serve is refused."""
         try:
             batch = BatchMsg.decode(request.payload)
             channel, group = self.keys.parse_group_key(request.key)
@@ -262,6 +267,8 @@ class SimResponder:
             self.metrics.count("errors_refused")
             log.warning("refused a group of actions: %s", exc)
             return
+        if not any((channel, item.env) in self._by_name for item in batch.items):
+            return  # another sim's group: sims serving one run side by side all hear every group
         items, route = [], DIRECT_ROUTE
         for item in batch.items:
             env = self._by_name.get((channel, item.env))

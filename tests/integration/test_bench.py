@@ -53,12 +53,26 @@ def test_bench_sim_times_each_way_of_serving_against_the_in_process_steps_it_alt
 @pytest.mark.parametrize("transport", ["standard", "low-latency"])
 def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services(transport: str) -> None:
     flags = ("--low-latency",) if transport == "low-latency" else ()
-    result = bench("train", "--algo", "sac", "--steps", "300", *flags)
+    result = bench("train", "--algo", "sac", "--steps", "300", "--policy", "scratch", *flags)
     assert_rates(result, "inprocess_steps_per_s", "distributed_steps_per_s")
     assert (result["algo"], result["topology"], result["transport"]) == ("sac", "peer", transport)
+    assert (result["start"], result["envs"], result["sims"], result["group_size"]) == ("scratch", 1, 1, 0)
     assert result["steps"] >= 300 and result["episodes"] >= 1
     assert result["same_episodes"] is True  # the ratio compares the same training, step for step
-    assert set(result["distributed_cpu_ms_per_step"]) == {"learner", "router", "sim", "encoder"}
+    assert set(result["distributed_cpu_ms_per_step"]) == {"learner", "router", "sim-0", "encoder"}
+
+
+def test_bench_train_on_several_envs_splits_them_between_two_sims_in_groups() -> None:
+    """From the shipped policy (the steady state's default), 4 envs: two sims, one group of 2 envs each."""
+    result = bench("train", "--algo", "sac", "--envs", "4", "--steps", "400")
+    assert result["start"].endswith("sac_cmvae.zip")
+    assert (result["envs"], result["sims"], result["group_size"]) == (4, 2, 2)
+    assert_rates(result, "distributed_rollout_steps_per_s", "rollout_ratio", "distributed_steps_per_s", "ratio")
+    assert result["rollout_ratio"] == pytest.approx(
+        result["distributed_rollout_steps_per_s"] / result["inprocess_rollout_steps_per_s"], 1e-2
+    )
+    assert set(result["distributed_cpu_ms_per_step"]) == {"learner", "router", "sim-0", "sim-1", "encoder"}
+    assert "same_episodes" not in result  # four envs play other episodes than the one in-process env
 
 
 def test_bench_encoder_compares_batch_one_with_many_envs() -> None:

@@ -103,11 +103,43 @@ def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tm
         assert "low-latency transport" in (run_dir / "logs" / f"{name}.log").read_text(), name
 
 
+@pytest.mark.slow
+def test_up_splits_the_envs_between_sims_and_steps_them_in_groups(spawn, namespace, tmp_path) -> None:
+    run_dir = tmp_path / "run"
+    # SAC's per-episode training (gradient_steps 1 per episode here) on 4 envs: the EpisodicTraining path.
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "400", "--envs", "4", "--sims", "2"))
+    assert wait_exit(up, 150) == 0, up.log_tail(60)
+    assert_all_stopped(up, {"router", "sim-0", "sim-1", "learner"})
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["num_timesteps"] >= 400 and result["episodes"] > 0
+    learner_settings = json.loads((run_dir / "settings.json").read_text())["settings"]
+    assert learner_settings["envs"] == 4 and learner_settings["group_size"] == 2  # one group per sim
+    assert "2 gradient step" not in (run_dir / "logs" / "learner.log").read_text()
+    assert "1 gradient step(s) after every 1 finished episode(s)" in (run_dir / "logs" / "learner.log").read_text()
+    for index in (0, 1):
+        sim_log = (run_dir / "logs" / f"sim-{index}.log").read_text()
+        assert f"sim sim-{index} serving 2 train and {2 if index == 0 else 0} eval envs" in sim_log
+
+
 def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capfd) -> None:
     missing = tmp_path / "nowhere.yaml"
     assert cli.main(["up", "--run-dir", str(tmp_path / "run"), "--sim-config", str(missing)]) == 1
     message = capfd.readouterr().err
     assert f"--sim-config {missing}: no such settings file" in message
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--envs", "3", "--sims", "2"], "divide --envs into equal shares"),
+        (["--envs", "4", "--sims", "0"], "--sims must be >= 1"),
+        (["--envs", "8", "--sims", "2", "--group-size", "3"], "--group-size 3 does not divide the 4 envs"),
+    ],
+)
+def test_up_refuses_sims_that_cannot_share_the_envs(tmp_path, capfd, flags, message) -> None:
+    assert cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run"), *flags]) == 1
+    assert message in capfd.readouterr().err
     assert not (tmp_path / "run").exists()
 
 

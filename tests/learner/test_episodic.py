@@ -11,6 +11,7 @@ import pytest
 import torch
 from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
+from learner_service.checkpoints import load_for_resume
 from learner_service.episodic import EpisodicTraining, episodic_schedule, vectorised_kwargs
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.registry import make_model, training_callbacks
@@ -79,3 +80,16 @@ def test_learning_starts_and_every_n_episodes_are_kept() -> None:
 def test_gradient_steps_minus_one_is_refused_on_several_envs() -> None:
     with pytest.raises(ValueError, match="gradient_steps -1"):
         episodic_schedule(PER_EPISODE | {"gradient_steps": -1}, 2)
+
+
+def test_a_model_saved_on_one_env_resumes_per_episode_on_several(tmp_path) -> None:
+    one = vec_env(1)
+    make_model("sac", one, seed=97, overrides=PER_EPISODE).save(tmp_path / "model.zip")
+    one.close()
+    env = vec_env(3)
+    model = load_for_resume("sac", tmp_path / "model.zip", env, device="cpu", overrides=PER_EPISODE)
+    assert (model.train_freq.frequency, model.gradient_steps) == (1, 0)
+    callbacks = training_callbacks("sac", PER_EPISODE, env.num_envs)
+    model.learn(200, callback=callbacks)
+    assert callbacks[0].gradient_steps_taken == 3 * len(model.ep_info_buffer) > 0
+    env.close()
