@@ -30,7 +30,7 @@ class BenchSettings:
     json: bool = False  # print one JSON object instead of a table
     steps: int = 0  # work per measurement; 0 = the benchmark's default
     algo: str = "sac"  # train: the learner
-    envs: int = 0  # encoder: environments in the batched measurement (default 16); train: the distributed envs (1)
+    envs: int = 0  # encoder: envs of the batched half (default 16); train: the distributed envs (1); sim: grouped envs
     group_size: int = -1  # train: envs stepped as one message each way; -1 = one group per sim (from 4 envs)
     policy: str = "auto"  # train: auto (sac: the shipped policy, steady state; else scratch) | scratch | a model zip
     sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one
@@ -60,7 +60,7 @@ def run(settings: BenchSettings) -> int:
         kwargs["group_size"] = settings.group_size
         kwargs["sims"] = settings.sims
         kwargs["policy"] = settings.policy
-    if settings.envs and settings.target in ("encoder", "train"):
+    if settings.envs and settings.target in ("encoder", "train", "sim"):
         kwargs["envs"] = settings.envs
     runs = []
     for index in range(settings.repeat):

@@ -42,6 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.layout import default_layout
+from learner_service.up import sim_shares
 from services.keys import Keys
 from services.polling import POLLING_SWITCH_INTERVAL_S
 from services.presence import Roster, announce
@@ -50,6 +52,7 @@ from services.session import open_session
 from services.settings import ZenohSettings
 from sim_service.world import World
 
+GROUPED_NAMESPACE = "swimm/bench-grouped"
 POLL_MS = 2.0  # the polling run's wait before sleeping, each side: longer than a round trip (about 1 ms)
 ROUNDS = 8  # blocks per way of serving; each round measures the way and the in-process World once
 #: Untimed steps each way (and the in-process world) takes first. A fresh process's first few hundred frames
@@ -156,6 +159,72 @@ class ServedEnv:
         tally.steps += len(actions)
 
 
+class GroupedEnvs:
+    """``envs`` envs of the sims at ``endpoint``, each claimed and reset once, stepped in groups (blocking peers,
+    Zenoh's defaults, as `swimm up` runs): every group's actions go out before the first reply is awaited."""
+
+    def __init__(self, endpoint: str, envs: int, group_size: int, stack: ExitStack) -> None:
+        from learner_service.group_link import GroupLink
+        from learner_service.link import RemoteEnvLink, new_holder_id
+
+        settings = ZenohSettings(mode="peer", connect=[endpoint], namespace=GROUPED_NAMESPACE)
+        session = open_session(settings, role="bench")
+        stack.callback(session.close)
+        keys = Keys(settings.namespace)
+        holder = new_holder_id("learner")
+        stack.callback(announce(session, keys, "learner", holder).undeclare)
+        links = []
+        for env in range(envs):
+            link = RemoteEnvLink(session, keys, "train", str(env), holder, encoded=False)
+            stack.callback(link.close)
+            link.claim(timeout_s=60)
+            link.send_reset(1, 1 + env)
+            link.wait()
+            links.append(link)
+        size = group_size or 1
+        self.groups = [GroupLink(session, keys, f"{holder}.{i}", links[i : i + size]) for i in range(0, envs, size)]
+        for group in self.groups:
+            stack.callback(group.close)
+        self.envs = envs
+
+    def step(self, actions: list, tally: Tally) -> None:
+        """Each action of ``actions`` for every env at once (one vector step each); counts env steps."""
+        start = time.perf_counter()
+        for action in actions:
+            sent = time.perf_counter()
+            for group in self.groups:
+                group.send([action] * len(group.links))
+            for group in self.groups:
+                group.wait()
+            tally.round_trips.append(time.perf_counter() - sent)
+        tally.seconds += time.perf_counter() - start
+        tally.steps += len(actions) * self.envs
+
+
+def measure_groups(endpoint: str, envs: int, group_size: int, steps: int, rounds: int) -> dict[str, Tally]:
+    """``steps`` env steps in-process (one World, the serial loop) and through the sims (``envs`` envs in groups),
+    in ``rounds`` alternating blocks."""
+    vector_steps = max(1, steps // envs)
+    actions = random_actions(vector_steps)
+    tallies = {"inprocess": Tally(), "served": Tally()}
+    with ExitStack() as stack:
+        world = World()
+        stack.callback(world.close)
+        world.reset(1)
+        served = GroupedEnvs(endpoint, envs, group_size, stack)
+        warmup = random_actions(WARMUP_STEPS, seed=1)
+        step_inprocess(world, warmup, Tally())
+        served.step(warmup[: max(1, WARMUP_STEPS // envs)], Tally())
+        for index, block in enumerate(np.array_split(np.arange(vector_steps), rounds)):
+            block_actions = [actions[i] for i in block]
+            for name in sorted(tallies, reverse=index % 2 == 1):
+                if name == "served":
+                    served.step(block_actions, tallies[name])
+                else:  # as many env steps, one World one after the other
+                    step_inprocess(world, [a for a in block_actions for _ in range(envs)], tallies[name])
+    return tallies
+
+
 @contextmanager
 def switch_interval(seconds: float) -> Iterator[None]:
     """Run a block with the GIL switch interval its way of serving uses (a polling link shortens it)."""
@@ -197,8 +266,11 @@ def run_learner(way: Way, endpoint: str, steps: int, rounds: int, sim: Service) 
     return {name: Tally(**fields) for name, fields in json.loads(done.stdout).items()}
 
 
-def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
-    """``steps`` per way, taken in ``rounds`` blocks, and as many in-process steps alternating with them."""
+def run(steps: int = 2000, rounds: int = ROUNDS, envs: int = 1) -> dict:
+    """``steps`` per way, taken in ``rounds`` blocks, and as many in-process steps alternating with them; with
+    ``envs`` > 1, also ``steps`` env steps of that many envs in groups (the ``grouped_*`` keys)."""
+    if envs < 1:
+        raise ValueError(f"--envs must be at least 1, got {envs}")
     result: dict = {}
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp, ProcessGroup(Path(tmp)) as group:
         endpoint = group.start_router()
@@ -207,12 +279,37 @@ def run(steps: int = 2000, rounds: int = ROUNDS) -> dict:
             tallies = run_learner(way, endpoint, steps, rounds, sim)
             group.stop(sim)
             result |= way_result(way, tallies["inprocess"], tallies["served"])
+        if envs > 1:
+            result |= grouped_result(group, endpoint, envs, steps, rounds)
     return result | {
         "topology": "peer",
         "transport": "low-latency" if WAYS[0].low_latency else "standard",
         "poll_ms": POLL_MS,
         "steps": steps,
         "rounds": rounds,
+    }
+
+
+def grouped_result(group: ProcessGroup, endpoint: str, envs: int, steps: int, rounds: int) -> dict:
+    """The ``grouped_*`` keys: ``envs`` envs on the sims of :func:`bench.layout.default_layout`, in groups."""
+    sims, group_size = default_layout(envs)
+    started = []
+    for index, (first, count) in enumerate(sim_shares(envs, sims)):
+        started.append(group.start(f"sim-grouped-{index}", "sim", "--mode", "peer", "--connect", endpoint,
+                                   "--namespace", GROUPED_NAMESPACE, "--train-envs", str(count),
+                                   "--first-train-env", str(first), "--eval-envs", "0"))  # fmt: skip
+    tallies = measure_groups(endpoint, envs, group_size, steps, rounds)
+    for sim in started:
+        group.stop(sim)
+    inprocess, served = tallies["inprocess"], tallies["served"]
+    return {
+        "envs": envs,
+        "grouped_sims": sims,
+        "grouped_group_size": group_size,
+        "grouped_inprocess_steps_per_s": round(inprocess.rate, 1),
+        "grouped_steps_per_s": round(served.rate, 1),
+        "grouped_ratio": round(served.rate / inprocess.rate, 3),
+        "grouped_vector_step_p50_ms": percentile_ms(np.array(served.round_trips), 50),
     }
 
 

@@ -33,16 +33,16 @@ from pathlib import Path
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 
+from bench.layout import default_layout
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.checkpoints import load_for_resume
 from learner_service.envs import make_vec_env
 from learner_service.export import SHIPPED_POLICY
-from learner_service.learn_settings import LearnCommandSettings
 from learner_service.proxy_env import ProxySettings
 from learner_service.registry import make_model, training_callbacks
 from learner_service.task import TaskSettings
-from learner_service.up import group_size_for, sim_shares
+from learner_service.up import sim_shares
 from services.procs import ProcessGroup, low_latency_flags
 from services.settings import ZenohSettings
 
@@ -110,17 +110,6 @@ def default_steps(envs: int, start: Path | None) -> int:
     if start is None:
         return SCRATCH_STEPS if envs == 1 else SCRATCH_VEC_STEPS
     return STEADY_EPISODES * TaskSettings().max_steps * envs
-
-
-def default_layout(envs: int, sims: int = 0, group_size: int = -1) -> tuple[int, int]:
-    """(sims, group size) for ``envs`` envs, each as given or, from 4 envs on (an even number), two sims, one per
-    core, each stepping one group of half the envs; fewer envs: one sim, each env its own messages."""
-    if sims == 0:
-        sims = 2 if envs >= 4 and envs % 2 == 0 else 1
-    share = sim_shares(envs, sims)[0][1]
-    if group_size < 0:
-        group_size = share if envs >= 4 else 0
-    return sims, group_size_for(LearnCommandSettings(envs=envs, group_size=group_size), sims)
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,15 @@ def test_bench_sim_times_each_way_of_serving_against_the_in_process_steps_it_alt
     assert result["ratio"] == pytest.approx(sum(run["ratio"] for run in result["runs"]) / 2, abs=1e-3)
 
 
+def test_bench_sim_with_several_envs_steps_them_in_groups_on_two_sims() -> None:
+    result = bench("sim", "--steps", "200", "--envs", "4")
+    assert (result["envs"], result["grouped_sims"], result["grouped_group_size"]) == (4, 2, 2)
+    assert_rates(result, "grouped_inprocess_steps_per_s", "grouped_steps_per_s", "grouped_vector_step_p50_ms")
+    assert result["grouped_ratio"] == pytest.approx(
+        result["grouped_steps_per_s"] / result["grouped_inprocess_steps_per_s"], 1e-2
+    )
+
+
 @pytest.mark.parametrize("transport", ["standard", "low-latency"])
 def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services(transport: str) -> None:
     flags = ("--low-latency",) if transport == "low-latency" else ()

@@ -1,0 +1,17 @@
+"""How a benchmark of several envs lays them out: how many sims, and how many envs to a message."""
+
+from __future__ import annotations
+
+from learner_service.learn_settings import LearnCommandSettings
+from learner_service.up import group_size_for, sim_shares
+
+
+def default_layout(envs: int, sims: int = 0, group_size: int = -1) -> tuple[int, int]:
+    """(sims, group size) for ``envs`` envs, each as given or, from 4 envs on (an even number), two sims, one per
+    core, each stepping one group of half the envs; fewer envs: one sim, each env its own messages."""
+    if sims == 0:
+        sims = 2 if envs >= 4 and envs % 2 == 0 else 1
+    share = sim_shares(envs, sims)[0][1]
+    if group_size < 0:
+        group_size = share if envs >= 4 else 0
+    return sims, group_size_for(LearnCommandSettings(envs=envs, group_size=group_size), sims)
