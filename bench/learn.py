@@ -71,6 +71,7 @@ def learn_settings(settings: LearnBenchSettings, algo: str, seed: int) -> LearnC
         checkpoint_every=0,
         save_replay_buffer=False,
         encoder_checkpoint=settings.encoder_checkpoint,
+        envs=settings.envs,
     )
 
 
@@ -83,7 +84,7 @@ def train(settings: LearnBenchSettings, algo: str, seed: int) -> None:
     if folder.exists():
         shutil.rmtree(folder)  # an unfinished run restarts: a from-scratch curve cannot be stitched together
     with contextlib.redirect_stdout(sys.stderr):  # stdout carries the benchmark's JSON alone (--json)
-        code = up.run(up.UpSettings(learn=learn, port=0))
+        code = up.run(up.UpSettings(learn=learn, port=0, sims=settings.sims))
     if code != 0 or not (folder / FINAL_MODEL).is_file():
         raise RuntimeError(f"{algo} seed {seed}: swimm up exited with {code}; see {folder / 'logs'}")
 

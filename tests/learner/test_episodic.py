@@ -40,7 +40,7 @@ def critic_weights(model) -> np.ndarray:
 def test_several_envs_take_the_gradient_steps_of_every_finished_episode() -> None:
     env = vec_env(3)
     model = make_model("sac", env, seed=97, overrides=PER_EPISODE)
-    assert (model.train_freq.frequency, model.gradient_steps) == (1, 0)  # SB3 trains nothing of its own
+    assert (model.train_freq.frequency, model.gradient_steps) == (64, 0)  # gSDE: rollouts of sde_sample_freq steps
     callbacks = training_callbacks("sac", PER_EPISODE, env.num_envs)
     assert len(callbacks) == 1 and isinstance(callbacks[0], EpisodicTraining)
     before = critic_weights(model)
@@ -55,7 +55,20 @@ def test_several_envs_take_the_gradient_steps_of_every_finished_episode() -> Non
 def test_one_env_keeps_stable_baselines3s_own_episodic_loop() -> None:
     assert training_callbacks("sac", PER_EPISODE, 1) == []
     assert vectorised_kwargs(PER_EPISODE, 1) == PER_EPISODE
-    assert vectorised_kwargs(PER_EPISODE | {"train_freq": [64, "step"]}, 4)["train_freq"] == [64, "step"]
+    assert vectorised_kwargs(PER_EPISODE | {"train_freq": [64, "step"]}, 1)["train_freq"] == [64, "step"]
+
+
+@pytest.mark.parametrize(
+    ("train_freq", "gradient_steps", "n_envs", "expected"),
+    [
+        ([512, "step"], 64, 8, ((64, "step"), 64)),  # the SPEC's TD3: every 512 env steps, 64 gradient steps
+        ([100, "step"], 64, 8, ((12, "step"), 61)),  # 96 env steps between trainings: 64 * 96 / 100 gradient steps
+        (4, 1, 8, ((1, "step"), 2)),  # one vector step is 8 env steps: two trainings' worth
+    ],
+)
+def test_a_step_schedule_counts_env_steps_whatever_the_envs(train_freq, gradient_steps, n_envs, expected) -> None:
+    kwargs = vectorised_kwargs({"train_freq": train_freq, "gradient_steps": gradient_steps}, n_envs)
+    assert (kwargs["train_freq"], kwargs["gradient_steps"]) == expected
 
 
 def test_learning_starts_and_every_n_episodes_are_kept() -> None:
@@ -88,8 +101,14 @@ def test_a_model_saved_on_one_env_resumes_per_episode_on_several(tmp_path) -> No
     one.close()
     env = vec_env(3)
     model = load_for_resume("sac", tmp_path / "model.zip", env, device="cpu", overrides=PER_EPISODE)
-    assert (model.train_freq.frequency, model.gradient_steps) == (1, 0)
+    assert (model.train_freq.frequency, model.gradient_steps) == (64, 0)
     callbacks = training_callbacks("sac", PER_EPISODE, env.num_envs)
     model.learn(200, callback=callbacks)
     assert callbacks[0].gradient_steps_taken == 3 * len(model.ep_info_buffer) > 0
     env.close()
+
+
+def test_rollouts_keep_gsde_noise_for_sde_sample_freq_steps_and_are_one_step_without_it() -> None:
+    assert vectorised_kwargs(PER_EPISODE | {"use_sde": True, "sde_sample_freq": 16}, 4)["train_freq"] == (16, "step")
+    assert vectorised_kwargs(PER_EPISODE | {"use_sde": False}, 4)["train_freq"] == (1, "step")
+    assert vectorised_kwargs(PER_EPISODE | {"use_sde": True, "sde_sample_freq": -1}, 4)["train_freq"] == (1, "step")
