@@ -30,10 +30,10 @@ class BenchSettings:
     json: bool = False  # print one JSON object instead of a table
     steps: int = 0  # work per measurement; 0 = the benchmark's default
     algo: str = "sac"  # train: the learner
-    envs: int = 0  # encoder: envs of the batched half (default 16); train: the distributed envs (1); sim: grouped envs
+    envs: int = 0  # encoder: batched half's envs (16); train: distributed envs (1); sim: grouped envs; learn: per run
     group_size: int = -1  # train: envs stepped as one message each way; -1 = one group per sim (from 4 envs)
     policy: str = "auto"  # train: auto (sac: the shipped policy, steady state; else scratch) | scratch | a model zip
-    sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one
+    sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one; learn: 1
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
     repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
@@ -50,7 +50,9 @@ def run(settings: BenchSettings) -> int:
     if settings.target == "learn":
         if settings.repeat != 1:
             raise ValueError("bench learn repeats over seeds (--seeds), not --repeat")
-        return report(importlib.import_module(BENCHMARKS["learn"]).run(settings.learn), settings.json)
+        learn = importlib.import_module(BENCHMARKS["learn"])
+        layout = learn.Layout(envs=settings.envs or 1, sims=settings.sims or 1)
+        return report(learn.run(settings.learn, layout), settings.json)
     module = importlib.import_module(BENCHMARKS[settings.target])
     kwargs = {"steps": settings.steps} if settings.steps else {}
     if settings.target == "train":

@@ -50,7 +50,22 @@ def run_dir(settings: LearnBenchSettings, algo: str, seed: int) -> Path:
     return Path(settings.out) / "runs" / f"{algo}-{seed}"
 
 
-def learn_settings(settings: LearnBenchSettings, algo: str, seed: int) -> LearnCommandSettings:
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """How each run is served: training envs (the same gradient steps per env step whatever the number) and the
+    sims they are split between (`swimm up --envs --sims`), from `swimm bench`'s ``--envs`` and ``--sims``."""
+
+    envs: int = 1
+    sims: int = 1
+
+    def check(self) -> None:
+        if self.envs < 1 or self.sims < 1 or self.envs % self.sims:
+            raise ValueError(f"--envs must be >= 1 and --sims divide it, got {self.envs} envs and {self.sims} sims")
+
+
+def learn_settings(
+    settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = Layout()
+) -> LearnCommandSettings:
     """One run's learner: the algorithm's shipped hyperparameters from scratch, evaluating every N steps."""
     evaluation = EvalSettings(
         episodes=settings.eval_episodes,
@@ -71,20 +86,20 @@ def learn_settings(settings: LearnBenchSettings, algo: str, seed: int) -> LearnC
         checkpoint_every=0,
         save_replay_buffer=False,
         encoder_checkpoint=settings.encoder_checkpoint,
-        envs=settings.envs,
+        envs=layout.envs,
     )
 
 
-def train(settings: LearnBenchSettings, algo: str, seed: int) -> None:
+def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = Layout()) -> None:
     """One `swimm up` to the end of its budget; refuses to go on past a learner that failed."""
     from learner_service import up
 
-    learn = learn_settings(settings, algo, seed)
+    learn = learn_settings(settings, algo, seed, layout)
     folder = Path(learn.run_dir)
     if folder.exists():
         shutil.rmtree(folder)  # an unfinished run restarts: a from-scratch curve cannot be stitched together
     with contextlib.redirect_stdout(sys.stderr):  # stdout carries the benchmark's JSON alone (--json)
-        code = up.run(up.UpSettings(learn=learn, port=0, sims=settings.sims))
+        code = up.run(up.UpSettings(learn=learn, port=0, sims=layout.sims))
     if code != 0 or not (folder / FINAL_MODEL).is_file():
         raise RuntimeError(f"{algo} seed {seed}: swimm up exited with {code}; see {folder / 'logs'}")
 
@@ -134,7 +149,12 @@ def collect(settings: LearnBenchSettings) -> pd.DataFrame:
     return pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
 
 
-def summarise(settings: LearnBenchSettings, evaluations: pd.DataFrame, finals: dict[tuple[str, int], dict]) -> dict:
+def summarise(
+    settings: LearnBenchSettings,
+    evaluations: pd.DataFrame,
+    finals: dict[tuple[str, int], dict],
+    layout: Layout = Layout(),
+) -> dict:
     """The JSON summary: per algorithm, per-seed numbers in the order of ``seeds`` and their aggregates."""
     algos = {}
     for algo in settings.algos:
@@ -158,7 +178,7 @@ def summarise(settings: LearnBenchSettings, evaluations: pd.DataFrame, finals: d
         }  # fmt: skip
     return {
         "algos": algos,
-        "settings": dataclasses.asdict(settings),
+        "settings": dataclasses.asdict(settings) | dataclasses.asdict(layout),
         "how": "final_returns: each seed's final model, mean of final_episodes deterministic episodes (seed "
         "final_seed); IQM and its 95% percentile bootstrap over seeds; minutes_to / steps_to: the first "
         "training evaluation (eval_episodes episodes, seed 113) at or above the return, null if never",
@@ -194,11 +214,12 @@ def learning_figure(evaluations: pd.DataFrame) -> Any:
     return figure
 
 
-def run(settings: LearnBenchSettings) -> dict[str, Any]:
+def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, Any]:
     """Train what is missing, evaluate it, write the results folder; returns the summary."""
     from tqdm import tqdm
 
     settings.check()
+    layout.check()
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     finals: dict[tuple[str, int], dict] = {}
@@ -211,12 +232,12 @@ def run(settings: LearnBenchSettings) -> dict[str, Any]:
             continue
         log.info("%s seed %d: training from scratch (%d steps or %g min at most)", algo, seed,
                  settings.budget_steps, settings.budget_min)  # fmt: skip
-        train(settings, algo, seed)
+        train(settings, algo, seed, layout)
         finals[(algo, seed)] = final_evaluation(settings, algo, seed)
         log.info("%s seed %d: final return %.1f", algo, seed, finals[(algo, seed)]["mean_return"])
     evaluations = collect(settings)
     evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
-    summary = summarise(settings, evaluations, finals)
+    summary = summarise(settings, evaluations, finals, layout)
     (out / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
     if not evaluations.empty:
         learning_figure(evaluations).savefig(out / FIGURE, dpi=110)

@@ -22,8 +22,6 @@ class LearnBenchSettings:
     out: str = "runs/bench-learn"  # the results folder
     resume: bool = True  # skip runs that already finished in ``out``
     encoder_checkpoint: str = ""  # the CMVAE (default: the shipped one)
-    envs: int = 1  # training envs per run (the same gradient steps per env step whatever the number)
-    sims: int = 1  # sim processes sharing them, one group of envs each (`swimm up --sims`)
 
     def check(self) -> None:
         if not self.algos or not self.seeds:
@@ -32,7 +30,5 @@ class LearnBenchSettings:
             raise ValueError(f"--algos and --seeds must not repeat: got {self.algos} and {self.seeds}")
         if min(self.budget_steps, self.eval_every, self.eval_episodes, self.eval_max_steps, self.final_episodes) < 1:
             raise ValueError("budget_steps, eval_every, eval_episodes, eval_max_steps and final_episodes must be >= 1")
-        if self.envs < 1 or self.sims < 1 or self.envs % self.sims:
-            raise ValueError(f"--envs must be >= 1 and --sims divide it, got {self.envs} envs and {self.sims} sims")
         if self.budget_min <= 0:
             raise ValueError(f"--budget-min must be > 0 minutes, got {self.budget_min}")
