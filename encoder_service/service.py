@@ -11,6 +11,9 @@ Batching (:class:`LatentBatcher`): the Zenoh callback only queues raw
 bytes; one worker thread takes the first waiting frame, gathers more until
 ``max_batch`` frames or ``max_wait_ms`` have passed, encodes them in one
 forward pass and publishes each latent with its telemetry passed through.
+A group's frames (``<ns>/<channel>/groups/<group>/obs/<id>``, one message
+for several envs) join the same forward pass and leave as one message of
+latents, an env the sim refused passed on as its error item.
 Frames that cannot be decoded or have the wrong shape or dtype are refused
 with a logged reason, counted, and reported on the env's ``err`` key; the
 service keeps serving.
