@@ -34,10 +34,9 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -204,24 +203,38 @@ class GroupedEnvs:
 def measure_groups(endpoint: str, envs: int, group_size: int, steps: int, rounds: int) -> dict[str, Tally]:
     """``steps`` env steps in-process (one World, the serial loop) and through the sims (``envs`` envs in groups),
     in ``rounds`` alternating blocks."""
-    vector_steps = max(1, steps // envs)
-    actions = random_actions(vector_steps)
-    tallies = {"inprocess": Tally(), "served": Tally()}
+    actions = random_actions(max(1, steps // envs))
     with ExitStack() as stack:
-        world = World()
-        stack.callback(world.close)
-        world.reset(1)
+        world = warm_world(stack)
         served = GroupedEnvs(endpoint, envs, group_size, stack)
-        warmup = random_actions(WARMUP_STEPS, seed=1)
-        step_inprocess(world, warmup, Tally())
-        served.step(warmup[: max(1, WARMUP_STEPS // envs)], Tally())
-        for index, block in enumerate(np.array_split(np.arange(vector_steps), rounds)):
-            block_actions = [actions[i] for i in block]
-            for name in sorted(tallies, reverse=index % 2 == 1):
-                if name == "served":
-                    served.step(block_actions, tallies[name])
-                else:  # as many env steps, one World one after the other
-                    step_inprocess(world, [a for a in block_actions for _ in range(envs)], tallies[name])
+        served.step(random_actions(max(1, WARMUP_STEPS // envs), seed=1), Tally())
+        # As many env steps in-process: every vector step's action once for each env, one World after the other.
+        return alternate(world, served.step, actions, rounds, lambda block: [a for a in block for _ in range(envs)])
+
+
+def warm_world(stack: ExitStack) -> World:
+    """The in-process World, reset and past its slow first frames (:data:`WARMUP_STEPS`)."""
+    world = World()
+    stack.callback(world.close)
+    world.reset(1)
+    step_inprocess(world, random_actions(WARMUP_STEPS, seed=1), Tally())
+    return world
+
+
+def alternate(
+    world: World, served_step: Callable[[list, Tally], None], actions: list, rounds: int,
+    inprocess_actions: Callable[[list], list] = lambda block: block,
+) -> dict[str, Tally]:  # fmt: skip
+    """``actions`` in ``rounds`` blocks, each block served and (as ``inprocess_actions`` of it) in-process, which
+    of the two goes first alternating from round to round."""
+    tallies = {"inprocess": Tally(), "served": Tally()}
+    for index, block in enumerate(np.array_split(np.arange(len(actions)), rounds)):
+        block_actions = [actions[i] for i in block]
+        for name in sorted(tallies, reverse=index % 2 == 1):
+            if name == "served":
+                served_step(block_actions, tallies[name])
+            else:
+                step_inprocess(world, inprocess_actions(block_actions), tallies[name])
     return tallies
 
 
@@ -239,21 +252,11 @@ def switch_interval(seconds: float) -> Iterator[None]:
 def measure_way(way: Way, endpoint: str, steps: int, rounds: int) -> dict[str, Tally]:
     """The learner's half, in its own process: ``steps`` in-process and through the sim, in ``rounds`` blocks
     each, alternating which of the two goes first."""
-    actions = random_actions(steps)
-    tallies = {"inprocess": Tally(), "served": Tally()}
     with ExitStack() as stack:
-        world = World()
-        stack.callback(world.close)
-        world.reset(1)
+        world = warm_world(stack)
         served = ServedEnv(way, endpoint, stack)
-        warmup = random_actions(WARMUP_STEPS, seed=1)
-        step_inprocess(world, warmup, Tally())
-        served.step(warmup, Tally())
-        take = {"inprocess": partial(step_inprocess, world), "served": served.step}
-        for index, block in enumerate(np.array_split(np.arange(steps), rounds)):
-            for name in sorted(take, reverse=index % 2 == 1):
-                take[name]([actions[i] for i in block], tallies[name])
-    return tallies
+        served.step(random_actions(WARMUP_STEPS, seed=1), Tally())
+        return alternate(world, served.step, random_actions(steps), rounds)
 
 
 def run_learner(way: Way, endpoint: str, steps: int, rounds: int, sim: Service) -> dict[str, Tally]:

@@ -11,12 +11,10 @@ the live encoders, which is how a group moves off a dead one. Claims and resets 
 from __future__ import annotations
 
 import logging
-import queue
-import time
 
 import zenoh
 
-from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, StepTimeout, choose_route, decode_reply
+from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, await_reply, choose_route, decode_reply
 from services.keys import GROUPS, Keys
 from services.messages import DIRECT_ROUTE, BadMessage, BatchItem, BatchMsg
 from services.polling import Inbox, prepare_to_poll
@@ -81,26 +79,19 @@ class GroupLink:
 
     def wait(self) -> list[Reply]:
         """The replies to the last send, in the group's order; re-sends the same steps on each timeout."""
-        for attempt in range(self.max_retries + 1):
-            deadline = time.monotonic() + self.step_timeout_s
-            while (remaining := deadline - time.monotonic()) > 0:
-                try:
-                    batch = self._replies.get(remaining)
-                except queue.Empty:
-                    break
-                if batch is not None and (replies := self._match(batch)) is not None:
-                    return replies
-            self.retries += 1
-            log.warning("%s: no reply within %.1f s (try %d); re-sending", self.name, self.step_timeout_s, attempt + 1)
-            self._send()
-        raise StepTimeout(
+        return await_reply(self, self._replies, self._match, self._send, self._missing_service_message)
+
+    def _missing_service_message(self) -> str:
+        services = "`swimm sim` and `swimm encoder`" if self.encoded else "`swimm sim`"
+        return (
             f"no reply for group {self.name} ({len(self.links)} envs) after {self.max_retries + 1} tries of "
-            f"{self.step_timeout_s:.1f} s. Are `swimm sim`{' and `swimm encoder`' if self.encoded else ''} running "
-            "and connected to the same router and namespace?"
+            f"{self.step_timeout_s:.1f} s. Are {services} running and connected to the same router and namespace?"
         )
 
-    def _match(self, batch: BatchMsg) -> list[Reply] | None:
+    def _match(self, batch: BatchMsg | None) -> list[Reply] | None:
         """The replies if ``batch`` answers the steps in flight; None (and counted) for an answer to earlier ones."""
+        if batch is None:
+            return None
         expected = [(link.env, link.ep, link.seq) for link in self.links]
         if [(item.env, item.ep, item.seq) for item in batch.items] != expected:
             self.duplicates_dropped += 1

@@ -19,7 +19,9 @@ import logging
 import queue
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -84,6 +86,30 @@ def decode_reply(payload: bytes, encoded: bool) -> Reply:
         return Reply(msg.ep, msg.seq, msg.telemetry, None, mu, logvar)
     obs = ObservationMsg.decode(payload)
     return Reply(obs.ep, obs.seq, obs.telemetry, obs.image, None, None)
+
+
+def await_reply(
+    waiter: Any, inbox: Inbox, accept: Callable[[Any], Any], resend: Callable[[], None], missing: Callable[[], str]
+) -> Any:
+    """The first item of ``inbox`` that ``accept`` takes, re-sending (``resend``) each time ``waiter``'s
+    ``step_timeout_s`` passes without one, up to ``max_retries`` times (counted in ``waiter.retries``); then
+    StepTimeout with ``missing()``'s message. A re-send that fails is logged and waited out like a lost one."""
+    for attempt in range(waiter.max_retries + 1):
+        deadline = time.monotonic() + waiter.step_timeout_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            try:
+                item = inbox.get(remaining)
+            except queue.Empty:
+                break
+            if (reply := accept(item)) is not None:
+                return reply
+        waiter.retries += 1
+        log.warning("%s: no reply within %.1f s (try %d); re-sending", waiter.name, waiter.step_timeout_s, attempt + 1)
+        try:
+            resend()
+        except control.ControlError as exc:
+            log.warning("%s: re-send failed: %s", waiter.name, exc)
+    raise StepTimeout(missing())
 
 
 def new_holder_id(role: str) -> str:
@@ -215,37 +241,21 @@ class RemoteEnvLink:
 
     def wait(self) -> Reply:
         """The reply to the last send; re-sends the same (ep, seq) on each timeout."""
-        for attempt in range(self.max_retries + 1):
-            deadline = time.monotonic() + self.step_timeout_s
-            while (remaining := deadline - time.monotonic()) > 0:
-                try:
-                    item = self._replies.get(remaining)
-                except queue.Empty:
-                    break
-                if item is None:
-                    continue
-                if isinstance(item, ErrorMsg):
-                    # Addressed to us (the sim's refusals) or to whoever drives the env (an encoder's).
-                    if item.sender in (self.holder, "") and (item.ep, item.seq) == (self.ep, self.seq):
-                        raise StepRefused(f"{self.name}: {item.reason}")
-                    continue
-                if (item.ep, item.seq) == (self.ep, self.seq):
-                    return item
-                self.duplicates_dropped += 1  # a late or repeated reply to an earlier step
-            self.retries += 1
-            log.warning(
-                "%s: no reply to ep %d seq %d within %.1f s (try %d); re-sending",
-                self.name,
-                self.ep,
-                self.seq,
-                self.step_timeout_s,
-                attempt + 1,
-            )
-            try:
-                self._send()
-            except control.ControlError as exc:
-                log.warning("%s: re-send failed: %s", self.name, exc)
-        raise StepTimeout(self._missing_service_message())
+        return await_reply(self, self._replies, self._accept, self._send, self._missing_service_message)
+
+    def _accept(self, item: Reply | ErrorMsg | None) -> Reply | None:
+        """``item`` if it answers the step in flight; raises StepRefused for a refusal of it; else None."""
+        if item is None:
+            return None
+        if isinstance(item, ErrorMsg):
+            # Addressed to us (the sim's refusals) or to whoever drives the env (an encoder's).
+            if item.sender in (self.holder, "") and (item.ep, item.seq) == (self.ep, self.seq):
+                raise StepRefused(f"{self.name}: {item.reason}")
+            return None
+        if (item.ep, item.seq) == (self.ep, self.seq):
+            return item
+        self.duplicates_dropped += 1  # a late or repeated reply to an earlier step
+        return None
 
     def _missing_service_message(self) -> str:
         where = f"{self.name} episode {self.ep} seq {self.seq}"

@@ -63,17 +63,15 @@ class Keys:
     def ctl(self, channel: str, env: str) -> str:
         return f"{self._env(channel, env)}/ctl"
 
-    def _group(self, channel: str, group: str) -> str:
-        return f"{self.namespace}/{channel}/{GROUPS}/{group}"
-
+    # A group's keys are an env's keys with ``groups/<group>`` in the env's place: one level deeper.
     def group_action(self, channel: str, group: str) -> str:
-        return f"{self._group(channel, group)}/action"
+        return self.action(channel, f"{GROUPS}/{group}")
 
     def group_obs(self, channel: str, group: str, route: str) -> str:
-        return f"{self._group(channel, group)}/obs/{route}"
+        return self.obs(channel, f"{GROUPS}/{group}", route)
 
     def group_latent(self, channel: str, group: str) -> str:
-        return f"{self._group(channel, group)}/latent"
+        return self.latent(channel, f"{GROUPS}/{group}")
 
     def group_actions(self, channel: str) -> str:
         """Every group's actions on one channel (what a sim serving that channel listens to)."""
@@ -85,11 +83,15 @@ class Keys:
 
     def parse_group_key(self, key: str) -> tuple[str, str]:
         """(channel, group) of a group key such as ``<ns>/train/groups/learner-1.0/obs/enc-1``."""
-        prefix = self.namespace + "/"
-        parts = key[len(prefix) :].split("/") if key.startswith(prefix) else []
+        parts = self._chunks(key)
         if len(parts) < 4 or parts[0] not in CHANNELS or parts[1] != GROUPS:
             raise ValueError(f"{key!r} is not a group key of namespace {self.namespace!r}")
         return parts[0], parts[2]
+
+    def _chunks(self, key: str) -> list[str]:
+        """The chunks of ``key`` after the namespace ([] for a key outside it)."""
+        prefix = self.namespace + "/"
+        return key[len(prefix) :].split("/") if key.startswith(prefix) else []
 
     def encoder_inbox(self, encoder_id: str) -> str:
         """Every observation routed to one encoder, whatever its channel and env."""
@@ -109,8 +111,7 @@ class Keys:
 
     def parse_env_key(self, key: str) -> tuple[str, str]:
         """(channel, env) of a step-pipeline key such as ``<ns>/train/0/obs/enc-1``."""
-        prefix = self.namespace + "/"
-        parts = key[len(prefix) :].split("/") if key.startswith(prefix) else []
+        parts = self._chunks(key)
         if len(parts) < 3 or parts[0] not in CHANNELS:
             raise ValueError(f"{key!r} is not a step key of namespace {self.namespace!r}")
         return parts[0], parts[1]

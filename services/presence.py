@@ -30,11 +30,17 @@ def live_now(session: zenoh.Session, keys: Keys, role: str, timeout_s: float = 2
     A :class:`Roster` can keep a stale arrival (its history reply may land after the departure it
     predates), so decisions that free resources ask again here.
     """
-    members = set()
-    for reply in session.liveliness().get(keys.live_role(role), timeout=timeout_s):
+    return {ident for _, ident in live_tokens(session, keys.live_role(role), timeout_s)}
+
+
+def live_tokens(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) -> set[tuple[str, str]]:
+    """(role, id) of every liveliness token matching ``key_expr`` that the network holds now."""
+    tokens = set()
+    for reply in session.liveliness().get(key_expr, timeout=timeout_s):
         if reply.ok is not None:
-            members.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
-    return members
+            role, ident = str(reply.ok.key_expr).split("/")[-2:]
+            tokens.add((role, ident))
+    return tokens
 
 
 class Roster:

@@ -22,6 +22,7 @@ import zenoh
 
 from services.control import survey
 from services.keys import Keys
+from services.presence import live_tokens
 from services.session import build_config, describe_endpoints, open_session
 from services.settings import ZenohSettings
 
@@ -41,12 +42,7 @@ class StatusSettings:
 
 def live_members(session: zenoh.Session, keys: Keys) -> set[tuple[str, str]]:
     """(role, id) of every liveliness token in the namespace."""
-    members = set()
-    for reply in session.liveliness().get(f"{keys.namespace}/@live/**", timeout=2.0):
-        if reply.ok is not None:
-            role, ident = str(reply.ok.key_expr).split("/")[-2:]
-            members.add((role, ident))
-    return members
+    return live_tokens(session, keys.live_role("*"))
 
 
 def listen_to_metrics(session: zenoh.Session, keys: Keys, window_s: float) -> dict[tuple[str, str], list[dict]]:
