@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from learner_service.learn_settings import LearnCommandSettings
 from learner_service.up import group_size_for, sim_shares
 
 
@@ -14,4 +13,4 @@ def default_layout(envs: int, sims: int = 0, group_size: int = -1) -> tuple[int,
     share = sim_shares(envs, sims)[0][1]
     if group_size < 0:
         group_size = share if envs >= 4 else 0
-    return sims, group_size_for(LearnCommandSettings(envs=envs, group_size=group_size), sims)
+    return sims, group_size_for(envs, group_size, sims)

@@ -25,8 +25,6 @@ from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
 log = logging.getLogger(__name__)
 
-EPISODE_UNITS = ("episode", "episodes")
-
 
 @dataclass(frozen=True)
 class EpisodicSchedule:
@@ -38,7 +36,10 @@ def episodic_schedule(kwargs: Mapping[str, Any], n_envs: int) -> EpisodicSchedul
     """The schedule to run by :class:`EpisodicTraining` when ``kwargs`` train per episode and there are several
     envs; None when SB3 can run ``kwargs`` as they are."""
     train_freq = kwargs.get("train_freq")
-    if n_envs < 2 or not isinstance(train_freq, list | tuple) or str(train_freq[-1]) not in EPISODE_UNITS:
+    if n_envs < 2 or train_freq is None:
+        return None
+    episodes, unit = frequency_and_unit(train_freq)
+    if unit != "episode":
         return None
     gradient_steps = int(kwargs.get("gradient_steps", 1))
     if gradient_steps < 0:
@@ -46,7 +47,7 @@ def episodic_schedule(kwargs: Mapping[str, Any], n_envs: int) -> EpisodicSchedul
             "gradient_steps -1 (as many as the rollout's steps) has no per-episode meaning with several envs; "
             "give a number of gradient steps per episode"
         )
-    return EpisodicSchedule(int(train_freq[0]), gradient_steps)
+    return EpisodicSchedule(episodes, gradient_steps)
 
 
 def vectorised_kwargs(kwargs: Mapping[str, Any], n_envs: int) -> dict[str, Any]:
@@ -75,13 +76,11 @@ def per_env_steps(kwargs: Mapping[str, Any], n_envs: int) -> dict[str, Any]:
     train_freq, gradient_steps = kwargs.get("train_freq"), kwargs.get("gradient_steps")
     if n_envs < 2 or train_freq is None or not isinstance(gradient_steps, int) or gradient_steps < 0:
         return dict(kwargs)
-    frequency, unit = (
-        (train_freq[0], str(train_freq[-1])) if isinstance(train_freq, list | tuple) else (train_freq, "step")
-    )
-    if unit not in ("step", "steps"):
+    frequency, unit = frequency_and_unit(train_freq)
+    if unit != "step":
         return dict(kwargs)
-    vector_steps = max(1, round(int(frequency) / n_envs))
-    scaled = max(1, round(gradient_steps * vector_steps * n_envs / int(frequency))) if gradient_steps else 0
+    vector_steps = max(1, round(frequency / n_envs))
+    scaled = max(1, round(gradient_steps * vector_steps * n_envs / frequency)) if gradient_steps else 0
     log.info(
         "%d envs: train_freq %d env steps is every %d vector steps (%d env steps), %d gradient step(s) each",
         n_envs,

@@ -18,7 +18,6 @@ from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, a
 from services.keys import GROUPS, Keys
 from services.messages import DIRECT_ROUTE, BadMessage, BatchItem, BatchMsg
 from services.polling import Inbox, prepare_to_poll
-from services.presence import Roster
 
 log = logging.getLogger(__name__)
 
@@ -30,14 +29,13 @@ class GroupLink:
         keys: Keys,
         group: str,
         links: list[RemoteEnvLink],
-        encoders: Roster | None = None,
         poll_ms: float = 0.0,
     ) -> None:
         if not links:
             raise ValueError("a group needs at least one env")
         first = links[0]
         self.channel, self.group, self.links = first.channel, group, links
-        self.holder, self.encoded, self.encoders = first.holder, first.encoded, encoders
+        self.holder, self.encoded, self.encoders = first.holder, first.encoded, first.encoders
         self.step_timeout_s, self.max_retries = first.step_timeout_s, first.max_retries
         self.retries = 0
         self.duplicates_dropped = 0

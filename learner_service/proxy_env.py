@@ -277,7 +277,7 @@ class ProxyVecEnv(VecEnv):
         holder = self.envs[0].holder
         return [
             GroupLink(self.session, self.envs[0].keys, f"{holder}.{start // size}",
-                      [env.link for env in self.envs[start : start + size]], self.envs[0].link.encoders, proxy.poll_ms)
+                      [env.link for env in self.envs[start : start + size]], proxy.poll_ms)
             for start in range(0, len(self.envs), size)
         ]  # fmt: skip
 

@@ -79,20 +79,20 @@ def sim_shares(envs: int, sims: int) -> list[tuple[int, int]]:
     return [(index * share, share) for index in range(sims)]
 
 
-def group_size_for(learn: LearnCommandSettings, sims: int) -> int:
+def group_size_for(envs: int, group_size: int, sims: int) -> int:
     """The learner's group size: as asked, or one group per sim when several sims serve the envs (a group is
     stepped by one sim, so groups must not straddle two)."""
     if sims == 1:
-        return learn.group_size
-    share = learn.envs // sims
-    if learn.group_size == 0:
+        return group_size
+    share = envs // sims
+    if group_size == 0:
         return share
-    if share % learn.group_size:
+    if share % group_size:
         raise ValueError(
-            f"--group-size {learn.group_size} does not divide the {share} envs of each of the {sims} sims: a group "
+            f"--group-size {group_size} does not divide the {share} envs of each of the {sims} sims: a group "
             "is stepped by one sim, so each sim's share must be whole groups"
         )
-    return learn.group_size
+    return group_size
 
 
 class ServiceDied(RuntimeError):
@@ -280,7 +280,7 @@ def run(settings: UpSettings) -> int:
     if settings.sim_config and not Path(settings.sim_config).is_file():
         raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
     sim_shares(learn.envs, settings.sims)  # refuses a split that leaves envs over
-    learn = dataclasses.replace(learn, group_size=group_size_for(learn, settings.sims))
+    learn = dataclasses.replace(learn, group_size=group_size_for(learn.envs, learn.group_size, settings.sims))
     settings = dataclasses.replace(settings, learn=learn)
     checkpoint = encoder_checkpoint(learn)
     run_dir = Path(learn.run_dir) if learn.run_dir else default_run_dir(learn)
