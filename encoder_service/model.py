@@ -231,6 +231,14 @@ def check_psi_loss(name: str, called: str = "psi_loss") -> None:
         raise ValueError(f"{called} {name!r}: expected one of {', '.join(PSI_LOSSES)}")
 
 
+def state_loss(predicted: torch.Tensor, labels: torch.Tensor, psi_loss: str = "mse") -> torch.Tensor:
+    """Mean squared error of the normalised (d, theta, psi), psi wrapped; psi's absolute error with ``l1``."""
+    check_psi_loss(psi_loss)
+    errors = state_errors(predicted, labels)
+    psi_term = errors[:, 2].abs() if psi_loss == "l1" else errors[:, 2].pow(2)
+    return torch.cat([errors[:, :2].pow(2), psi_term[:, None]], dim=1).mean()
+
+
 def cmvae_loss(
     outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor, beta: float, psi_loss: str = "mse"
 ) -> LossParts:
@@ -250,14 +258,43 @@ def cmvae_loss(
     absolute error is least at the likelier of the two, and its mean is the
     MAE that the encoder is judged by.
     """
-    check_psi_loss(psi_loss)
     image = F.mse_loss(outputs.image, images)
-    errors = state_errors(outputs.state, labels)
-    psi_term = errors[:, 2].abs() if psi_loss == "l1" else errors[:, 2].pow(2)
-    state = torch.cat([errors[:, :2].pow(2), psi_term[:, None]], dim=1).mean()
+    state = state_loss(outputs.state, labels, psi_loss)
     kl = (-0.5 * (1.0 + outputs.logvar - outputs.mu.pow(2) - outputs.logvar.exp()).sum(dim=1)).mean()
     kl_per_value = kl / images[0].numel()
     return LossParts(total=image + state + beta * kl_per_value, image=image, state=state, kl=kl)
+
+
+@dataclass
+class DistillationParts:
+    total: torch.Tensor
+    latent: torch.Tensor
+    state: torch.Tensor
+
+    def as_floats(self) -> dict[str, float]:
+        return {name: float(getattr(self, name).detach()) for name in ("total", "latent", "state")}
+
+
+def distillation_loss(
+    student: CMVAE,
+    images: torch.Tensor,
+    teacher_mu: torch.Tensor,
+    teacher_logvar: torch.Tensor,
+    labels: torch.Tensor,
+    latent_weight: float,
+    psi_loss: str = "mse",
+) -> DistillationParts:
+    """Latent matching plus the state error: the student's posterior of a frame against the teacher's of its clean twin.
+
+    The latent term is the mean squared difference of mu and of log-variance over all latent dimensions; the
+    state term reads the student's mu through its (frozen) state decoders, so where a noisy frame cannot give
+    the teacher's latent back exactly, the error goes where the labels say it costs least. The image decoder is
+    not run: a latent that matches the teacher's decodes as the teacher's does, and the decoder is most of the compute.
+    """
+    mu, logvar = student.encode(images)
+    latent = F.mse_loss(mu, teacher_mu) + F.mse_loss(logvar, teacher_logvar)
+    state = state_loss(student.decode_state(mu), labels, psi_loss)
+    return DistillationParts(total=latent_weight * latent + state, latent=latent, state=state)
 
 
 # ---------------------------------------------------------------- checkpoints

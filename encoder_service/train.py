@@ -29,8 +29,10 @@ from encoder_service.model import (
     check_psi_loss,
     cmvae_loss,
     denormalise_labels,
+    distillation_loss,
     images_to_tensor,
     label_errors,
+    load_model,
     make_checkpoint,
     normalise_labels,
     read_checkpoint,
@@ -58,6 +60,8 @@ class TrainEncoderSettings:
     mirror: float = 0.5  # share of training frames flipped left-right (theta and psi change sign); 0 = off
     psi_loss: str = "mse"  # mse (the SPEC's) | l1: psi's absolute error, least at the likelier of two views
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
+    teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
+    latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -133,6 +137,41 @@ def inputs_and_targets(batch: Batch, feed_clean: np.ndarray | None = None) -> tu
     return np.where(feed_clean[:, None, None, None], batch.clean, batch.images), batch.clean
 
 
+def freeze_decoders(model: CMVAE) -> None:
+    """Fix the image and state decoders' weights and batch-norm statistics: the latent keeps the teacher's meaning."""
+    for decoder in (model.image_decoder, model.state_decoders):
+        decoder.requires_grad_(False)
+
+
+def _train_mode(model: CMVAE) -> None:
+    """Training mode for what trains; frozen decoders stay in eval mode so their batch-norm statistics hold."""
+    model.train()
+    for decoder in (model.image_decoder, model.state_decoders):
+        if not any(parameter.requires_grad for parameter in decoder.parameters()):
+            decoder.eval()
+
+
+def _loss(
+    model: CMVAE,
+    batch: Batch,
+    feed_clean: np.ndarray,
+    settings: TrainEncoderSettings,
+    device: torch.device,
+    teacher: CMVAE | None,
+):
+    """The batch's loss parts: the CMVAE loss, or with a ``teacher`` the distillation loss."""
+    inputs, targets = inputs_and_targets(batch, feed_clean)
+    labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
+    images = images_to_tensor(inputs, device)
+    if teacher is None:
+        return cmvae_loss(model(images), images_to_tensor(targets, device), labels, settings.beta, settings.psi_loss)
+    with torch.no_grad():
+        teacher_mu, teacher_logvar = teacher.encode(images_to_tensor(targets, device))
+    return distillation_loss(
+        model, images, teacher_mu, teacher_logvar, labels, settings.latent_weight, settings.psi_loss
+    )
+
+
 def _train_epoch(
     model: CMVAE,
     optimiser: torch.optim.Optimizer,
@@ -141,8 +180,9 @@ def _train_epoch(
     settings: TrainEncoderSettings,
     epoch: int,
     device: torch.device,
+    teacher: CMVAE | None = None,
 ) -> dict[str, float]:
-    model.train()
+    _train_mode(model)
     totals: dict[str, float] = {}
     seen = 0
     batches = iter_batches(
@@ -162,10 +202,8 @@ def _train_epoch(
         for batch in bar:
             if settings.mirror > 0:
                 batch = mirror_batch(batch, flips.random(len(batch.indices)) < settings.mirror)
-            inputs, targets = inputs_and_targets(batch, feeds.random(len(batch.indices)) < settings.clean_share)
-            labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
-            outputs = model(images_to_tensor(inputs, device))
-            loss = cmvae_loss(outputs, images_to_tensor(targets, device), labels, settings.beta, settings.psi_loss)
+            feed_clean = feeds.random(len(batch.indices)) < settings.clean_share
+            loss = _loss(model, batch, feed_clean, settings, device, teacher)
             optimiser.zero_grad(set_to_none=True)
             loss.total.backward()
             optimiser.step()
@@ -194,14 +232,14 @@ def recalibrate_batch_norm(
     cumulative average over ``bn_batches`` batches at fixed weights is what validation and the checkpoint
     then use.
     """
-    layers = [module for module in model.modules() if isinstance(module, torch.nn.BatchNorm2d)]
+    _train_mode(model)
+    layers = [module for module in model.modules() if isinstance(module, torch.nn.BatchNorm2d) and module.training]
     if not layers or settings.bn_batches <= 0:
         return
     momenta = [layer.momentum for layer in layers]
     for layer in layers:
         layer.reset_running_stats()
         layer.momentum = None  # a plain average over the batches below
-    model.train()
     feeds = np.random.default_rng((settings.seed, epoch, 4))
     for batch in iter_batches(dataset, indices, settings.batch_size, (settings.seed, epoch, 2), settings.bn_batches):
         inputs, _ = inputs_and_targets(batch, feeds.random(len(batch.indices)) < settings.clean_share)
@@ -220,10 +258,13 @@ def validate(
     device: torch.device,
     psi_loss: str = "mse",
     feed_clean: bool = False,
+    teacher: CMVAE | None = None,
+    latent_weight: float = 1.0,
 ) -> dict[str, float]:
     """Mean losses on ``indices`` with z = mu, plus the MAE of each label in physical units.
 
     A paired dataset is read noisy (its ``images``) unless ``feed_clean``; the decoder's target is its clean frame.
+    With a ``teacher`` the losses are the distillation loss's (the latent match to the teacher's clean latent).
     """
     model.eval()
     totals: dict[str, float] = {}
@@ -233,11 +274,17 @@ def validate(
         chosen = np.full(len(batch.indices), feed_clean)
         inputs, targets = inputs_and_targets(batch, chosen)
         labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
-        outputs = model(images_to_tensor(inputs, device))
-        targets_t = images_to_tensor(targets, device)
-        for key, value in cmvae_loss(outputs, targets_t, labels, beta, psi_loss).as_floats().items():
+        images, targets_t = images_to_tensor(inputs, device), images_to_tensor(targets, device)
+        if teacher is None:
+            outputs = model(images)
+            parts = cmvae_loss(outputs, targets_t, labels, beta, psi_loss)
+            state = outputs.state
+        else:
+            parts = distillation_loss(model, images, *teacher.encode(targets_t), labels, latent_weight, psi_loss)
+            state = model.decode_state(model.encode(images)[0])
+        for key, value in parts.as_floats().items():
             totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
-        predicted = denormalise_labels(outputs.state.float().cpu().numpy())
+        predicted = denormalise_labels(state.float().cpu().numpy())
         errors += label_errors(predicted, batch.labels).sum(axis=0)
         seen += len(batch.indices)
     metrics = _mean(totals, seen)
@@ -247,16 +294,22 @@ def validate(
 
 
 def validate_all(
-    model: CMVAE, dataset: CMVAEDataset, indices: np.ndarray, settings: TrainEncoderSettings, device: torch.device
+    model: CMVAE,
+    dataset: CMVAEDataset,
+    indices: np.ndarray,
+    settings: TrainEncoderSettings,
+    device: torch.device,
+    teacher: CMVAE | None = None,
 ) -> dict[str, float]:
     """`validate`; on a paired dataset both noisy and clean inputs, ``total`` their mean and ``clean_*`` the latter's.
 
     Early stopping and ``best.pt`` then favour a model good on both, not one that gave up clean frames for noisy.
     """
     args = (model, dataset, indices, settings.batch_size, settings.beta, device, settings.psi_loss)
-    metrics = validate(*args)
+    distill = {"teacher": teacher, "latent_weight": settings.latent_weight}
+    metrics = validate(*args, **distill)
     if dataset.paired:
-        clean = validate(*args, feed_clean=True)
+        clean = validate(*args, feed_clean=True, **distill)
         metrics |= {f"clean_{key}": value for key, value in clean.items()}
         metrics["total"] = (metrics["total"] + clean["total"]) / 2.0
     return metrics
@@ -276,6 +329,24 @@ def _load_weights(model: CMVAE, path: str, n_z: int) -> None:
         raise ValueError(f"--init {path} has n_z={checkpoint['config']['n_z']}, settings say {n_z}")
     model.load_state_dict({name: tensor.float() for name, tensor in checkpoint["state_dict"].items()})
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
+
+
+def _teacher(settings: TrainEncoderSettings, dataset: CMVAEDataset, device: torch.device) -> CMVAE | None:
+    """The frozen teacher of a distillation run, or None; refused unless every frame has its clean twin."""
+    if not settings.teacher:
+        return None
+    if not dataset.paired:
+        raise ValueError(
+            f"--teacher needs a paired dataset (each noisy frame with its clean twin, `swimm dataset --paired`); "
+            f"{settings.dataset} is not paired"
+        )
+    teacher, checkpoint = load_model(settings.teacher, device)
+    if teacher.n_z != settings.n_z:
+        raise ValueError(f"--teacher {settings.teacher} has n_z={teacher.n_z}, settings say {settings.n_z}")
+    log.info(
+        "distilling from %s (its epoch %d): decoders frozen, latents matched", settings.teacher, checkpoint["epoch"]
+    )
+    return teacher.requires_grad_(False)
 
 
 def _seed_everything(seed: int) -> None:
@@ -309,7 +380,10 @@ def run(settings: TrainEncoderSettings) -> int:
     )
 
     model = CMVAE(n_z=settings.n_z).to(device=device, memory_format=torch.channels_last)
-    optimiser = torch.optim.Adam(model.parameters(), lr=settings.lr)
+    teacher = _teacher(settings, dataset, device)
+    if teacher is not None:
+        freeze_decoders(model)
+    optimiser = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=settings.lr)
     stopper = EarlyStopping(settings.patience, settings.min_rel_gain)
     best_val, best_epoch, start_epoch = math.inf, 0, 0
     last_path, best_path = out / "last.pt", out / "best.pt"
@@ -325,8 +399,9 @@ def run(settings: TrainEncoderSettings) -> int:
         log.info("resuming from %s after epoch %d (best validation loss %.5f)", last_path, start_epoch, best_val)
     elif settings.resume:
         log.warning("--resume given but %s does not exist; starting afresh", last_path)
-    if settings.init and start_epoch == 0:
-        _load_weights(model, settings.init, settings.n_z)
+    init = settings.init or settings.teacher  # a distilled encoder starts as its teacher, decoders and all
+    if init and start_epoch == 0:
+        _load_weights(model, init, settings.n_z)
 
     writer = None
     if settings.tensorboard:
@@ -338,9 +413,9 @@ def run(settings: TrainEncoderSettings) -> int:
     try:
         with sigterm_as_ctrl_c():
             for epoch in range(start_epoch, settings.epochs):
-                train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device)
+                train_metrics = _train_epoch(model, optimiser, dataset, train_rows, settings, epoch, device, teacher)
                 recalibrate_batch_norm(model, dataset, train_rows, settings, epoch, device)
-                metrics = validate_all(model, dataset, val_rows, settings, device)
+                metrics = validate_all(model, dataset, val_rows, settings, device, teacher)
                 epochs_run += 1
                 val_loss = metrics["total"]
                 history.append({"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss})

@@ -295,3 +295,48 @@ def _validate_args(dataset_dir: Path, out: Path) -> tuple:
     model = CMVAE()
     model.load_state_dict(read_checkpoint(out / "last.pt")["state_dict"])
     return model, dataset, val_rows, 32, 8.0, torch.device("cpu")
+
+
+def _latent_match(model: CMVAE, teacher: CMVAE, dataset: CMVAEDataset, rows: np.ndarray) -> float:
+    """Validation's latent term on ``rows`` read noisy: the distance to the teacher's latent of the clean twins."""
+    return validate(model, dataset, rows, 32, 8.0, torch.device("cpu"), "mse", teacher=teacher)["latent"]
+
+
+def test_distillation_pulls_noisy_latents_to_the_teachers_clean_ones_and_keeps_its_decoders(
+    paired_dir: Path, tmp_path: Path
+) -> None:
+    from encoder_service.model import load_model, read_checkpoint
+
+    out = tmp_path / "run"
+    settings = _settings(paired_dir, out, teacher=str(DEFAULT_CHECKPOINT), epochs=3, lr=1e-3, clean_share=0.0)
+    assert run(settings) == 0
+    teacher, _ = load_model(DEFAULT_CHECKPOINT)
+    student = CMVAE()
+    student.load_state_dict(read_checkpoint(out / "last.pt")["state_dict"])
+    dataset = CMVAEDataset(paired_dir)
+    train_rows, _ = split_indices(len(dataset), 0.25, 0)
+    before, after = (
+        _latent_match(teacher, teacher, dataset, train_rows),
+        _latent_match(student, teacher, dataset, train_rows),
+    )
+    assert after < 0.7 * before, (before, after)
+    frozen = [name for name in teacher.state_dict() if not name.startswith("encoder.")]
+    assert frozen and all(torch.equal(student.state_dict()[n], teacher.state_dict()[n]) for n in frozen)
+    assert not torch.equal(student.state_dict()["encoder.head.4.weight"], teacher.state_dict()["encoder.head.4.weight"])
+    assert {"latent", "clean_latent", "mae_d", "clean_mae_d"} <= set(_summary(out)["last_val_metrics"])
+
+
+def test_a_teacher_on_its_own_clean_frames_matches_exactly(paired_dir: Path) -> None:
+    from encoder_service.model import load_model
+
+    teacher, _ = load_model(DEFAULT_CHECKPOINT)
+    dataset = CMVAEDataset(paired_dir)
+    rows = np.arange(len(dataset))
+    clean = validate(teacher, dataset, rows, 32, 8.0, torch.device("cpu"), "mse", feed_clean=True, teacher=teacher)
+    assert clean["latent"] == pytest.approx(0.0, abs=1e-10)
+    assert _latent_match(teacher, teacher, dataset, rows) > 0.01  # the noisy twins' latents do differ
+
+
+def test_distillation_needs_a_paired_dataset(dataset_dir: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="--teacher needs a paired dataset"):
+        run(_settings(dataset_dir, tmp_path / "run", teacher=str(DEFAULT_CHECKPOINT)))
