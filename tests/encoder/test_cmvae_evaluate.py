@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.evaluate import EncodedSet, EvalEncoderSettings, psi_breakdown, run
+from encoder_service.evaluate import EncodedSet, EvalEncoderSettings, psi_breakdown, run, state_metrics
 from encoder_service.model import CMVAE, make_checkpoint
 from tests.encoder.cmvae_testdata import write_dataset
 
@@ -124,3 +124,18 @@ def test_psi_breakdown_splits_the_error_by_view_and_distance() -> None:
         {"head_on": 180.0, "oblique_front": None, "side": 20.0, "oblique_back": None, "from_behind": 20.0}
     )
     assert breakdown["mae_by_distance_deg"] == pytest.approx({"2-4m": 10.0, "4-6m": 20.0, "6-8m": None, "8-10m": 105.0})
+
+
+def test_state_metrics_split_every_labels_error_by_distance_band() -> None:
+    """Three frames with known errors in d, theta and psi, at 3, 5 and 5.5 m: the 4-6 m band averages two."""
+    labels = np.array([[3.0, 10.0, 0.0], [5.0, -5.0, 170.0], [5.5, 0.0, 90.0]])
+    predicted = np.array([[3.5, 12.0, 20.0], [4.0, -5.0, -170.0], [5.5, 3.0, 60.0]])
+    encoded = EncodedSet(
+        mu=np.zeros((3, 10)), predicted=predicted, labels=labels, image_mae=0.0, image_mae_vs_reference=None
+    )
+    metrics = state_metrics(encoded)
+    assert metrics["mae"] == pytest.approx({"d_m": 0.5, "theta_deg": 5.0 / 3, "psi_deg": 70.0 / 3})
+    bands = metrics["mae_by_distance"]
+    assert set(bands) == {"2-4m", "4-6m"}  # no frame in the far bands
+    assert bands["2-4m"] == pytest.approx({"d_m": 0.5, "theta_deg": 2.0, "psi_deg": 20.0})
+    assert bands["4-6m"] == pytest.approx({"d_m": 0.5, "theta_deg": 1.5, "psi_deg": 25.0})
