@@ -87,6 +87,7 @@ def learn_settings(
         save_replay_buffer=False,
         encoder_checkpoint=settings.encoder_checkpoint,
         envs=layout.envs,
+        smooth=settings.smooth,
     )
 
 

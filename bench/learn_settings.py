@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from learner_service.learn_settings import SmoothSettings
+
 
 @dataclass
 class LearnBenchSettings:
@@ -22,8 +24,10 @@ class LearnBenchSettings:
     out: str = "runs/bench-learn"  # the results folder
     resume: bool = True  # skip runs that already finished in ``out``
     encoder_checkpoint: str = ""  # the CMVAE (default: the shipped one)
+    smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS for off-policy actors
 
     def check(self) -> None:
+        self.smooth.check()
         if not self.algos or not self.seeds:
             raise ValueError("bench learn needs at least one algorithm (--algos) and one seed (--seeds)")
         if len(set(self.seeds)) != len(self.seeds) or len(set(self.algos)) != len(self.algos):

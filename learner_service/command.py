@@ -104,6 +104,7 @@ def check(settings: LearnCommandSettings) -> None:
     check_backend(settings.backend)
     settings.eval.check()
     settings.demo.check()
+    settings.smooth.check()
     if settings.algo in SCRIPTED_NAMES:
         raise ValueError(f"a scripted baseline has nothing to learn; evaluate it: `swimm eval --algo {settings.algo}`")
     if settings.demo.teacher not in SCRIPTED_NAMES:
@@ -214,6 +215,11 @@ class Training:
             else:
                 teacher = load_policy(s.demo.teacher, s.encoder_checkpoint or None)
                 demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher)
+        if s.smooth.enabled:
+            from learner_service.smoothness import keep_smooth
+
+            keep_smooth(model, s.smooth, s.seed)
+            log.info("actor updates keep CAPS smoothness terms: %s", s.smooth)
         start_steps = model.num_timesteps
         stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]

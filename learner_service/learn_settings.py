@@ -56,6 +56,24 @@ class DemoSettings:
 
 
 @dataclass
+class SmoothSettings:
+    """Flags ``--smooth-*`` of `swimm learn`: CAPS action smoothness for off-policy actors (see smoothness.py)."""
+
+    temporal: float = 0.0  # weight of the squared action change between consecutive observations (0: off)
+    spatial: float = 0.0  # weight of the squared action change under observation noise of std sigma (0: off)
+    sigma: float = 0.05  # std of the spatial term's observation noise
+    batch_size: int = 256  # replay minibatch of each term, per actor update
+
+    @property
+    def enabled(self) -> bool:
+        return self.temporal > 0 or self.spatial > 0
+
+    def check(self) -> None:
+        if min(self.temporal, self.spatial) < 0 or self.sigma <= 0 or self.batch_size < 1:
+            raise ValueError("smooth temporal and spatial must be >= 0, sigma > 0 and batch_size >= 1")
+
+
+@dataclass
 class LearnCommandSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
     algo: str = "sac"  # sac | ppo | td3 | package.module:Class
@@ -75,6 +93,7 @@ class LearnCommandSettings:
     save_replay_buffer: bool = True  # with checkpoints (newest only) and the final model, so resume keeps it
     eval: EvalSettings = field(default_factory=EvalSettings)  # flags --eval-*
     demo: DemoSettings = field(default_factory=DemoSettings)  # flags --demo-*: the scripted tracker's head start
+    smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS action smoothness
     encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
     step_timeout_s: float = 2.0  # distributed: wait per try before re-sending a step
     max_retries: int = 10  # distributed: re-sends before a step fails naming the missing service
