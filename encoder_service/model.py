@@ -270,6 +270,7 @@ class DistillationParts:
     total: torch.Tensor
     latent: torch.Tensor
     state: torch.Tensor
+    prediction: torch.Tensor  # (N, 3): the normalised (d, theta, psi) the student's mu decodes to
 
     def as_floats(self) -> dict[str, float]:
         return {name: float(getattr(self, name).detach()) for name in ("total", "latent", "state")}
@@ -293,8 +294,9 @@ def distillation_loss(
     """
     mu, logvar = student.encode(images)
     latent = F.mse_loss(mu, teacher_mu) + F.mse_loss(logvar, teacher_logvar)
-    state = state_loss(student.decode_state(mu), labels, psi_loss)
-    return DistillationParts(total=latent_weight * latent + state, latent=latent, state=state)
+    prediction = student.decode_state(mu)
+    state = state_loss(prediction, labels, psi_loss)
+    return DistillationParts(total=latent_weight * latent + state, latent=latent, state=state, prediction=prediction)
 
 
 # ---------------------------------------------------------------- checkpoints

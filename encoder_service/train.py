@@ -26,6 +26,8 @@ from encoder_service.data import Batch, CMVAEDataset, count_batches, iter_batche
 from encoder_service.model import (
     CMVAE,
     LABEL_NAMES,
+    DistillationParts,
+    LossParts,
     check_psi_loss,
     cmvae_loss,
     denormalise_labels,
@@ -138,7 +140,8 @@ def inputs_and_targets(batch: Batch, feed_clean: np.ndarray | None = None) -> tu
 
 
 def freeze_decoders(model: CMVAE) -> None:
-    """Fix the image and state decoders' weights and batch-norm statistics: the latent keeps the teacher's meaning."""
+    """Fix the image and state decoders' weights (their batch-norm statistics stay fixed in `_train_mode`), so the
+    latent keeps the teacher's meaning."""
     for decoder in (model.image_decoder, model.state_decoders):
         decoder.requires_grad_(False)
 
@@ -158,7 +161,7 @@ def _loss(
     settings: TrainEncoderSettings,
     device: torch.device,
     teacher: CMVAE | None,
-):
+) -> LossParts | DistillationParts:
     """The batch's loss parts: the CMVAE loss, or with a ``teacher`` the distillation loss."""
     inputs, targets = inputs_and_targets(batch, feed_clean)
     labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
@@ -281,7 +284,7 @@ def validate(
             state = outputs.state
         else:
             parts = distillation_loss(model, images, *teacher.encode(targets_t), labels, latent_weight, psi_loss)
-            state = model.decode_state(model.encode(images)[0])
+            state = parts.prediction
         for key, value in parts.as_floats().items():
             totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
         predicted = denormalise_labels(state.float().cpu().numpy())
