@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.utils import configure_logger
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -111,7 +112,10 @@ def check(settings: LearnCommandSettings) -> None:
         raise ValueError(f"demo teacher must be one of {', '.join(SCRIPTED_NAMES)}, got {settings.demo.teacher!r}")
     if settings.demo.teacher == LATENT_SCRIPTED and settings.obs != "cmvae":
         raise ValueError(f"demo teacher {LATENT_SCRIPTED} reads the latent: it needs --obs cmvae, got {settings.obs}")
-    _, defaults = resolve_algorithm(settings.algo)
+    algorithm, defaults = resolve_algorithm(settings.algo)
+    if settings.smooth.enabled and not issubclass(algorithm, OffPolicyAlgorithm):
+        raise ValueError(f"--smooth-* needs an off-policy learner (an actor and a replay buffer); {settings.algo} "
+                         f"({algorithm.__name__}) is on-policy")  # fmt: skip
     episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
     if settings.group_size < 0:
         raise ValueError(f"group_size must be >= 0 (0: each env its own messages), got {settings.group_size}")

@@ -59,3 +59,12 @@ def test_bad_smoothness_settings_are_refused() -> None:
         with pytest.raises(ValueError, match="smooth"):
             bad.check()
     assert not SmoothSettings().enabled and SmoothSettings(spatial=0.1).enabled
+
+
+def test_swimm_learn_refuses_smoothing_an_on_policy_learner_before_anything_starts() -> None:
+    from learner_service.command import check
+    from learner_service.learn_settings import LearnCommandSettings
+
+    with pytest.raises(ValueError, match="off-policy.*ppo"):
+        check(LearnCommandSettings(algo="ppo", smooth=SmoothSettings(temporal=1.0)))
+    check(LearnCommandSettings(algo="sac", smooth=SmoothSettings(temporal=1.0)))  # accepted
