@@ -88,6 +88,7 @@ def learn_settings(
         encoder_checkpoint=settings.encoder_checkpoint,
         envs=layout.envs,
         smooth=settings.smooth,
+        hyperparams=settings.hyperparams,
     )
 
 
@@ -219,8 +220,12 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
     """Train what is missing, evaluate it, write the results folder; returns the summary."""
     from tqdm import tqdm
 
+    from learner_service.command import check as check_learner
+
     settings.check()
     layout.check()
+    for algo in settings.algos:  # a learner's mistake (hyperparams, smoothing) refused before the first run
+        check_learner(learn_settings(settings, algo, settings.seeds[0], layout))
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     finals: dict[tuple[str, int], dict] = {}

@@ -122,6 +122,82 @@ class CMVAEDataset:
         return Batch(images=images, labels=labels, indices=indices, clean=clean)
 
 
+class DatasetUnion:
+    """Several dataset folders read as one: rows numbered folder after folder, each read from its own shards.
+
+    Training on a mixture of conditions (say randomised noise and one fixed preset) needs no merged copy on disk.
+    """
+
+    def __init__(self, parts: list[CMVAEDataset]) -> None:
+        if not parts:
+            raise ValueError("a dataset union needs at least one folder")
+        if len({part.paired for part in parts}) > 1:
+            paired = [str(part.root) for part in parts if part.paired]
+            raise DatasetFormatError(
+                f"cannot mix paired and unpaired datasets (paired: {', '.join(paired)}); write all --paired or none"
+            )
+        self.parts = parts
+        self.root = parts[0].root
+        self.meta = parts[0].meta
+        self._starts = np.concatenate([[0], np.cumsum([len(part) for part in parts])]).astype(np.int64)
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    @property
+    def seed(self) -> int:
+        return self.parts[0].seed
+
+    @property
+    def paired(self) -> bool:
+        return self.parts[0].paired
+
+    def _by_part(self, indices: np.ndarray) -> Iterator[tuple[CMVAEDataset, np.ndarray, np.ndarray]]:
+        """(part, positions in ``indices``, the part's own rows) for each part that ``indices`` touch."""
+        indices = np.asarray(indices, dtype=np.int64)
+        if indices.size and (indices.min() < 0 or indices.max() >= len(self)):
+            raise IndexError(f"row indices must lie in [0, {len(self)}), got {indices.min()}..{indices.max()}")
+        part_of = np.searchsorted(self._starts, indices, side="right") - 1
+        for part in np.unique(part_of):
+            positions = np.flatnonzero(part_of == part)
+            yield self.parts[part], positions, indices[positions] - self._starts[part]
+
+    def read_labels(self, indices: np.ndarray) -> np.ndarray:
+        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        for part, positions, rows in self._by_part(indices):
+            labels[positions] = part.read_labels(rows)
+        return labels
+
+    def read_poses(self, indices: np.ndarray) -> np.ndarray:
+        poses = np.empty((len(indices), 12), dtype=np.float32)
+        for part, positions, rows in self._by_part(indices):
+            poses[positions] = part.read_poses(rows)
+        return poses
+
+    def read(self, indices: np.ndarray) -> Batch:
+        indices = np.asarray(indices, dtype=np.int64)
+        images = np.empty((len(indices), *IMAGE_SHAPE), dtype=np.uint8)
+        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        clean = np.empty_like(images) if self.paired else None
+        for part, positions, rows in self._by_part(indices):
+            batch = part.read(rows)
+            images[positions], labels[positions] = batch.images, batch.labels
+            if clean is not None:
+                clean[positions] = batch.clean
+        return Batch(images=images, labels=labels, indices=indices, clean=clean)
+
+
+AnyDataset = CMVAEDataset | DatasetUnion
+
+
+def open_datasets(roots: str | list[str]) -> AnyDataset:
+    """One dataset folder, or several read as one (`DatasetUnion`)."""
+    roots = [roots] if isinstance(roots, str | Path) else list(roots)
+    if len(roots) == 1:
+        return CMVAEDataset(roots[0])
+    return DatasetUnion([CMVAEDataset(root) for root in roots])
+
+
 def _read_meta(root: Path) -> dict[str, Any]:
     path = root / "meta.json"
     if not path.is_file():
@@ -189,7 +265,7 @@ def split_indices(count: int, val_fraction: float, seed: int) -> tuple[np.ndarra
 
 
 def iter_batches(
-    dataset: CMVAEDataset,
+    dataset: AnyDataset,
     indices: np.ndarray,
     batch_size: int,
     shuffle_seed: int | tuple[int, ...] | None = None,

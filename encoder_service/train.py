@@ -14,7 +14,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,15 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from encoder_service.data import Batch, CMVAEDataset, count_batches, iter_batches, prefetch, split_indices
+from encoder_service.data import (
+    AnyDataset,
+    Batch,
+    count_batches,
+    iter_batches,
+    open_datasets,
+    prefetch,
+    split_indices,
+)
 from encoder_service.model import (
     CMVAE,
     LABEL_NAMES,
@@ -46,7 +54,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TrainEncoderSettings:
-    dataset: str = ""  # a folder written by `swimm dataset`
+    dataset: list[str] = field(default_factory=list)  # folders written by `swimm dataset`; several are read as one
     out: str = "runs/cmvae"
     epochs: int = 100
     batch_size: int = 32
@@ -178,7 +186,7 @@ def _loss(
 def _train_epoch(
     model: CMVAE,
     optimiser: torch.optim.Optimizer,
-    dataset: CMVAEDataset,
+    dataset: AnyDataset,
     indices: np.ndarray,
     settings: TrainEncoderSettings,
     epoch: int,
@@ -221,7 +229,7 @@ def _train_epoch(
 @torch.no_grad()
 def recalibrate_batch_norm(
     model: CMVAE,
-    dataset: CMVAEDataset,
+    dataset: AnyDataset,
     indices: np.ndarray,
     settings: TrainEncoderSettings,
     epoch: int,
@@ -254,7 +262,7 @@ def recalibrate_batch_norm(
 @torch.inference_mode()
 def validate(
     model: CMVAE,
-    dataset: CMVAEDataset,
+    dataset: AnyDataset,
     indices: np.ndarray,
     batch_size: int,
     beta: float,
@@ -298,7 +306,7 @@ def validate(
 
 def validate_all(
     model: CMVAE,
-    dataset: CMVAEDataset,
+    dataset: AnyDataset,
     indices: np.ndarray,
     settings: TrainEncoderSettings,
     device: torch.device,
@@ -334,7 +342,7 @@ def _load_weights(model: CMVAE, path: str, n_z: int) -> None:
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
 
 
-def _teacher(settings: TrainEncoderSettings, dataset: CMVAEDataset, device: torch.device) -> CMVAE | None:
+def _teacher(settings: TrainEncoderSettings, dataset: AnyDataset, device: torch.device) -> CMVAE | None:
     """The frozen teacher of a distillation run, or None; refused unless every frame has its clean twin."""
     if not settings.teacher:
         return None
@@ -359,7 +367,7 @@ def _seed_everything(seed: int) -> None:
 
 def run(settings: TrainEncoderSettings) -> int:
     if not settings.dataset:
-        raise ValueError("no dataset given: pass --dataset DIR (a folder written by `swimm dataset`)")
+        raise ValueError("no dataset given: pass --dataset DIR [DIR ...] (folders written by `swimm dataset`)")
     check_psi_loss(settings.psi_loss, "--psi-loss")  # before the dataset is read, not at the first batch
     started = time.perf_counter()
     device = resolve_device(settings.device)
@@ -369,7 +377,7 @@ def run(settings: TrainEncoderSettings) -> int:
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True
 
-    dataset = CMVAEDataset(settings.dataset)
+    dataset = open_datasets(settings.dataset)
     train_rows, val_rows = split_indices(len(dataset), settings.val_fraction, settings.seed)
     if len(val_rows) == 0:
         raise ValueError("val_fraction is 0: early stopping and best.pt need a validation split")

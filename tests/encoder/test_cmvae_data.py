@@ -12,8 +12,10 @@ import pytest
 from encoder_service.data import (
     CMVAEDataset,
     DatasetFormatError,
+    DatasetUnion,
     count_batches,
     iter_batches,
+    open_datasets,
     prefetch,
     split_indices,
 )
@@ -40,6 +42,24 @@ def test_rows_read_across_shards_match_the_files_in_any_order(dataset_dir: Path)
         np.testing.assert_array_equal(batch.labels[position], labels[offset])
     np.testing.assert_array_equal(batch.indices, rows)
     np.testing.assert_array_equal(dataset.read_labels(rows), batch.labels)
+
+
+def test_several_folders_read_as_one_folder_after_the_other(dataset_dir: Path, tmp_path: Path) -> None:
+    other = CMVAEDataset(write_dataset(tmp_path / "other", count=20, seed=8, shard_size=7))
+    first = CMVAEDataset(dataset_dir)
+    union = open_datasets([str(dataset_dir), str(other.root)])
+    assert isinstance(union, DatasetUnion) and len(union) == 70 and union.seed == 4
+    rows = np.array([69, 0, 50, 49, 12, 55])  # across both folders, out of order
+    batch = union.read(rows)
+    expected = [other.read(np.array([19])), first.read(np.array([0])), other.read(np.array([0])),
+                first.read(np.array([49])), first.read(np.array([12])), other.read(np.array([5]))]  # fmt: skip
+    np.testing.assert_array_equal(batch.images, np.concatenate([part.images for part in expected]))
+    np.testing.assert_array_equal(union.read_labels(rows), np.concatenate([part.labels for part in expected]))
+    np.testing.assert_array_equal(batch.indices, rows)
+    assert union.read_poses(rows).shape == (6, 12)
+    with pytest.raises(IndexError, match=r"\[0, 70\)"):
+        union.read(np.array([70]))
+    assert isinstance(open_datasets(str(dataset_dir)), CMVAEDataset)  # one folder stays a plain dataset
 
 
 def test_shards_are_memory_mapped_not_loaded(dataset_dir: Path) -> None:

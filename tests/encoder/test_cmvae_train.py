@@ -277,6 +277,20 @@ def test_training_on_a_paired_dataset_validates_noisy_and_clean_inputs(paired_di
     assert metrics["mae_d"] == pytest.approx(noisy_only["mae_d"], rel=1e-5)
 
 
+def test_training_reads_several_folders_as_one(paired_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "union"
+    assert run(_settings(paired_dir, out, dataset=[str(paired_dir), str(paired_dir)], epochs=1)) == 0
+    summary = _summary(out)
+    assert summary["dataset_count"] == 2 * len(CMVAEDataset(paired_dir))
+    assert summary["settings"]["dataset"] == [str(paired_dir), str(paired_dir)]
+
+
+def test_paired_and_unpaired_folders_are_not_mixed(paired_dir: Path, dataset_dir: Path, tmp_path: Path) -> None:
+    with pytest.raises(DatasetFormatError, match=f"cannot mix paired and unpaired.*{paired_dir}"):
+        run(_settings(paired_dir, tmp_path / "mixed", dataset=[str(paired_dir), str(dataset_dir)]))
+    assert not (tmp_path / "mixed" / "last.pt").exists()
+
+
 def test_a_paired_dataset_missing_its_clean_shard_is_refused(paired_dir: Path, tmp_path: Path) -> None:
     import shutil
 
