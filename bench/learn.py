@@ -3,14 +3,14 @@
 Every algorithm x seed trains from scratch (no demonstrations) on cmvae observations through the distributed
 pipeline, one `swimm up` after another (router, sim, encoder and learner processes), within a step and a
 wall-time budget, evaluating deterministic episodes on the sim's eval channel every ``eval_every`` steps. Then
-each run's final model plays ``final_episodes`` deterministic episodes in-process on seeds the training never
-evaluated on (``final_seed``). The results folder:
+each run's final model, and the best model of its training evaluations, play ``final_episodes`` deterministic
+episodes in-process on seeds the training never evaluated on (``final_seed``). The results folder:
 
-- ``runs/<algo>-<seed>/``: the run folder of `swimm up` (``evaluations.csv`` with steps and wall seconds) and
-  ``final-eval/`` (episodes.csv, summary.json);
+- ``runs/<algo>-<seed>/``: the run folder of `swimm up` (``evaluations.csv`` with steps and wall seconds),
+  ``final-eval/`` and ``best-eval/`` (episodes.csv, summary.json);
 - ``evaluations.csv``: every run's evaluations in one table (algo, seed, steps, wall minutes, return);
 - ``summary.json``: per algorithm the seeds, final returns, IQM with its 95% bootstrap interval
-  (:mod:`bench.scores`), best evaluation, and wall minutes and steps to each return threshold;
+  (:mod:`bench.scores`), best evaluation, the best model's return, and wall minutes and steps to each return threshold;
 - ``learn.png``: mean return across seeds against env steps and against wall minutes, with 95% bootstrap bands.
 
 A run whose ``final-eval/summary.json`` exists is not trained again, so a stopped benchmark goes on where it
@@ -34,12 +34,13 @@ import pandas as pd
 from bench.learn_settings import LearnBenchSettings
 from bench.scores import bootstrap_ci, curve_band, first_reaching, iqm
 from learner_service.learn_settings import EvalSettings, LearnCommandSettings
-from learner_service.progress import EVALUATIONS_CSV, FINAL_MODEL
+from learner_service.progress import BEST_MODEL, EVALUATIONS_CSV, FINAL_MODEL
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
 
 FINAL_EVAL = "final-eval"
+BEST_EVAL = "best-eval"  # the same episodes for the best model of the training evaluations
 SUMMARY = "summary.json"
 FIGURE = "learn.png"
 CURVE_POINTS = 60
@@ -106,14 +107,17 @@ def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = L
         raise RuntimeError(f"{algo} seed {seed}: swimm up exited with {code}; see {folder / 'logs'}")
 
 
-def final_evaluation(settings: LearnBenchSettings, algo: str, seed: int) -> dict[str, Any]:
-    """The final model's deterministic episodes in-process; written to (and read back from) ``final-eval/``."""
+def final_evaluation(
+    settings: LearnBenchSettings, algo: str, seed: int, model: str = FINAL_MODEL, folder: str = FINAL_EVAL
+) -> dict[str, Any]:
+    """A run's ``model`` (the final one, or the best one) plays the final episodes in-process; written to (and read
+    back from) ``folder`` in the run's folder."""
     from eval_service.command import EvalCommandSettings, evaluate
 
-    out = run_dir(settings, algo, seed) / FINAL_EVAL
+    out = run_dir(settings, algo, seed) / folder
     evaluation = EvalCommandSettings(
         algo=[algo],
-        checkpoint=[str(run_dir(settings, algo, seed) / FINAL_MODEL)],
+        checkpoint=[str(run_dir(settings, algo, seed) / model)],
         label=[f"{algo}-{seed}"],
         episodes=settings.final_episodes,
         seed=settings.final_seed,
@@ -126,6 +130,14 @@ def final_evaluation(settings: LearnBenchSettings, algo: str, seed: int) -> dict
     )
     evaluate(evaluation, out)
     return read_final(out)
+
+
+def best_evaluation(settings: LearnBenchSettings, algo: str, seed: int) -> dict[str, Any]:
+    """The best model's final episodes (``best-eval/``), read back when an earlier run of the benchmark wrote them."""
+    out = run_dir(settings, algo, seed) / BEST_EVAL
+    if (out / "summary.json").is_file():
+        return read_final(out)
+    return final_evaluation(settings, algo, seed, BEST_MODEL, BEST_EVAL)
 
 
 def read_final(out: Path) -> dict[str, Any]:
@@ -156,6 +168,7 @@ def summarise(
     evaluations: pd.DataFrame,
     finals: dict[tuple[str, int], dict],
     layout: Layout = Layout(),
+    bests: dict[tuple[str, int], dict] | None = None,
 ) -> dict:
     """The JSON summary: per algorithm, per-seed numbers in the order of ``seeds`` and their aggregates."""
     algos = {}
@@ -171,6 +184,8 @@ def summarise(
             "final_iqm_ci95": [round(value, 1) for value in interval] if interval else None,
             "final_metrics": [finals[(algo, seed)]["metrics"] for seed in seeds],
             "best_eval_returns": [round(float(run["mean_return"].max()), 1) for run in runs],
+            "best_model_returns": [round(bests[(algo, seed)]["mean_return"], 1) if (algo, seed) in (bests or {})
+                                   else None for seed in seeds],
             "steps": [int(run["num_timesteps"].max()) for run in runs],
             "wall_min": [round(float(run["wall_min"].max()), 1) for run in runs],
             "minutes_to": {f"{t:g}": _rounded([first_reaching(run, t, "wall_min") for run in runs])
@@ -183,7 +198,8 @@ def summarise(
         "settings": dataclasses.asdict(settings) | dataclasses.asdict(layout),
         "how": "final_returns: each seed's final model, mean of final_episodes deterministic episodes (seed "
         "final_seed); IQM and its 95% percentile bootstrap over seeds; minutes_to / steps_to: the first "
-        "training evaluation (eval_episodes episodes, seed 113) at or above the return, null if never",
+        "training evaluation (eval_episodes episodes, seed 113) at or above the return, null if never; "
+        "best_model_returns: the best model of those evaluations on the final episodes",
     }
 
 
@@ -229,21 +245,25 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     finals: dict[tuple[str, int], dict] = {}
+    bests: dict[tuple[str, int], dict] = {}
     pairs = [(algo, seed) for algo in settings.algos for seed in settings.seeds]
     for algo, seed in tqdm(pairs, desc="bench learn", unit="run", disable=None):
         final = run_dir(settings, algo, seed) / FINAL_EVAL
         if settings.resume and (final / "summary.json").is_file():
             log.info("%s seed %d: finished earlier, kept", algo, seed)
             finals[(algo, seed)] = read_final(final)
+            bests[(algo, seed)] = best_evaluation(settings, algo, seed)
             continue
         log.info("%s seed %d: training from scratch (%d steps or %g min at most)", algo, seed,
                  settings.budget_steps, settings.budget_min)  # fmt: skip
         train(settings, algo, seed, layout)
         finals[(algo, seed)] = final_evaluation(settings, algo, seed)
-        log.info("%s seed %d: final return %.1f", algo, seed, finals[(algo, seed)]["mean_return"])
+        bests[(algo, seed)] = best_evaluation(settings, algo, seed)
+        log.info("%s seed %d: final return %.1f, best model %.1f", algo, seed, finals[(algo, seed)]["mean_return"],
+                 bests[(algo, seed)]["mean_return"])  # fmt: skip
     evaluations = collect(settings)
     evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
-    summary = summarise(settings, evaluations, finals, layout)
+    summary = summarise(settings, evaluations, finals, layout, bests)
     (out / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
     if not evaluations.empty:
         learning_figure(evaluations).savefig(out / FIGURE, dpi=110)

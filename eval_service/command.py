@@ -8,10 +8,12 @@ plays every contender on it in turn, from the same seed, so all of them meet the
 ``--steps`` steps without early termination. ``--backend inprocess`` plays on a World in this process instead
 (offline evaluation, no sim). ``--noise`` leaves a live sim's image noise as the sim was started (``keep``, the
 default) unless it names a choice: ``off``, ``on`` (the sim's configured noise, else the murky preset) or a preset
-(murky, harsh); in-process, ``keep`` is clean frames. ``--sweep`` plays every contender across noise severities
-instead (eval_service.sweep). ``--watch RUN_DIR`` re-evaluates each new best model a training run saves
-(eval_service.watch); ``--live-port P`` serves the live view (eval_service.live) while episodes run, and
-``--live-env train/0`` adds envs that others drive to it (eval_service.live_tap).
+(murky, harsh); in-process, ``keep`` is clean frames. ``--latency-*`` likewise sets the camera and control delays
+(sim_service.latency), left as the sim has them when not given. ``--sweep`` plays every contender across noise
+severities, or with ``--sweep-kind latency`` across delays and control rates, instead (eval_service.sweep).
+``--watch RUN_DIR`` re-evaluates each new best model a training run saves (eval_service.watch); ``--live-port P``
+serves the live view (eval_service.live) while episodes run, and ``--live-env train/0`` adds envs that others
+drive to it (eval_service.live_tap).
 
 Contenders: each ``--algo`` in order; every algorithm but ``scripted`` takes the next ``--checkpoint``.
 One ``--algo`` (default ``sac``) with several checkpoints applies to all of them. ``--label`` names them.
@@ -21,6 +23,7 @@ cmvae), so a bare ``swimm eval`` evaluates it; in other observation modes the de
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 import time
@@ -32,7 +35,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from eval_service.evaluator import NO_NOISE_CHANGE, Contender, play_episodes
+from eval_service.evaluator import Contender, play_episodes
 from eval_service.live import LiveFeed, LiveView, tap_frames
 from eval_service.live_tap import EnvTap, parse_env
 from eval_service.metrics import summarise
@@ -42,6 +45,7 @@ from learner_service.export import SHIPPED_POLICY
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
 from services.settings import ZenohSettings, to_dict
+from sim_service.latency import LatencySettings
 from sim_service.noise import EFFECTS, PRESETS
 
 log = logging.getLogger(__name__)
@@ -65,6 +69,7 @@ class EvalCommandSettings:
     obs: str = "cmvae"  # cmvae | image | state: what the policies were trained on
     reward: str = "swimm2"  # swimm2 | swimm1
     noise: str = KEEP_NOISE  # keep (a live sim's noise as it was started) | off | on | murky | harsh
+    latency: LatencySettings = field(default_factory=LatencySettings)  # --latency-*: delays (default: the sim's own)
     backend: str = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
     out: str = ""  # run folder; default runs/eval-<UTC time>
     trajectory_episode: int = 1  # the episode drawn from above
@@ -85,6 +90,9 @@ class EvalCommandSettings:
     sweep_preset: str = "harsh"  # the preset whose effects the sweep scales (severity 1 = the preset)
     sweep_severities: list[float] = field(default_factory=lambda: [0.0, 0.5, 1.0, 1.5, 2.0])  # x preset; 0 = clean
     sweep_effects: list[str] = field(default_factory=lambda: ["all", *EFFECTS])  # each alone, and all together
+    sweep_kind: str = "noise"  # noise (effects x severities) | latency (camera delays, control rates)
+    sweep_delays_ms: list[float] = field(default_factory=lambda: [0.0, 40.0, 80.0, 120.0, 160.0, 200.0, 300.0])
+    sweep_rates_hz: list[float] = field(default_factory=lambda: [50.0, 25.0, 10.0])  # latency sweep: control rates
 
 
 def check(settings: EvalCommandSettings) -> None:
@@ -99,6 +107,7 @@ def check(settings: EvalCommandSettings) -> None:
         check_sweep(settings)
     if settings.episodes < 1 or settings.steps < 1:
         raise ValueError("episodes and steps must be >= 1")
+    settings.latency.check()
     task_settings(settings)  # validates obs and reward
     if settings.live_env and settings.live_port < 0:
         raise ValueError("--live-env shows envs in the live view: give --live-port too (0 for any free port)")
@@ -204,7 +213,7 @@ def evaluate(
     entries = entries if entries is not None else contenders(settings)
     policies = load_policies(settings, entries)
     summaries: dict[str, dict[str, float]] = {}
-    noise = noise_option(settings.noise)
+    options = reset_options(settings)
     started = time.perf_counter()
     with evaluation_env(settings, render=feed is not None) as env:
         folder = RunFolder(out)  # only once an env is ours: a refused evaluation leaves no half-empty run folder
@@ -228,7 +237,7 @@ def evaluate(
                     publisher.publish("episode", row | {"checkpoint": entry.checkpoint or ""})
 
             with bar:
-                rows = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed, noise,
+                rows = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed, options,
                                      on_step, on_episode)  # fmt: skip
             summaries[entry.label] = summarise(rows)
             log.info("%s: %s", entry.label, _table_line(summaries[entry.label]))
@@ -245,10 +254,22 @@ def evaluate(
 def noise_option(choice: str) -> bool | dict[str, Any] | None:
     """The reset option that ``--noise`` asks for: None leaves the env's noise as it is (``keep``)."""
     if choice == KEEP_NOISE:
-        return NO_NOISE_CHANGE
+        return None
     if choice in ("on", "off"):
         return choice == "on"
     return {"preset": choice}
+
+
+def reset_options(settings: EvalCommandSettings) -> dict[str, Any]:
+    """Every evaluation episode's reset options: the noise ``--noise`` names, the delays ``--latency-*`` set (each
+    left out when not asked for, so a live sim keeps its own)."""
+    options: dict[str, Any] = {}
+    noise = noise_option(settings.noise)
+    if noise is not None:
+        options["noise"] = noise
+    if settings.latency.enabled or settings.latency.randomise:
+        options["latency"] = dataclasses.asdict(settings.latency)
+    return options
 
 
 def _table_line(summary: dict[str, float]) -> str:

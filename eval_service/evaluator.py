@@ -32,7 +32,6 @@ STEP_FIELDS = (
 )  # fmt: skip
 
 StepSink = Callable[[dict[str, Any]], None]
-NO_NOISE_CHANGE = None  # reset option left out: the env keeps whatever image noise it has
 
 
 @dataclass(frozen=True)
@@ -84,7 +83,7 @@ def play_episodes(
     label: str,
     episodes: int,
     seed: int,
-    noise: bool | dict[str, Any] | None = NO_NOISE_CHANGE,
+    options: dict[str, Any] | None = None,
     on_step: StepSink | None = None,
     on_episode: Callable[[dict[str, Any]], None] | None = None,
 ) -> list[dict[str, Any]]:
@@ -92,11 +91,11 @@ def play_episodes(
 
     ``reset(seed=seed)`` restarts the env's episode sequence, so the same seed plays the same episodes for every
     policy (the world's episode seeds are ``episode_seed(seed, 1..N)``, recorded in the rows). The env must have
-    early termination off: an evaluation episode runs its full length whatever happens.
+    early termination off: an evaluation episode runs its full length whatever happens. ``options`` are every
+    reset's (``noise``, ``latency``: the world's conditions; left out, the env keeps what it has).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
-    options = None if noise is NO_NOISE_CHANGE else {"noise": noise}
     rows = []
     for episode in range(1, episodes + 1):
         obs, info = env.reset(seed=seed, options=options) if episode == 1 else env.reset(options=options)

@@ -1,7 +1,8 @@
-"""`swimm eval --sweep`: robustness curves, every contender played across image-noise severities.
+"""`swimm eval --sweep`: robustness curves, every contender played across image-noise severities or delays.
 
     swimm eval --sweep --backend inprocess --algo sac --checkpoint a.zip --algo scripted --episodes 2 \\
         --sweep-preset harsh --sweep-severities 0 0.5 1 1.5 2 --out runs/sweep
+    swimm eval --sweep --sweep-kind latency --sweep-delays-ms 0 80 160 300 --sweep-rates-hz 50 25 10 ...
 
 A condition is one group of effects (one effect alone, or ``all`` of them) at one severity: the preset's strength
 of those effects times the severity, every other effect off (:func:`sim_service.noise.scaled`). Severity 0 is
@@ -9,6 +10,13 @@ clean frames, the same condition for every group, so it is played once. Every co
 (the same seeds) in every condition, on one env: a live sim's eval env (each episode's reset carries the
 condition's noise settings, so the sim's other envs are untouched; the claimed env keeps the last condition's
 noise) or an in-process world.
+
+With ``--sweep-kind latency`` the conditions are loop delays (``delay``: each action reaches the thrusters that
+many milliseconds after the observation it answers, rounded to whole 20 ms steps) and control rates (``rate``: one
+action per 50/Hz steps, held in between), each alone (sim_service.latency); the ``severity`` column holds the
+milliseconds or the hertz. The delay is applied to the action: for a policy that answers what it observes, a
+frame k steps late and an action k steps late make the same loop, and a ground-truth contender, which reads no
+frames, meets the same delay as a camera one.
 
 The run folder holds ``sweep.csv`` (one row per contender and condition: Table 12's columns), ``episodes.csv``
 (one row per episode), ``sweep.json`` (the rows and how the run was made) and ``sweep.png`` (return and the
@@ -34,6 +42,7 @@ from eval_service.evaluator import play_episodes
 from eval_service.metrics import summarise
 from services.settings import to_dict
 from sim_service.noise import EFFECTS, PRESETS, scaled
+from sim_service.settings import WorldSettings
 
 if TYPE_CHECKING:
     from eval_service.command import EvalCommandSettings
@@ -41,12 +50,19 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 ALL_EFFECTS = "all"
+SWEEP_KINDS = ("noise", "latency")
+DELAY, RATE = "delay", "rate"
+AXIS_LABELS = {DELAY: "loop delay (ms)", RATE: "control rate (Hz)"}
 SWEEP_COLUMNS = ("label", "effects", "severity", "mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D",
                  "S_A", "violations", "episodes")  # fmt: skip
 
 
 def check_sweep(settings: EvalCommandSettings) -> None:
     """Refuse a sweep that could only fail later, naming the setting."""
+    if settings.sweep_kind not in SWEEP_KINDS:
+        raise ValueError(f"--sweep-kind must be one of {', '.join(SWEEP_KINDS)}, got {settings.sweep_kind!r}")
+    if settings.sweep_kind == "latency":
+        latency_steps(settings)
     if settings.sweep_preset not in PRESETS or settings.sweep_preset == "off":
         choices = ", ".join(name for name in PRESETS if name != "off")
         raise ValueError(f"--sweep-preset must be one of {choices}, got {settings.sweep_preset!r}")
@@ -59,18 +75,39 @@ def check_sweep(settings: EvalCommandSettings) -> None:
         raise ValueError("--sweep and --watch are two different runs: give one")
 
 
+def latency_steps(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str, int]]]:
+    """(``delay`` ms or ``rate`` Hz, value, latency settings as a reset's map) of a latency sweep, checked."""
+    step_ms = 1000 * WorldSettings().physics_dt  # the sims' default step
+    if not settings.sweep_delays_ms and not settings.sweep_rates_hz:
+        raise ValueError("a latency sweep needs --sweep-delays-ms or --sweep-rates-hz")
+    played: list[tuple[str, float, dict[str, int]]] = []
+    for ms in settings.sweep_delays_ms:
+        if ms < 0:
+            raise ValueError(f"--sweep-delays-ms must be >= 0, got {ms}")
+        played.append((DELAY, ms, {"action_delay": round(ms / step_ms)}))
+    for hz in settings.sweep_rates_hz:
+        period = round(1000 / (hz * step_ms)) if hz > 0 else 0
+        if period < 1 or not math.isclose(period * hz * step_ms, 1000, rel_tol=1e-6):
+            raise ValueError(f"--sweep-rates-hz must divide the sim's {1000 / step_ms:g} Hz (50, 25, 10...), got {hz}")
+        played.append((RATE, hz, {"control_period": period}))
+    return played
+
+
 def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str, Any]]]:
-    """(effect group, severity, noise settings as a reset's map) in play order; severity 0 once, as ``none``."""
+    """(group, severity, reset options) in play order. Noise: severity 0 once, as ``none``; latency: each
+    condition alone (the others at none)."""
+    if settings.sweep_kind == "latency":
+        return [(group, value, {"latency": latency}) for group, value, latency in latency_steps(settings)]
     preset = PRESETS[settings.sweep_preset]
     played: list[tuple[str, float, dict[str, Any]]] = []
     severities = sorted(set(settings.sweep_severities))
     if 0.0 in severities:
-        played.append(("none", 0.0, dataclasses.asdict(scaled(preset, 0.0))))
+        played.append(("none", 0.0, {"noise": dataclasses.asdict(scaled(preset, 0.0))}))
     for group in settings.sweep_effects:
         effects = EFFECTS if group == ALL_EFFECTS else (group,)
         for severity in severities:
             if severity > 0:
-                played.append((group, severity, dataclasses.asdict(scaled(preset, severity, effects))))
+                played.append((group, severity, {"noise": dataclasses.asdict(scaled(preset, severity, effects))}))
     return played
 
 
@@ -88,11 +125,11 @@ def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     with evaluation_env(settings) as env, tqdm(total=total, desc="sweep", unit="step", unit_scale=True,
                                                disable=not settings.progress_bar, file=sys.stderr,
                                                mininterval=1.0) as bar:  # fmt: skip
-        for group, severity, noise in plan:
+        for group, severity, options in plan:
             for entry in entries:
                 bar.set_postfix(effects=group, severity=severity, label=entry.label)
-                played = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed, noise,
-                                       on_step=lambda *_: bar.update(1))  # fmt: skip
+                played = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed,
+                                       options, on_step=lambda *_: bar.update(1))  # fmt: skip
                 summary = summarise(played)
                 violations = sum(bool(r["left_view"] or r["distance_exceeded"] or r["collided"]) for r in played)
                 rows.append({"label": entry.label, "effects": group, "severity": severity, **summary,
@@ -109,13 +146,13 @@ def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
               "settings": to_dict(settings), "argv": sys.argv}  # fmt: skip
     (out / "sweep.json").write_text(json.dumps(record, indent=2))
     if settings.figures:
-        sweep_figure(table, settings.sweep_preset).savefig(out / "sweep.png", dpi=100)
+        sweep_figure(table, settings.sweep_preset, kind=settings.sweep_kind).savefig(out / "sweep.png", dpi=100)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print(f"run folder: {out}")
     return table
 
 
-def sweep_figure(table: pd.DataFrame, preset: str, per_row: int = 5) -> Figure:
+def sweep_figure(table: pd.DataFrame, preset: str, per_row: int = 5, kind: str = "noise") -> Figure:
     """Return and share of episodes with a violation against severity: a pair of panels per effect group, ``per_row``
     groups to a row. The clean condition (``none``) is every group's severity-0 point.
     """
@@ -140,7 +177,7 @@ def sweep_figure(table: pd.DataFrame, preset: str, per_row: int = 5) -> Figure:
         top.set_ylabel("mean return", fontsize=8)
         bottom.set_ylabel("violation share", fontsize=8)
         bottom.set_ylim(-0.05, 1.05)
-        bottom.set_xlabel(f"severity (x {preset})", fontsize=8)
+        bottom.set_xlabel(AXIS_LABELS.get(group, f"severity (x {preset})"), fontsize=8)
         for ax in (top, bottom):
             ax.grid(alpha=0.3)
             ax.tick_params(labelsize=7)
@@ -148,6 +185,8 @@ def sweep_figure(table: pd.DataFrame, preset: str, per_row: int = 5) -> Figure:
         axes[2 * (index // columns), index % columns].set_visible(False)
         axes[2 * (index // columns) + 1, index % columns].set_visible(False)
     axes[0, 0].legend(fontsize=7)
-    fig.suptitle("Robustness to image noise: each effect alone, and all together", fontsize=10)
+    title = {"noise": "Robustness to image noise: each effect alone, and all together",
+             "latency": "Robustness to a slow loop: delay and control rate, each alone"}[kind]  # fmt: skip
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return fig

@@ -15,9 +15,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from learner_service.task import NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
+from learner_service.task import LATENCY_OPTION, NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
 from services.messages import DiveMode
 from services.telemetry import Telemetry
+from sim_service.latency import latency_option
 from sim_service.noise import noise_option
 from sim_service.settings import WorldSettings
 from sim_service.world import World
@@ -71,10 +72,14 @@ class TrackingEnv(gym.Env):
         """Next episode; a ``seed`` restarts the run's episode sequence at episode 1 of base seed ``seed``.
 
         ``options={"noise": ...}`` switches image noise as a distributed sim's reset does: true, false or a map of
-        noise settings, kept for the episodes after it.
+        noise settings, kept for the episodes after it; ``{"latency": {...}}`` likewise sets the camera and control
+        delays (sim_service.latency).
         """
         super().reset(seed=seed)
         noise = noise_option((options or {}).get(NOISE_OPTION))
+        latency = latency_option((options or {}).get(LATENCY_OPTION))
+        if latency is not None:
+            self.world.configure_latency(latency)
         if seed is not None:
             self.base_seed, self.episode = seed, 0
         self.episode += 1

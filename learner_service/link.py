@@ -192,11 +192,12 @@ class RemoteEnvLink:
         return choose_route(self.encoders if self.encoded else None, self.name, self.step_timeout_s * self.max_retries)
 
     # --- stepping ----------------------------------------------------------------------------------
-    def send_reset(self, ep: int, seed: int, noise: bool | dict | None = None) -> None:
-        """Start episode ``ep``; ``noise`` switches the sim's image noise (on, off, a map of noise settings; None:
-        leave it as it is)."""
+    def send_reset(self, ep: int, seed: int, noise: bool | dict | None = None, latency: dict | None = None) -> None:
+        """Start episode ``ep``; ``noise`` switches the sim's image noise (on, off, a map of noise settings) and
+        ``latency`` its camera and control delays (a map of sim_service.latency settings); None leaves either as it
+        is."""
         self.ep, self.seq = ep, 0
-        self._pending = ("reset", (seed, noise))
+        self._pending = ("reset", (seed, noise, latency))
         try:
             self._send()
         except control.ControlTimeout as exc:  # a busy or restarting sim: wait() re-sends it, like a step
@@ -223,8 +224,8 @@ class RemoteEnvLink:
         kind, args = self._pending
         route = self._route()
         if kind == "reset":
-            seed, noise = args
-            noise_field = {} if noise is None else {"noise": noise}
+            seed, noise, latency = args
+            world_fields = {key: value for key, value in (("noise", noise), ("latency", latency)) if value is not None}
             control.request(
                 self.session,
                 self.keys.ctl(self.channel, self.env),
@@ -234,7 +235,7 @@ class RemoteEnvLink:
                 ep=self.ep,
                 seed=seed,
                 route=route,
-                **noise_field,
+                **world_fields,
             )
         else:
             self._publisher.put(self.action_message(route).encode())

@@ -31,7 +31,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvO
 
 from learner_service.group_link import GroupLink
 from learner_service.link import RemoteEnvLink, Reply, SimAction, new_holder_id
-from learner_service.task import NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
+from learner_service.task import LATENCY_OPTION, NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
 from services.control import ControlError
 from services.keys import CHANNELS, Keys, check_chunk
 from services.presence import Roster, announce
@@ -158,7 +158,8 @@ class ProxyEnv(gym.Env):
         """Next episode; a ``seed`` restarts the run's episode sequence at episode 1 of base seed ``seed``.
 
         ``options={"noise": True | False | {...}}`` switches the sim's image noise from this episode on (a map holds
-        noise settings by name, e.g. ``{"preset": "murky"}``).
+        noise settings by name, e.g. ``{"preset": "murky"}``); ``{"latency": {...}}`` sets its camera and control
+        delays (sim_service.latency) the same way.
         """
         super().reset(seed=seed)
         if seed is not None:
@@ -166,7 +167,8 @@ class ProxyEnv(gym.Env):
         self.episode += 1
         world_seed = episode_seed(self.base_seed, self.episode)
         link = self.link
-        link.send_reset(link.ep + 1, world_seed, noise=(options or {}).get(NOISE_OPTION))
+        options = options or {}
+        link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
         reply = link.wait()
         self._pending_action = None
         obs = self.task.reset(self._frame(reply), seed=world_seed)

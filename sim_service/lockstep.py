@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass
 
 from services.messages import DIRECT_ROUTE, ActionMsg, ObservationMsg
+from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.world import World
 
@@ -77,7 +78,13 @@ class LockstepEnv:
             raise Refusal(f"env {self.name} is held by {self.holder}, not {sender or 'an anonymous sender'}")
 
     def reset(
-        self, sender: str, ep: int, seed: int, route: str = DIRECT_ROUTE, noise: bool | NoiseSettings | None = None
+        self,
+        sender: str,
+        ep: int,
+        seed: int,
+        route: str = DIRECT_ROUTE,
+        noise: bool | NoiseSettings | None = None,
+        latency: LatencySettings | None = None,
     ) -> Outcome:
         self._check_holder(sender)
         self.route = route
@@ -85,6 +92,8 @@ class LockstepEnv:
             return Outcome(self._last_payload, replayed=True)
         if ep <= self.ep and self._last_payload is not None:
             raise Refusal(f"env {self.name}: episode {ep} is not after the current episode {self.ep}")
+        if latency is not None:
+            self.world.configure_latency(latency)
         telemetry, image = self.world.reset(seed, noise)
         self.ep, self.seq, self.seed = ep, 0, seed
         self.action = (0.0, 0.0, 0.0, 0.0)

@@ -38,6 +38,7 @@ from services.polling import Inbox, prepare_to_poll
 from services.presence import Roster, announce, live_now
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES, open_session
 from services.settings import ZenohSettings
+from sim_service.latency import describe_latency, latency_option
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
 from sim_service.noise import describe_noise, noise_option
 from sim_service.settings import WorldSettings
@@ -142,13 +143,14 @@ class SimResponder:
         self._token = announce(self.session, self.keys, "sim", self.ident)
         self._metrics_publisher = MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics)
         log.info(
-            "sim %s serving %d train and %d eval envs under %s (%s); image noise: %s",
+            "sim %s serving %d train and %d eval envs under %s (%s); image noise: %s; latency: %s",
             self.ident,
             self.settings.train_envs,
             self.settings.eval_envs,
             self.keys.namespace,
             "real-time" if self.settings.realtime else "lock-step",
             describe_noise(self.settings.world.noise),
+            describe_latency(self.settings.world.latency),
         )
 
     def _on_roster_change(self, joined: set[str], left: set[str]) -> None:
@@ -321,14 +323,13 @@ class SimResponder:
             elif op == "reset":
                 ep, seed = body.get("ep"), body.get("seed")
                 route = str(body.get("route", "direct"))
-                noise = body.get("noise")
                 if not isinstance(ep, int) or not isinstance(seed, int):
                     raise BadMessage("reset needs integer 'ep' and 'seed'")
                 try:
-                    noise = noise_option(noise)
+                    noise, latency = noise_option(body.get("noise")), latency_option(body.get("latency"))
                 except ValueError as exc:
                     raise BadMessage(f"reset's {exc}") from None
-                outcome = env.reset(holder, ep, seed, route, noise)
+                outcome = env.reset(holder, ep, seed, route, noise, latency)
                 self._publish(env, route, outcome, request.received_at)
                 control.reply(query, True, **env.info(), replayed=outcome.replayed)
             else:

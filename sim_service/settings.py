@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 
 
@@ -15,3 +16,4 @@ class WorldSettings:
     render_threads: int = 0  # Mesa llvmpipe threads (LP_NUM_THREADS): 0 draws on the stepping thread, -1 Mesa default
     physics_dt: float = 0.02  # seconds per step: one action per physics step (lock-step)
     noise: NoiseSettings = field(default_factory=NoiseSettings)  # image noise, all off by default (--noise-* flags)
+    latency: LatencySettings = field(default_factory=LatencySettings)  # camera and control delays (--latency-* flags)

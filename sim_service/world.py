@@ -42,6 +42,7 @@ from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.camera import CameraFrustum
 from sim_service.dolphin import DolphinBehaviour
+from sim_service.latency import LatencyLine, LatencySettings
 from sim_service.noise import NOISY_PRESET, ImageNoise, NoiseSettings, draw_episode_noise
 from sim_service.rotations import euler_to_matrix
 from sim_service.rover import RoverDynamics
@@ -129,6 +130,8 @@ class World:
         self._noise: ImageNoise | None = None
         self._noise_rng = np.random.default_rng(0)
         self.configure_noise(self.settings.noise)
+        self.configure_latency(self.settings.latency)
+        self.latency = LatencyLine(LatencySettings(), None)  # the current episode's delays (none before the first)
         #: The last frame before image noise (the same array as the frame when noise is off): paired datasets
         #: keep it beside the noisy frame as the denoising target.
         self.clean_frame: np.ndarray | None = None
@@ -158,6 +161,11 @@ class World:
         self._configured_noise = noise if noise.enabled else preset
         ImageNoise(self._configured_noise)  # validates
         self._noise_on = noise.enabled
+
+    def configure_latency(self, latency: LatencySettings) -> None:
+        """Make ``latency`` the world's camera and control delays from the next episode on (checked here)."""
+        latency.check()
+        self._configured_latency = latency
 
     @property
     def noise_settings(self) -> NoiseSettings | None:
@@ -208,7 +216,7 @@ class World:
         world's generator, drawn without advancing it.
         """
         self._discard_prepared()
-        self._noise_rng = noise_rng or np.random.default_rng(self.rng.bit_generator.seed_seq.spawn(1)[0])
+        self._noise_rng = noise_rng or self._spawn_rng()
         self._noise = self._episode_noise() if self._noise_on else None
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = [rover_pos[0], rover_pos[1], rover_pos[2], rover_yaw, 0.0, 0.0]
@@ -217,7 +225,9 @@ class World:
         dolphin = self._dolphin_pose()
         self._pose_dolphin(dolphin)
         mujoco.mj_forward(self.model, self.data)
-        return self._telemetry(dolphin), self._render()
+        frame = self._render()
+        self.latency = LatencyLine(self._configured_latency.draw(self._spawn_rng()), frame)
+        return self._telemetry(dolphin), frame
 
     def prepare_step(self) -> None:
         """Work out the next step's action-independent half now: the dolphin's swim and its poses.
@@ -244,8 +254,9 @@ class World:
         """
         d = self.data
         rotation = d.xmat[self._rover_body].reshape(3, 3)
+        applied = self.latency.action(action)  # what reaches the thrusters now (latency.py)
         force, torque = self.rover.wrench(
-            action, DiveMode(dive_mode), rotation, d.xpos[self._rover_body], d.qvel[:3], self._rover_ang_vel(), self.dt
+            applied, DiveMode(dive_mode), rotation, d.xpos[self._rover_body], d.qvel[:3], self._rover_ang_vel(), self.dt
         )
         d.xfrc_applied[self._rover_body, :3] = force
         d.xfrc_applied[self._rover_body, 3:] = torque
@@ -254,7 +265,7 @@ class World:
         mujoco.mj_step2(self.model, d)
         self._pose_dolphin(dolphin)
         mujoco.mj_step1(self.model, d)
-        return self._telemetry(dolphin), self._render()
+        return self._telemetry(dolphin), self.latency.frame(self._render())
 
     def target_mask(self) -> np.ndarray:
         """Which pixels of the current frame show the dolphin: bool (size, size), from MuJoCo's segmentation render.
@@ -294,6 +305,10 @@ class World:
         if self._noise is None or self._noise.settings != configured:
             return ImageNoise(configured)
         return self._noise  # the same fixed noise as the last episode: keep its caches
+
+    def _spawn_rng(self) -> np.random.Generator:
+        """A generator of the episode's own, from the world's seed without advancing the world's draws."""
+        return np.random.default_rng(self.rng.bit_generator.seed_seq.spawn(1)[0])
 
     def _discard_prepared(self) -> None:
         if self._prepared is not None:

@@ -65,7 +65,9 @@ def test_summary_has_the_documented_shape() -> None:
     )
     finals = {("sac", 97): {"mean_return": 2450.0, "metrics": {"S_D": 0.1}},
               ("sac", 101): {"mean_return": 1400.0, "metrics": {"S_D": 0.2}}}  # fmt: skip
-    sac = summarise(settings, evaluations, finals)["algos"]["sac"]
+    bests = {("sac", 97): {"mean_return": 2480.0, "metrics": {}}}  # seed 101's best model not evaluated
+    sac = summarise(settings, evaluations, finals, bests=bests)["algos"]["sac"]
+    assert sac["best_model_returns"] == [2480.0, None]
     assert sac["seeds"] == [97, 101] and sac["final_returns"] == [2450.0, 1400.0]
     assert sac["final_iqm"] == pytest.approx(1925.0)
     assert sac["minutes_to"] == {"2000": [2.0, None], "2400": [3.0, None]}

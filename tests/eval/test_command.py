@@ -32,6 +32,7 @@ from learner_service.task import TaskSettings
 from services.cli import main as swimm
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D
 from services.settings import ZenohSettings
+from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
 from sim_service.settings import WorldSettings
 
@@ -283,9 +284,40 @@ def test_a_sweep_plays_every_condition_once_and_writes_its_table_and_figure(tmp_
     assert image.shape[0] > 200 and image.std() > 0.01
 
 
+def test_a_latency_sweep_delays_and_holds_what_the_policy_commands(tmp_path) -> None:
+    given = settings(tmp_path, algo=["scripted"], episodes=1, steps=60, sweep=True, figures=True,
+                     sweep_kind="latency", sweep_delays_ms=[0.0, 160.0], sweep_rates_hz=[50.0, 10.0])  # fmt: skip
+    table = sweep.sweep(given, Path(given.out))
+    assert list(zip(table["effects"], table["severity"], strict=True)) == [
+        ("delay", 0.0),
+        ("delay", 160.0),
+        ("rate", 50.0),
+        ("rate", 10.0),
+    ]
+    undelayed, late, full_rate, slow = table["mean_return"].tolist()
+    assert undelayed == full_rate  # 0 ms and 50 Hz are the same loop
+    assert late != undelayed and slow != undelayed  # ground truth's actions arrive late, or once every 5 steps
+    image = matplotlib.image.imread(Path(given.out) / "sweep.png")
+    assert image.shape[0] > 200 and image.std() > 0.01
+
+
+def test_eval_latency_flags_reach_the_world_and_default_to_leaving_it(tmp_path) -> None:
+    assert command.reset_options(settings(tmp_path)) == {}
+    delayed = settings(tmp_path, latency=LatencySettings(observation_delay=4), noise="murky")
+    assert command.reset_options(delayed) == {
+        "noise": {"preset": "murky"},
+        "latency": {"observation_delay": 4, "action_delay": 0, "control_period": 1, "randomise": False},
+    }
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
+        ({"sweep_kind": "weather"}, "--sweep-kind must be one of noise, latency"),
+        ({"sweep_kind": "latency", "sweep_rates_hz": [30.0]}, "--sweep-rates-hz must divide the sim's 50 Hz"),
+        ({"sweep_kind": "latency", "sweep_delays_ms": [-20.0]}, "--sweep-delays-ms must be >= 0"),
+        ({"sweep_kind": "latency", "sweep_delays_ms": [], "sweep_rates_hz": []}, "needs --sweep-delays-ms"),
+        ({"latency": LatencySettings(control_period=0)}, "control_period >= 1"),
         ({"sweep_preset": "fish"}, "--sweep-preset"),
         ({"sweep_effects": ["smoke"]}, "--sweep-effects"),
         ({"sweep_severities": [-1.0]}, "--sweep-severities"),

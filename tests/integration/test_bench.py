@@ -103,6 +103,9 @@ def test_bench_learn_trains_seeds_over_real_processes_and_resumes(tmp_path) -> N
         episodes = pd.read_csv(out / "runs" / f"sac-{seed}" / "final-eval" / "episodes.csv")
         assert len(episodes) == 2 and (episodes["steps"] == 40).all()
         assert final == pytest.approx(episodes["return"].mean(), abs=0.05)
+    for seed, best in zip(sac["seeds"], sac["best_model_returns"], strict=True):  # the best model, same episodes
+        episodes = pd.read_csv(out / "runs" / f"sac-{seed}" / "best-eval" / "episodes.csv")
+        assert len(episodes) == 2 and best == pytest.approx(episodes["return"].mean(), abs=0.05)
     assert set(sac["minutes_to"]) == {"2000", "2400"} and all(len(v) == 2 for v in sac["minutes_to"].values())
     evaluations = pd.read_csv(out / "evaluations.csv")
     assert set(evaluations["seed"]) == {97, 101} and (evaluations["num_timesteps"] >= 100).all()
