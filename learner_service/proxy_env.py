@@ -30,10 +30,19 @@ from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
 from learner_service.group_link import GroupLink
-from learner_service.link import RemoteEnvLink, Reply, SimAction, new_holder_id
-from learner_service.task import LATENCY_OPTION, NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
+from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, new_holder_id
+from learner_service.task import (
+    CAUSE_SIM_LOST,
+    LATENCY_OPTION,
+    NOISE_OPTION,
+    Frame,
+    TaskSettings,
+    TrackingTask,
+    episode_seed,
+)
 from services.control import ControlError
 from services.keys import CHANNELS, Keys, check_chunk
+from services.messages import UNCLAIMED
 from services.presence import Roster, announce
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -114,6 +123,9 @@ class ProxyEnv(gym.Env):
         self._encoders: Roster | None = None
         self._link: RemoteEnvLink | None = None
         self._pending_action: np.ndarray | None = None
+        self._last_obs: Any = None
+        self._last_info: dict[str, Any] = {}
+        self.sims_lost = 0  # episodes cut short because the sim restarted and forgot them
         try:
             self._connect()
         except BaseException:
@@ -147,11 +159,20 @@ class ProxyEnv(gym.Env):
             poll_ms=proxy.poll_ms,
         )
         log.info("%s: claiming as %s (waiting up to %.0f s for a sim that serves it)", self.name, self.holder, wait_s)
+        self._claim(wait_s)
+
+    def _claim(self, wait_s: float) -> None:
         try:
-            claimed = self._link.claim(timeout_s=wait_s)
+            claimed = self.link.claim(timeout_s=wait_s)
         except ControlError as exc:
             raise ClaimRefused(f"cannot claim env {self.name}: {exc}") from None
-        self._link.ep = int(claimed.get("ep", 0))  # the next episode on the wire must come after the sim's current one
+        self.link.ep = int(claimed.get("ep", 0))  # the next episode on the wire must come after the sim's current one
+
+    def _claim_again(self, refusal: Exception) -> None:
+        """The sim forgot this env (it was restarted): claim it again, so the next reset starts a new episode."""
+        self.sims_lost += 1
+        log.warning("%s: the sim lost the episode (%s); claiming the env again", self.name, refusal)
+        self._claim(self.proxy.zenoh.startup_timeout_s)
 
     # --- gymnasium API ---------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[Any, dict[str, Any]]:
@@ -168,11 +189,17 @@ class ProxyEnv(gym.Env):
         world_seed = episode_seed(self.base_seed, self.episode)
         link = self.link
         options = options or {}
-        link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
+        try:
+            link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
+        except ControlError as exc:
+            if UNCLAIMED not in str(exc):
+                raise
+            self._claim_again(exc)
+            link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
         reply = link.wait()
         self._pending_action = None
-        obs = self.task.reset(self._frame(reply), seed=world_seed)
-        info = self.task.info(reply.telemetry) | {"ep": self.episode, "seed": world_seed}
+        obs = self._last_obs = self.task.reset(self._frame(reply), seed=world_seed)
+        info = self._last_info = self.task.info(reply.telemetry) | {"ep": self.episode, "seed": world_seed}
         log.debug("%s: episode %d (seed %d) starts at d %.2f m", self.name, self.episode, world_seed, info["d"])
         return obs, info
 
@@ -199,10 +226,20 @@ class ProxyEnv(gym.Env):
         """The step in flight, from ``reply`` (its group's) or from waiting for it on this env's link."""
         if self._pending_action is None:
             raise RuntimeError(f"{self.name}: no step in flight")
-        reply = reply if reply is not None else self.link.wait()
+        try:
+            reply = reply if reply is not None else self.link.wait()
+        except StepRefused as exc:
+            if UNCLAIMED not in str(exc):
+                raise
+            # The episode is gone with the sim that held it: end it here, truncated (its return so far stands,
+            # nothing after it is made up), and claim the env again so the next reset starts afresh.
+            self._pending_action = None
+            self._claim_again(exc)
+            return self._last_obs, 0.0, False, True, self._last_info | {"ep": self.episode, "cause": CAUSE_SIM_LOST}
         action, self._pending_action = self._pending_action, None
         obs, reward, terminated, info = self.task.step(action, self._frame(reply))
         info |= {"ep": self.episode}
+        self._last_obs, self._last_info = obs, info
         return obs, reward, terminated, self.task.time_up, info
 
     # --- helpers -------------------------------------------------------------------------------------

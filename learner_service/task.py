@@ -37,6 +37,7 @@ REWARD_K = 1.0  # the SPEC's k: curvature of both penalties
 CAUSE_DISTANCE = "distance"
 CAUSE_VISIBILITY = "visibility"
 CAUSE_COLLISION = "collision"
+CAUSE_SIM_LOST = "sim_lost"  # a distributed episode cut short (truncated) because its sim restarted
 NO_CAUSE = ""
 
 #: Offset mixed into the episode seed for the task's own generator, so its draws never mirror the world's.

@@ -69,6 +69,8 @@ class UpSettings:
     topology: str = "peer"  # peer: processes link directly once the router introduces them; client: all via the router
     stop_timeout_s: float = 180.0  # how long the learner may take to save after SIGTERM before it is killed
     sim_config: str = ""  # a `swimm sim` settings file for the sim it starts (e.g. its image noise)
+    restart_limit: int = 3  # times a router, sim or encoder that dies is started again before the run ends (saved)
+    restart_backoff_s: float = 2.0  # wait before a service's first restart, doubled for each one after
 
 
 def sim_shares(envs: int, sims: int) -> list[tuple[int, int]]:
@@ -139,6 +141,7 @@ class LocalSystem:
         self.stop = stop
         self.namespace = self.learn.zenoh.namespace
         self.wait_s = self.learn.zenoh.startup_timeout_s
+        self.restart_due: dict[str, float] = {}  # services that died: when each is started again
 
     # --- start-up ---------------------------------------------------------------------------------
     def start_services(self, checkpoint: Path | None) -> str:
@@ -203,11 +206,28 @@ class LocalSystem:
             roster.close()
 
     def check_services(self, skip: Service | None = None) -> None:
+        """Supervise (compose's ``restart: on-failure``): a service that died is started again after a backoff, up to
+        ``restart_limit`` times; past that the run ends. The learner bridges the gap by re-sending its step."""
+        now = time.monotonic()
         for service in self.group.services:
-            if service is not skip and not service.alive:
+            if service is skip or service.alive:
+                continue
+            if service.restarts >= self.settings.restart_limit:
+                after = f" after {service.restarts} restarts (--restart-limit)" if service.restarts else ""
                 raise ServiceDied(
-                    f"{service.name} exited with {service.process.returncode}; its log ends:\n{service.log_tail()}"
+                    f"{service.name} exited with {service.process.returncode}{after}; its log ends:\n"
+                    f"{service.log_tail()}"
                 )
+            if service.name not in self.restart_due:
+                backoff = self.settings.restart_backoff_s * 2**service.restarts
+                self.restart_due[service.name] = now + backoff
+                log.warning("%s exited with %s; restarting it in %.0f s (restart %d of %d)", service.name,
+                            service.process.returncode, backoff, service.restarts + 1,
+                            self.settings.restart_limit)  # fmt: skip
+            due = self.restart_due[service.name]
+            if now >= due:
+                del self.restart_due[service.name]
+                self.group.restart(service)
 
     def start_learner(self, endpoint: str) -> Service:
         learn = dataclasses.replace(
@@ -277,6 +297,9 @@ def run(settings: UpSettings) -> int:
         raise ValueError(f"--topology must be peer or client, got {settings.topology!r}")
     if learn.backend != "zenoh":
         log.info("swimm up always trains through the services; --backend %s is ignored", learn.backend)
+    if settings.restart_limit < 0 or settings.restart_backoff_s < 0:
+        raise ValueError(f"--restart-limit and --restart-backoff-s must be >= 0, got {settings.restart_limit} and "
+                         f"{settings.restart_backoff_s}")  # fmt: skip
     if settings.sim_config and not Path(settings.sim_config).is_file():
         raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
     sim_shares(learn.envs, settings.sims)  # refuses a split that leaves envs over

@@ -25,6 +25,9 @@ PROTOCOL_VERSION = 1
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)
 DIRECT_ROUTE = "direct"  # observation goes straight to the learner, no encoder
+#: The words of a sim's refusal to drive an env nobody holds: a learner that reads them knows the sim lost its claim
+#: (it restarted) and claims the env again.
+UNCLAIMED = "is not claimed"
 
 
 class BadMessage(ValueError):

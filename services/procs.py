@@ -53,6 +53,8 @@ class Service:
     name: str
     process: subprocess.Popen
     log_path: Path
+    argv: tuple[str, ...] = ()  # the command line it was started with, to start it again
+    restarts: int = 0  # times it was started again after it died
 
     def log_tail(self, lines: int = 30) -> str:
         try:
@@ -75,20 +77,34 @@ class ProcessGroup:
 
     def start(self, name: str, command: str, *args: str) -> Service:
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        log_path = self.log_dir / f"{name}.log"
+        argv = (sys.executable, "-m", "services.cli", command, *args)
+        service = Service(name, self._spawn(argv, self.log_dir / f"{name}.log"), self.log_dir / f"{name}.log", argv)
+        self.services.append(service)
+        log.info("started %s (pid %d), log %s", name, service.process.pid, service.log_path)
+        return service
+
+    def restart(self, service: Service) -> None:
+        """Start a dead service again with its command line, its log appended to (compose's ``restart``)."""
+        if service.alive:
+            raise RuntimeError(f"{service.name} is running (pid {service.process.pid}); stop it before a restart")
+        code = service.process.returncode
+        with open(service.log_path, "a") as log_file:
+            log_file.write(f"\n--- swimm up: {service.name} exited with {code}; started again ---\n")
+        service.process = self._spawn(service.argv, service.log_path)
+        service.restarts += 1
+        log.warning("%s exited with %s: restarted (pid %d, restart %d)", service.name, code, service.process.pid,
+                    service.restarts)  # fmt: skip
+
+    def _spawn(self, argv: Sequence[str], log_path: Path) -> subprocess.Popen:
         env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **self.env}
         with open(log_path, "ab") as log_file:
-            process = subprocess.Popen(
-                [sys.executable, "-m", "services.cli", command, *args],
+            return subprocess.Popen(
+                list(argv),
                 stdout=log_file,
                 stderr=subprocess.STDOUT,
                 env=env,
                 start_new_session=True,  # a Ctrl-C in the terminal reaches us; we stop children in order
             )
-        service = Service(name, process, log_path)
-        self.services.append(service)
-        log.info("started %s (pid %d), log %s", name, process.pid, log_path)
-        return service
 
     def start_router(self, port: int | None = None, name: str = "router", flags: Sequence[str] = ()) -> str:
         """Start `swimm router` on a port (with more ``flags``) and wait until it accepts connections; returns its

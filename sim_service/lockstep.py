@@ -16,7 +16,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from services.messages import DIRECT_ROUTE, ActionMsg, ObservationMsg
+from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, ObservationMsg
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.world import World
@@ -73,7 +73,7 @@ class LockstepEnv:
 
     def _check_holder(self, sender: str) -> None:
         if self.holder is None:
-            raise Refusal(f"env {self.name} is not claimed; claim it before driving it")
+            raise Refusal(f"env {self.name} {UNCLAIMED}; claim it before driving it")
         if sender != self.holder:
             raise Refusal(f"env {self.name} is held by {self.holder}, not {sender or 'an anonymous sender'}")
 

@@ -149,3 +149,51 @@ def test_up_without_the_cmvae_says_what_to_do(tmp_path, capfd) -> None:
     message = capfd.readouterr().err
     assert "--obs state" in message and str(missing) in message
     assert not (tmp_path / "run").exists()  # nothing was started
+
+
+def wait_for_steps(up: Service, run_dir: Path, steps: int, timeout_s: float = 120) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        progress = run_dir / "progress.json"
+        if progress.is_file() and json.loads(progress.read_text())["num_timesteps"] >= steps:
+            return
+        assert up.alive, up.log_tail(60)
+        time.sleep(0.5)
+    pytest.fail(f"not {steps} training steps within {timeout_s} s:\n{up.log_tail(60)}")
+
+
+@pytest.mark.slow
+def test_up_restarts_a_killed_encoder_and_sim_and_training_goes_on(spawn, namespace, tmp_path) -> None:
+    checkpoint = tmp_path / "tiny_cmvae.pt"
+    torch.save(make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), checkpoint)
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--steps", "3000", "--encoder-checkpoint", str(checkpoint),
+                              "--restart-backoff-s", "1"))  # fmt: skip
+    wait_for_steps(up, run_dir, 300)
+    os.kill(started_pids(up)["encoder"], signal.SIGKILL)
+    wait_for_steps(up, run_dir, 1000)
+    os.kill(started_pids(up)["sim"], signal.SIGKILL)
+    assert wait_exit(up, 240) == 0, up.log_tail(60)
+
+    log = up.log_path.read_text()
+    for name in ("encoder", "sim"):
+        assert f"{name} exited with -9: restarted" in log, log
+    assert_all_stopped(up, {"router", "sim", "encoder", "learner"})
+    result = json.loads((run_dir / "result.json").read_text())
+    assert result["num_timesteps"] >= 3000 and not result["stopped_early"]
+    learner_log = (run_dir / "logs" / "learner.log").read_text()
+    assert "the sim lost the episode" in learner_log and "claiming the env again" in learner_log
+    episodes = pd.read_csv(run_dir / "train.monitor.csv", skiprows=1)
+    assert episodes["l"].sum() <= result["num_timesteps"]  # no step counted twice across the restarts
+
+
+@pytest.mark.slow
+def test_up_past_its_restart_limit_ends_the_run_and_keeps_the_model(spawn, namespace, tmp_path) -> None:
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "1000000", "--restart-limit", "0"))
+    wait_for_steps(up, run_dir, 100)
+    os.kill(started_pids(up)["sim"], signal.SIGKILL)
+    assert wait_exit(up, 120) != 0
+    assert "sim exited with -9; its log ends" in up.log_path.read_text()
+    assert (run_dir / "final_model.zip").is_file()
+    assert_all_stopped(up, {"router", "sim", "learner"})
