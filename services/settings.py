@@ -14,12 +14,17 @@ argument instead of a flag (``swimm bench sim``). ``--help`` describes a flag by
 ``metadata={"help": ...}`` or else by the comment at the end of the field's line, so the comment
 that documents a field in the source is also what the user reads.
 A YAML file (``--config FILE``) holds the same names as nested maps.
+
+Every value, whatever layer it comes from, is validated against its field's type by pydantic (lax mode: the
+YAML ``5`` fills a float, the text ``"5"`` an int; ``"yes please"`` fills no bool), and a YAML key that names no
+field is refused with the closest names: a misspelled setting never passes silently.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import difflib
 import functools
 import inspect
 import os
@@ -29,6 +34,7 @@ import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
+import pydantic
 import yaml
 
 T = TypeVar("T")
@@ -175,6 +181,46 @@ def _from_file(tree: dict[str, Any], leaf: _Leaf, cls: type) -> tuple[bool, Any]
     return True, node
 
 
+def check_keys(tree: dict[str, Any], cls: type, source: str) -> None:
+    """Refuse a YAML key that names no field of ``cls`` (by flat name, or by nested path), suggesting close names."""
+    leaves = _leaves(cls)
+    flat = {leaf.name for leaf in leaves}
+    paths = {leaf.path for leaf in leaves}
+    sections = {leaf.path[:end] for leaf in leaves for end in range(1, len(leaf.path))}
+
+    def walk(node: dict[str, Any], path: tuple[str, ...]) -> None:
+        for key, value in node.items():
+            here = (*path, str(key))
+            if (not path and key in flat) or here in paths:
+                continue
+            if here in sections and isinstance(value, dict):
+                walk(value, here)
+                continue
+            known = sorted(flat) if not path else [leaf.path[-1] for leaf in leaves if leaf.path[:-1] == path]
+            close = difflib.get_close_matches(str(key), known, n=3)
+            hint = f"; did you mean {' or '.join(close)}?" if close else f"; known: {', '.join(known)}"
+            raise ValueError(f"{source}: unknown setting {'.'.join(here)!r}{hint}")
+
+    walk(tree, ())
+
+
+@functools.cache
+def _adapter(kind: Any) -> pydantic.TypeAdapter:
+    return pydantic.TypeAdapter(kind)
+
+
+def validated(leaf: _Leaf, value: Any, source: str) -> Any:
+    """``value`` as the leaf's type, or a ValueError naming the setting, where it came from, and what was wrong."""
+    base, _ = _base_type(leaf.kind)
+    if typing.get_origin(base) is list and value is not None and not isinstance(value, list | tuple):
+        value = [value]  # one item where a list goes: a YAML `dataset: folder` means [folder]
+    try:
+        return _adapter(leaf.kind).validate_python(value)
+    except pydantic.ValidationError as exc:
+        reasons = "; ".join(error["msg"] for error in exc.errors())
+        raise ValueError(f"{source}: setting {leaf.name!r} got {value!r}: {reasons}") from None
+
+
 def load(
     cls: type[T],
     args: argparse.Namespace | None = None,
@@ -188,25 +234,25 @@ def load(
         loaded = yaml.safe_load(Path(config_file).read_text()) or {}
         if not isinstance(loaded, dict):
             raise ValueError(f"settings file {config_file} must hold a YAML mapping")
+        check_keys(loaded, cls, f"settings file {config_file}")
         tree = loaded
     settings = cls()
     for leaf in _leaves(cls):
         value: Any = dataclasses.MISSING
         found, from_file = _from_file(tree, leaf, cls)
         if found:
-            value = from_file
+            value = validated(leaf, from_file, f"settings file {config_file}")
         env_name = ENV_PREFIX + leaf.name.upper()
         if env_name in environ:
+            source = f"environment variable {env_name}"
             try:
-                value = _parse_text(leaf.kind, environ[env_name])
+                text_value = _parse_text(leaf.kind, environ[env_name])
             except ValueError as exc:
-                raise ValueError(f"environment variable {env_name}: {exc}") from None
+                raise ValueError(f"{source}: {exc}") from None
+            value = validated(leaf, text_value, source)
         if args is not None and getattr(args, leaf.name, None) is not None:
-            value = getattr(args, leaf.name)
+            value = validated(leaf, getattr(args, leaf.name), "--" + leaf.name.replace("_", "-"))
         if value is not dataclasses.MISSING:
-            base, _ = _base_type(leaf.kind)
-            if typing.get_origin(base) is tuple and isinstance(value, list):
-                value = tuple(value)
             _set(settings, leaf.path, value)
     return settings
 

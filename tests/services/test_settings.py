@@ -166,6 +166,32 @@ def test_bad_flag_values_are_refused_by_the_parser(capsys):
     assert "--steps: invalid int value: 'many'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("startup_timout_s: 5\n", r"unknown setting 'startup_timout_s'; did you mean startup_timeout_s\?"),
+        ("noise:\n  fgo: 0.1\n", r"unknown setting 'noise.fgo'; did you mean fog\?"),
+        ("low_latency: yes please\n", r"setting 'low_latency' got 'yes please': Input should be a valid boolean"),
+        ("noise:\n  fog: thick\n", r"setting 'noise_fog' got 'thick': Input should be a valid number"),
+        ("seeds: [1, two]\n", r"setting 'seeds' got \[1, 'two'\]: Input should be a valid integer"),
+        ("image_shape: [64, 64]\n", r"setting 'image_shape'.*Field required"),
+    ],
+)
+def test_a_yaml_mistake_is_refused_naming_the_file_and_the_setting(tmp_path, text, reason):
+    config = tmp_path / "bad.yaml"
+    config.write_text(text)
+    with pytest.raises(ValueError, match=f"settings file {re.escape(str(config))}: {reason}"):
+        _load(config_file=config)
+
+
+def test_yaml_values_are_coerced_as_their_fields_type_says(tmp_path):
+    config = tmp_path / "ok.yaml"
+    config.write_text("steps: '250'\nnoise: {fog: 1}\nseeds: 7\nimage_shape: [32, 32, 3]\nzenoh: {namespace: a/b}\n")
+    loaded = _load(config_file=config)
+    assert loaded.steps == 250 and loaded.noise.fog == 1.0 and isinstance(loaded.noise.fog, float)
+    assert loaded.seeds == [7] and loaded.image_shape == (32, 32, 3) and loaded.zenoh.namespace == "a/b"
+
+
 def test_a_yaml_file_that_is_not_a_mapping_is_refused(tmp_path):
     config = tmp_path / "list.yaml"
     config.write_text("- steps\n- 200\n")
@@ -184,3 +210,18 @@ def test_to_dict_is_plain_nested_data():
     assert view["noise"] == {"fog": 0.5, "blur": False}
     assert view["zenoh"]["connect"] == []
     assert view["steps"] == 100
+
+
+def test_every_shipped_settings_file_passes_validation():
+    from pathlib import Path
+
+    from learner_service.up import UpSettings
+    from sim_service.responder import SimSettings
+
+    root = Path(__file__).resolve().parents[2]
+    shipped = {UpSettings: [*root.glob("learner_service/models/*.yaml"), *root.glob("learner_service/configs/*.yaml")],
+               SimSettings: list(root.glob("sim_service/configs/*.yaml"))}  # fmt: skip
+    for cls, files in shipped.items():
+        assert files
+        for path in files:
+            settings_mod.load(cls, None, path, {})  # raises, naming the file and the key, on any mistake
