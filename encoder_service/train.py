@@ -16,7 +16,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -68,7 +68,7 @@ class TrainEncoderSettings:
     resume: bool = False  # continue from <out>/last.pt
     init: str = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
     mirror: float = 0.5  # share of training frames flipped left-right (theta and psi change sign); 0 = off
-    psi_loss: str = "mse"  # mse (the SPEC's) | l1: psi's absolute error, least at the likelier of two views
+    psi_loss: Literal["mse", "l1"] = "mse"  # mse: the SPEC's; l1: psi's absolute error, least at the likelier view
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
     teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error

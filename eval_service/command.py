@@ -31,7 +31,7 @@ from collections.abc import Iterator
 from contextlib import ExitStack, closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from tqdm import tqdm
 
@@ -41,7 +41,9 @@ from eval_service.live_tap import EnvTap, parse_env
 from eval_service.metrics import summarise
 from eval_service.publish import ResultPublisher
 from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
+from learner_service.envs import BACKENDS, IMAGE_MODES
 from learner_service.export import SHIPPED_POLICY
+from learner_service.learn_settings import Backend, ObsMode, RewardVersion
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
 from services.settings import ZenohSettings, to_dict
@@ -50,10 +52,8 @@ from sim_service.noise import EFFECTS, PRESETS
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("zenoh", "inprocess")
 KEEP_NOISE = "keep"
 NOISE_CHOICES = (KEEP_NOISE, "off", "on", *(name for name in PRESETS if name != "off"))
-IMAGE_MODES = ("cmvae", "image")
 TABLE_COLUMNS = ("mean_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A")  # the paper's Table 12, return first
 
 
@@ -66,11 +66,11 @@ class EvalCommandSettings:
     episodes: int = 5  # deterministic evaluation episodes per contender
     seed: int = 113  # base seed: every contender plays the episodes episode_seed(seed, 1..N)
     steps: int = 3000  # steps per episode (no early termination)
-    obs: str = "cmvae"  # cmvae | image | state: what the policies were trained on
-    reward: str = "swimm2"  # swimm2 | swimm1
+    obs: ObsMode = "cmvae"  # what the policies were trained on
+    reward: RewardVersion = "swimm2"
     noise: str = KEEP_NOISE  # keep (a live sim's noise as it was started) | off | on | murky | harsh
     latency: LatencySettings = field(default_factory=LatencySettings)  # --latency-*: delays (default: the sim's own)
-    backend: str = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
+    backend: Backend = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
     out: str = ""  # run folder; default runs/eval-<UTC time>
     trajectory_episode: int = 1  # the episode drawn from above
     attach_timeout_s: float = 10.0  # how long to wait for a sim's eval env to answer
@@ -90,7 +90,7 @@ class EvalCommandSettings:
     sweep_preset: str = "harsh"  # the preset whose effects the sweep scales (severity 1 = the preset)
     sweep_severities: list[float] = field(default_factory=lambda: [0.0, 0.5, 1.0, 1.5, 2.0])  # x preset; 0 = clean
     sweep_effects: list[str] = field(default_factory=lambda: ["all", *EFFECTS])  # each alone, and all together
-    sweep_kind: str = "noise"  # noise (effects x severities) | latency (camera delays, control rates)
+    sweep_kind: Literal["noise", "latency"] = "noise"  # noise: effects x severities; latency: delays, control rates
     sweep_delays_ms: list[float] = field(default_factory=lambda: [0.0, 40.0, 80.0, 120.0, 160.0, 200.0, 300.0])
     sweep_rates_hz: list[float] = field(default_factory=lambda: [50.0, 25.0, 10.0])  # latency sweep: control rates
 

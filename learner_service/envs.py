@@ -16,18 +16,19 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import typing
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import gymnasium as gym
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
 
+from learner_service.learn_settings import Backend
 from learner_service.task import TaskSettings
 
 log = logging.getLogger(__name__)
 
-Backend = Literal["zenoh", "inprocess"]
-BACKENDS: tuple[str, ...] = ("zenoh", "inprocess")
+BACKENDS: tuple[str, ...] = typing.get_args(Backend)
 MONITOR_KEYWORDS = ("cause",)  # info keys the monitor CSV keeps per episode, beside r, l, t
 IMAGE_MODES = ("cmvae", "image")
 

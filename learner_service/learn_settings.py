@@ -9,8 +9,14 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from services.settings import ZenohSettings
+
+#: The choices of the learner's settings, typed so that the settings loader checks them wherever they come from.
+ObsMode = Literal["cmvae", "image", "state"]
+RewardVersion = Literal["swimm2", "swimm1"]
+Backend = Literal["zenoh", "inprocess"]
 
 EVAL_UNITS = ("episodes", "steps")
 
@@ -23,7 +29,7 @@ class EvalSettings:
     episodes: int = 5  # deterministic episodes per evaluation
     min_steps: int = 500_000  # no evaluation before this many training steps (the reference: 5e5)
     every: int = 10  # evaluate every this many training episodes (or steps, see unit) once min_steps have run
-    unit: str = "episodes"  # episodes | steps
+    unit: Literal["episodes", "steps"] = "episodes"
     seed: int = 113  # base seed of the evaluation episodes: every evaluation plays the same episodes
     max_steps: int = 3000  # length of an evaluation episode (no early termination: the SPEC's evaluation)
     env: str = "0"  # distributed: the id of the eval-channel env the learner claims for its evaluations
@@ -77,15 +83,15 @@ class SmoothSettings:
 class LearnCommandSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
     algo: str = "sac"  # sac | ppo | td3 | package.module:Class
-    obs: str = "cmvae"  # cmvae | image | state
-    reward: str = "swimm2"  # swimm2 | swimm1
+    obs: ObsMode = "cmvae"
+    reward: RewardVersion = "swimm2"
     max_steps: int = 3000  # time limit of a training episode (truncation)
     steps: int = 0  # training env steps (more when resuming); 0 = the algorithm's n_timesteps (1e6)
     budget_min: float = 0.0  # wall-time budget in minutes (model building and demonstrations count); 0 = none
     envs: int = 1  # parallel envs (train channel ids 0..envs-1 when distributed)
     group_size: int = 0  # distributed: envs stepped as one message each way (e.g. envs/2: two groups); 0 = none
     seed: int = 97  # model seed and base seed of env 0 (env i: seed + i)
-    backend: str = "zenoh"  # zenoh (a running sim/encoder) | inprocess (World in this process)
+    backend: Backend = "zenoh"  # zenoh (a running sim/encoder) | inprocess (World in this process)
     run_dir: str = ""  # default runs/<algo>-<obs>-<UTC time>
     resume: str = ""  # a saved model (.zip) to go on training; its replay buffer is loaded if beside it
     hyperparams: str = ""  # YAML mapping or file over the algorithm's defaults, e.g. "{gradient_steps: 32}"

@@ -12,18 +12,17 @@ observation are radians, every angle reported in ``info`` is in degrees.
 from __future__ import annotations
 
 import math
+import typing
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
+from learner_service.learn_settings import ObsMode, RewardVersion
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D, quat_to_euler, relative_geometry
 from services.telemetry import Telemetry
-
-ObsMode = Literal["cmvae", "image", "state"]
-RewardVersion = Literal["swimm2", "swimm1"]
 
 ACTION_SIZE = 2  # (surge, yaw): the training curriculum's action
 LATENT_SIZE = 10  # n_z of the CMVAE
@@ -65,10 +64,11 @@ class TaskSettings:
     early_termination: bool = True  # False for evaluation episodes: they always run max_steps
 
     def __post_init__(self) -> None:
-        if self.obs not in ("cmvae", "image", "state"):
-            raise ValueError(f"unknown observation mode {self.obs!r}; choose cmvae, image or state")
-        if self.reward not in ("swimm2", "swimm1"):
-            raise ValueError(f"unknown reward version {self.reward!r}; choose swimm2 or swimm1")
+        if self.obs not in typing.get_args(ObsMode):
+            raise ValueError(f"unknown observation mode {self.obs!r}; choose {', '.join(typing.get_args(ObsMode))}")
+        if self.reward not in typing.get_args(RewardVersion):
+            choices = ", ".join(typing.get_args(RewardVersion))
+            raise ValueError(f"unknown reward version {self.reward!r}; choose {choices}")
         if self.n_prev_actions < 0 or self.max_steps < 1:
             raise ValueError("n_prev_actions must be >= 0 and max_steps >= 1")
 

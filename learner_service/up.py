@@ -29,7 +29,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 from tqdm import tqdm
@@ -66,7 +66,7 @@ class UpSettings:
     encoders: int = 1  # encoder processes (cmvae only)
     sims: int = 1  # sim processes, the train envs split between them in equal ranges (the eval envs on the first)
     sim_eval_envs: int = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
-    topology: str = "peer"  # peer: processes link directly once the router introduces them; client: all via the router
+    topology: Literal["peer", "client"] = "peer"  # peer: direct links once the router introduces them; client: via it
     stop_timeout_s: float = 180.0  # how long the learner may take to save after SIGTERM before it is killed
     sim_config: str = ""  # a `swimm sim` settings file for the sim it starts (e.g. its image noise)
     restart_limit: int = 3  # times a router, sim or encoder that dies is started again before the run ends (saved)

@@ -32,7 +32,7 @@ import re
 import types
 import typing
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import pydantic
 import yaml
@@ -46,7 +46,7 @@ LOCAL_ROUTER = "tcp/127.0.0.1:7447"  # where clients connect and `swimm router` 
 class ZenohSettings:
     """How a service joins the Zenoh network; shared by every command."""
 
-    mode: str = "client"  # client | peer | router
+    mode: Literal["client", "peer", "router"] = "client"
     connect: list[str] = dataclasses.field(
         default_factory=list,
         metadata={"help": f"endpoints to connect to; none: the --zenoh-config file's, else {LOCAL_ROUTER}"},
@@ -106,6 +106,8 @@ def _parse_text(kind: Any, text: str) -> Any:
         if text.strip().lower() in ("0", "false", "no", "off"):
             return False
         raise ValueError(f"{text!r} is not a boolean (use true/false)")
+    if origin is Literal:
+        return text  # checked against the choices by `validated`
     return base(text)
 
 
@@ -142,7 +144,10 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
         description = metadata.get("help") or field_comments(_owner(cls, leaf.path)).get(leaf.path[-1])
         if description:
             help_text = f"{description} {help_text}"
-        if metadata.get("positional"):
+        choices = typing.get_args(base) if typing.get_origin(base) is Literal else None
+        if choices:
+            group.add_argument(flag, dest=leaf.name, choices=choices, default=None, help=help_text)
+        elif metadata.get("positional"):
             group.add_argument(leaf.name, nargs="?", type=base, default=None, help=help_text)
         elif base is bool:
             group.add_argument(

@@ -225,3 +225,17 @@ def test_every_shipped_settings_file_passes_validation():
         assert files
         for path in files:
             settings_mod.load(cls, None, path, {})  # raises, naming the file and the key, on any mistake
+
+
+def test_a_choice_is_checked_in_one_place_whichever_layer_gives_it(tmp_path, capsys):
+    """ZenohSettings.mode is a Literal: flags, variables and YAML all refuse what it does not list."""
+    assert _load("--mode", "peer").zenoh.mode == "peer"
+    with pytest.raises(SystemExit):
+        _parse("--mode", "mesh")
+    assert "invalid choice: 'mesh' (choose from 'client', 'peer', 'router')" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="SWIMM_MODE: setting 'mode' got 'mesh': Input should be 'client', 'peer'"):
+        _load(environ={"SWIMM_MODE": "mesh"})
+    config = tmp_path / "mode.yaml"
+    config.write_text("mode: mesh\n")
+    with pytest.raises(ValueError, match="setting 'mode' got 'mesh'"):
+        _load(config_file=config)
