@@ -61,6 +61,12 @@ COMMANDS: dict[str, Command] = {
     "status": Command(
         "services.status:StatusSettings", "services.status:run", "who is live in a namespace, and doing what"
     ),
+    "record": Command(
+        "services.record:RecordSettings", "services.record:run_record", "record every key of a namespace to MCAP"
+    ),
+    "replay": Command(
+        "services.record:ReplaySettings", "services.record:run_replay", "publish an MCAP recording back into its keys"
+    ),
     "bench": Command(
         "bench.command:BenchSettings", "bench.command:run", "run a benchmark: sim | encoder | train | learn"
     ),
