@@ -86,6 +86,7 @@ class EvalCommandSettings:
     live_env: list[str] = field(default_factory=list)  # also show envs others drive, e.g. train/0 (needs a live view)
     figures: bool = True  # returns, metrics and trajectory PNGs in the run folder (CSV and JSON always)
     progress_bar: bool = True  # tqdm bar on stderr
+    recording: str = ""  # score the episodes of a `swimm record` MCAP file offline instead (no sim, no policy)
     sweep: bool = False  # play every contender across noise severities (eval_service.sweep) instead
     sweep_preset: str = "harsh"  # the preset whose effects the sweep scales (severity 1 = the preset)
     sweep_severities: list[float] = field(default_factory=lambda: [0.0, 0.5, 1.0, 1.5, 2.0])  # x preset; 0 = clean
@@ -101,6 +102,11 @@ def check(settings: EvalCommandSettings) -> None:
         raise ValueError(f"unknown backend {settings.backend!r}; choose one of {', '.join(BACKENDS)}")
     if settings.noise not in NOISE_CHOICES:
         raise ValueError(f"--noise must be one of {', '.join(NOISE_CHOICES)}, got {settings.noise!r}")
+    if settings.recording:
+        if settings.sweep or settings.watch or settings.live_port >= 0:
+            raise ValueError("--recording scores a file offline: it takes no --sweep, --watch or --live-port")
+        if not Path(settings.recording).is_file():
+            raise FileNotFoundError(f"--recording {settings.recording}: no such file (written by `swimm record`)")
     if settings.sweep:
         from eval_service.sweep import check_sweep
 
@@ -292,7 +298,7 @@ def run(settings: EvalCommandSettings) -> int:
             for name in settings.live_env:
                 stack.enter_context(closing(EnvTap(settings.zenoh, name, feed, settings.reward)))
         # results go on the metrics key whenever there is a Zenoh network to put them on (not in-process)
-        publish = settings.backend == "zenoh"
+        publish = settings.backend == "zenoh" and not settings.recording
         publisher = stack.enter_context(closing(ResultPublisher(settings.zenoh))) if publish else None
         if settings.sweep:
             from eval_service.sweep import sweep
@@ -304,9 +310,26 @@ def run(settings: EvalCommandSettings) -> int:
 
             watch(settings, Path(settings.watch), out, feed, publisher)
             return 0
-        summaries = evaluate(settings, out, feed=feed, publisher=publisher)
+        if settings.recording:
+            summaries = score_offline(settings, out)
+        else:
+            summaries = evaluate(settings, out, feed=feed, publisher=publisher)
     print_table(summaries, out)
     return 0
+
+
+def score_offline(settings: EvalCommandSettings, out: Path) -> dict[str, dict[str, float]]:
+    """``--recording``: every recorded episode scored, one label per env, written like a live evaluation."""
+    from eval_service.offline import score_recording
+
+    rows = score_recording(settings.recording, settings.reward)
+    folder = RunFolder(out)
+    for row in rows:
+        folder.add_episode(row)
+    labels = dict.fromkeys(row["label"] for row in rows)
+    summaries = {label: summarise([row for row in rows if row["label"] == label]) for label in labels}
+    folder.finish(summaries, {"recording": settings.recording, "settings": to_dict(settings), "argv": sys.argv}, None)
+    return summaries
 
 
 def print_table(summaries: dict[str, dict[str, float]], out: Path) -> None:

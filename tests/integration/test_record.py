@@ -1,6 +1,6 @@
 """`swimm record` and `swimm replay` over real processes: a lock-step episode through a sim and an encoder is
-recorded to MCAP, read back with the mcap library, replayed bit-exact, and replayed into a new encoder that gives
-its latents again."""
+recorded to MCAP, read back with the mcap library, scored offline, replayed bit-exact, and replayed into a new
+encoder that gives its latents again."""
 
 from __future__ import annotations
 
@@ -16,6 +16,8 @@ import torch
 from mcap.reader import make_reader
 
 from encoder_service.model import CMVAE, make_checkpoint
+from eval_service.offline import score_recording
+from learner_service.task import REWARDS, TrackingTask
 from services.messages import LatentMsg, ObservationMsg
 from services.record import recorded_namespace, recorded_samples
 from tests.integration.conftest import start_sim
@@ -84,6 +86,12 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
     frame = cv2.cvtColor(cv2.imdecode(png, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
     observed = ObservationMsg.decode(by_key[f"{prefix}/obs/enc-0"][0]).image
     assert first["format"] == "png" and np.array_equal(frame, observed)
+
+    # Scored offline as `swimm eval --recording` does: the return the live steps earned, step by step.
+    (row,) = score_recording(out)
+    expected = sum(REWARDS["swimm2"](*(TrackingTask.info(r.telemetry)[k] for k in ("d", "theta"))) for r in live[1:])
+    assert (row["label"], row["episode"], row["steps"]) == ("train/0", 1, STEPS)
+    assert row["return"] == pytest.approx(expected, rel=1e-12)
 
     # Replayed into another namespace, observations only, where a new encoder serves: the same bytes arrive, and
     # the encoder gives the recorded latents again.

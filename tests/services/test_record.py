@@ -26,3 +26,12 @@ def test_a_missing_or_foreign_file_is_refused_by_name(tmp_path) -> None:
 def test_a_negative_duration_is_refused() -> None:
     with pytest.raises(ValueError, match="--duration-s must be >= 0"):
         RecordSettings(duration_s=-1).check()
+
+
+def test_eval_refuses_a_recording_it_cannot_score_before_connecting(tmp_path) -> None:
+    from eval_service.command import EvalCommandSettings, check
+
+    with pytest.raises(FileNotFoundError, match="--recording .*none.mcap: no such file"):
+        check(EvalCommandSettings(recording=str(tmp_path / "none.mcap")))
+    with pytest.raises(ValueError, match="--recording scores a file offline"):
+        check(EvalCommandSettings(recording=str(tmp_path / "none.mcap"), sweep=True))
