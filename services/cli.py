@@ -61,6 +61,9 @@ COMMANDS: dict[str, Command] = {
     "status": Command(
         "services.status:StatusSettings", "services.status:run", "who is live in a namespace, and doing what"
     ),
+    "pilot": Command(
+        "pilot_service.pilot:PilotSettings", "pilot_service.pilot:run", "fly ArduSub from a video stream (ONNX policy)"
+    ),
     "record": Command(
         "services.record:RecordSettings", "services.record:run_record", "record every key of a namespace to MCAP"
     ),

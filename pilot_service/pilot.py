@@ -1,0 +1,187 @@
+"""`swimm pilot`: fly ArduSub from a video stream with an exported policy.
+
+    swimm pilot --policy runs/export/policy.onnx --source rtp://@:5600 --mavlink udpin:0.0.0.0:14550
+    swimm pilot --policy policy.onnx --source dive.mp4 --dry-run          # compute and log, send nothing
+
+A reader thread keeps the newest frame of the source; the control loop runs at the policy's rate: each new frame
+(cropped and resized as the sim's camera sees, pilot_service.frames) gives an action, limited on every axis and
+sent as MANUAL_CONTROL (pilot_service.vehicle). Safety: nothing is armed unless ``--arm``; a watchdog sends
+neutral controls, and says so, while no frame has come for ``--frame-timeout-s`` (the policy's history starts
+afresh when frames return); Ctrl-C, the end of a file and any error leave the vehicle with neutral controls.
+Every control sent (or, with ``--dry-run``, computed) is appended to ``<out>/controls.csv`` as it happens.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from pilot_service.frames import FrameSource, SourceError, as_sim_frame
+from pilot_service.policy import OnnxPolicy
+from services.lifecycle import stop_on_signals
+
+log = logging.getLogger(__name__)
+
+CONTROL_FIELDS = ("time_s", "frame", "surge", "yaw", "neutral", "sent")
+
+
+@dataclass
+class PilotSettings:
+    policy: str = "runs/export/policy.onnx"  # the ONNX file `swimm export` wrote
+    source: str = "rtp://@:5600"  # a video file, a camera number, or a stream (the BlueROV2's: rtp://@:5600)
+    camera_hfov_deg: float = 80.0  # the real camera's horizontal field of view (the BlueROV2 low-light camera's)
+    mavlink: str = "udpin:0.0.0.0:14550"  # the vehicle's MAVLink endpoint (BlueOS sends to the GCS on UDP 14550)
+    source_system: int = 255  # our MAVLink system id: ArduSub takes control from its SYSID_MYGCS (255)
+    mode: Literal["ALT_HOLD", "STABILIZE", "MANUAL"] = "ALT_HOLD"  # the dive mode set at start
+    arm: bool = False  # arm the vehicle at start; never without this flag
+    dry_run: bool = False  # compute and log every action, connect to nothing and send nothing
+    rate_hz: float = 0.0  # MANUAL_CONTROL per second; 0 = the policy's control rate
+    frame_timeout_s: float = 0.5  # no new frame for this long: neutral controls until frames return
+    max_surge: float = 0.5  # limit on |surge| sent, as a share of full
+    max_yaw: float = 0.5  # limit on |yaw| sent, as a share of full
+    duration_s: float = 0.0  # stop after this many seconds; 0 = until the source ends or Ctrl-C
+    heartbeat_timeout_s: float = 10.0  # how long to wait for the vehicle's first HEARTBEAT
+    stream_timeout_s: float = 5.0  # a stream silent this long has stopped: the pilot ends, in neutral, saying so
+    threads: int = 1  # onnxruntime threads
+    out: str = ""  # the run folder (controls.csv); default runs/pilot-<UTC time>
+
+    def check(self) -> None:
+        if not 0 < self.max_surge <= 1 or not 0 < self.max_yaw <= 1:
+            raise ValueError(f"--max-surge and --max-yaw must be in (0, 1], got {self.max_surge}, {self.max_yaw}")
+        if self.rate_hz < 0 or self.frame_timeout_s <= 0 or self.duration_s < 0:
+            raise ValueError("--rate-hz and --duration-s must be >= 0 and --frame-timeout-s > 0")
+
+
+class LatestFrame:
+    """The newest frame a reader thread has taken from the source, with when it came; ``ended`` once the source
+    gave no more."""
+
+    def __init__(self, source: FrameSource) -> None:
+        self.source = source
+        self.frame: np.ndarray | None = None
+        self.number = 0
+        self.at = 0.0
+        self.ended = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._read, name="frames", daemon=True)
+        self._thread.start()
+
+    def _read(self) -> None:
+        period, due = self.source.frame_period_s, time.monotonic()
+        while (frame := self.source.read()) is not None:
+            if period:  # a file plays at its own frame rate, as a camera would give it
+                due += period
+                time.sleep(max(0.0, due - time.monotonic()))
+            with self._lock:
+                self.frame, self.number, self.at = frame, self.number + 1, time.monotonic()
+        self.ended.set()
+
+    def get(self) -> tuple[np.ndarray | None, int, float]:
+        with self._lock:
+            return self.frame, self.number, self.at
+
+
+class ControlLog:
+    """controls.csv, one row per control tick, flushed as written: a crash keeps every row before it."""
+
+    def __init__(self, folder: Path) -> None:
+        folder.mkdir(parents=True, exist_ok=True)
+        self.path = folder / "controls.csv"
+        self._file = self.path.open("w", newline="")
+        self._writer = csv.DictWriter(self._file, fieldnames=CONTROL_FIELDS)
+        self._writer.writeheader()
+
+    def write(self, **row: object) -> None:
+        self._writer.writerow(row)
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def limited(action: np.ndarray, settings: PilotSettings) -> tuple[float, float]:
+    """(surge, yaw) within the axis limits."""
+    surge = float(np.clip(action[0], -settings.max_surge, settings.max_surge))
+    yaw = float(np.clip(action[1], -settings.max_yaw, settings.max_yaw))
+    return surge, yaw
+
+
+def fly(settings: PilotSettings, stop: threading.Event) -> Path:
+    """The control loop until ``stop``, the duration, or the end of a file; returns the controls CSV's path."""
+    settings.check()
+    policy = OnnxPolicy(settings.policy, settings.threads)
+    rate = settings.rate_hz or policy.control_rate_hz
+    vehicle = None
+    if not settings.dry_run:
+        from pilot_service.vehicle import Vehicle  # pymavlink only where a vehicle is flown
+
+        vehicle = Vehicle(settings.mavlink, settings.source_system, settings.heartbeat_timeout_s)
+    source = FrameSource(settings.source, settings.stream_timeout_s)
+    folder = Path(settings.out or f"runs/pilot-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}")
+    controls = ControlLog(folder)
+    latest = LatestFrame(source)
+    started = time.monotonic()
+    used, stalled = 0, False
+    try:
+        if vehicle is not None:
+            vehicle.set_mode(settings.mode)
+            if settings.arm:
+                vehicle.arm()
+        target = " (dry run: nothing is sent)" if vehicle is None else f" to {settings.mavlink}"
+        log.info("piloting from %s at %g Hz%s; controls in %s", settings.source, rate, target, controls.path)
+        tick = started
+        while not stop.is_set():
+            now = time.monotonic()
+            if settings.duration_s and now - started >= settings.duration_s:
+                break
+            frame, number, at = latest.get()
+            fresh = frame is not None and now - at <= settings.frame_timeout_s
+            if not fresh and latest.ended.is_set():
+                if not number:
+                    raise SourceError(f"the video source {settings.source!r} opened but gave no frame")
+                if not source.is_file:
+                    raise SourceError(f"the stream {settings.source!r} stopped giving frames after {number}")
+                log.info("the source ended after %d frames", number)
+                break
+            if fresh and number != used:
+                if stalled:
+                    log.warning("frames are back (frame %d): the policy starts afresh", number)
+                    policy.reset()
+                stalled, used = False, number
+                surge, yaw = limited(policy.act(as_sim_frame(frame, settings.camera_hfov_deg, policy.image_size)),
+                                     settings)  # fmt: skip
+            elif not fresh:
+                if not stalled and number:
+                    log.warning("no frame for %.2f s: neutral controls until frames return", now - at)
+                stalled, surge, yaw = bool(number) or stalled, 0.0, 0.0
+            sent = vehicle.send_control(surge, yaw) if vehicle is not None else None
+            controls.write(time_s=round(now - started, 4), frame=used, surge=surge, yaw=yaw, neutral=not fresh,
+                           sent=" ".join(map(str, sent)) if sent else "")  # fmt: skip
+            tick += 1.0 / rate
+            stop.wait(max(0.0, tick - time.monotonic()))
+    finally:
+        if vehicle is not None:
+            vehicle.send_control(0.0, 0.0)  # whatever ended the loop, the vehicle is left in neutral
+            vehicle.close()
+        controls.close()
+        source.close()
+    log.info("stopped after %.1f s; %d frames used; controls in %s", time.monotonic() - started, used, controls.path)
+    return controls.path
+
+
+def run(settings: PilotSettings) -> int:
+    stop = threading.Event()
+    with stop_on_signals(stop, "sending neutral controls and stopping"):
+        try:
+            fly(settings, stop)
+        except SourceError as exc:
+            log.error("%s", exc)
+            return 1
+    return 0
