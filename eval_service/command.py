@@ -35,15 +35,15 @@ from typing import Any, Literal
 
 from tqdm import tqdm
 
-from eval_service.evaluator import Contender, play_episodes
 from eval_service.live import LiveFeed, LiveView, tap_frames
 from eval_service.live_tap import EnvTap, parse_env
-from eval_service.metrics import summarise
 from eval_service.publish import ResultPublisher
 from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
 from learner_service.envs import BACKENDS, IMAGE_MODES
+from learner_service.evaluation import Contender, play_episodes
 from learner_service.export import SHIPPED_POLICY
 from learner_service.learn_settings import Backend, ObsMode, RewardVersion
+from learner_service.metrics import summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
 from services.settings import ZenohSettings, to_dict

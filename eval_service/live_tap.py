@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from eval_service.evaluator import step_row
 from eval_service.live import LiveFeed
-from eval_service.metrics import EpisodeMetrics
+from learner_service.evaluation import step_row
+from learner_service.metrics import EpisodeMetrics
 from learner_service.task import REWARDS, TrackingTask
 from services.keys import CHANNELS, Keys, check_chunk
 from services.messages import ActionMsg, BadMessage, ObservationMsg

@@ -2,7 +2,7 @@
 
 A recording holds each env's observations (telemetry: the ground truth the metrics read) and the actions that led
 to them, keyed by (episode, step). An episode is scored as a live evaluation scores it: step k's action with the
-world after it, through the same reward and Table 12 metrics (eval_service.metrics). Re-sent steps appear twice
+world after it, through the same reward and Table 12 metrics (learner_service.metrics). Re-sent steps appear twice
 on the wire and count once. Grouped steps (``groups/`` keys) are not read.
 """
 
@@ -13,8 +13,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from eval_service.metrics import EpisodeMetrics
 from learner_service.learn_settings import RewardVersion
+from learner_service.metrics import EpisodeMetrics
 from learner_service.task import REWARDS, TrackingTask
 from services.keys import CHANNELS
 from services.messages import ActionMsg, BadMessage, ObservationMsg

@@ -19,8 +19,8 @@ from typing import Any
 import pandas as pd
 
 from eval_service import plots
-from eval_service.evaluator import STEP_FIELDS
-from eval_service.metrics import SUMMARY_ROW_FIELDS
+from learner_service.evaluation import STEP_FIELDS
+from learner_service.metrics import SUMMARY_ROW_FIELDS
 
 log = logging.getLogger(__name__)
 

@@ -38,8 +38,8 @@ import pandas as pd
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from eval_service.evaluator import play_episodes
-from eval_service.metrics import summarise
+from learner_service.evaluation import play_episodes
+from learner_service.metrics import summarise
 from services.settings import to_dict
 from sim_service.noise import EFFECTS, PRESETS, scaled
 from sim_service.settings import WorldSettings

@@ -25,9 +25,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from eval_service.evaluator import Contender
 from eval_service.live import LiveFeed
 from eval_service.publish import ResultPublisher
+from learner_service.evaluation import Contender
 from learner_service.progress import BEST_MODEL, BEST_MODEL_SCORE, file_sha256
 
 log = logging.getLogger(__name__)

@@ -5,7 +5,7 @@ checkpoints, a progress bar, and a graceful stop.
   and then every ``every`` episodes (or steps), checked at the end of a rollout so a rollout (for SAC with
   ``train_freq: 1 episode``, one episode) is never cut in half. It plays N deterministic episodes on its own
   env (the ``eval`` channel when distributed; no early termination), from the same seed each time so
-  evaluations are comparable (:func:`eval_service.evaluator.play_episodes`, as `swimm eval` plays them),
+  evaluations are comparable (:func:`learner_service.evaluation.play_episodes`, as `swimm eval` plays them),
   and keeps ``best_model.zip`` with its score and Table 12 metrics in ``best_model.json``.
 - :class:`EpisodeStatsCallback` counts how training episodes ended (distance, visibility, collision, time
   limit) and the env-steps per second, for TensorBoard, the log and a ``progress.json`` that `swimm up` shows.
@@ -31,9 +31,9 @@ from stable_baselines3.common import callbacks as sb3_callbacks
 from stable_baselines3.common.callbacks import BaseCallback
 from tqdm import tqdm
 
-from eval_service.evaluator import play_episodes
-from eval_service.metrics import summarise
+from learner_service.evaluation import play_episodes
 from learner_service.learn_settings import EvalSettings
+from learner_service.metrics import summarise
 from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,

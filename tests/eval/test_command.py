@@ -25,8 +25,8 @@ from eval_service import command, sweep, watch
 from eval_service.attach import NoEvalEnv, free_env_ids
 from eval_service.command import SHIPPED_POLICY, EvalCommandSettings, contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
-from eval_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.inprocess_env import TrackingEnv
+from learner_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from services.cli import main as swimm

@@ -1,5 +1,7 @@
 """Plays deterministic evaluation episodes of one policy on one env and turns every step into metric rows.
 
+The training callback's evaluations and `swimm eval` share it, so it lives with the learner, below both.
+
 The env is either the distributed :class:`learner_service.proxy_env.ProxyEnv` or the in-process
 :class:`learner_service.inprocess_env.TrackingEnv`: both give the same ``info`` (telemetry, cause, d, theta,
 azimuth, psi, ep, seed), so this module never knows which one it drives. Per-step rows go to a callback as
@@ -18,7 +20,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from eval_service.metrics import EpisodeMetrics
+from learner_service.metrics import EpisodeMetrics
 from learner_service.registry import Policy
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eval_service.metrics import SUMMARY_ROW_FIELDS, EpisodeMetrics, smoothness, summarise
+from learner_service.metrics import SUMMARY_ROW_FIELDS, EpisodeMetrics, smoothness, summarise
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D
 
 
