@@ -52,6 +52,20 @@ log = logging.getLogger(__name__)
 CLAIMANT_ROLES = ("learner", "eval")  # the roles whose liveliness the sim watches to lapse claims
 
 
+@dataclass(frozen=True)
+class SimLost:
+    """In place of a reply: the sim refused the step because it no longer knows the env (it restarted)."""
+
+    refusal: str
+
+
+def sim_lost(refusal: StepRefused) -> SimLost:
+    """The refusal as a lost episode, or raised again if it is any other refusal."""
+    if UNCLAIMED not in str(refusal):
+        raise refusal
+    return SimLost(str(refusal))
+
+
 class ClaimRefused(ControlError):
     """The env could not be claimed: another holder has it (named in the message), or no sim serves it."""
 
@@ -168,7 +182,7 @@ class ProxyEnv(gym.Env):
             raise ClaimRefused(f"cannot claim env {self.name}: {exc}") from None
         self.link.ep = int(claimed.get("ep", 0))  # the next episode on the wire must come after the sim's current one
 
-    def _claim_again(self, refusal: Exception) -> None:
+    def _claim_again(self, refusal: str) -> None:
         """The sim forgot this env (it was restarted): claim it again, so the next reset starts a new episode."""
         self.sims_lost += 1
         log.warning("%s: the sim lost the episode (%s); claiming the env again", self.name, refusal)
@@ -194,7 +208,7 @@ class ProxyEnv(gym.Env):
         except ControlError as exc:
             if UNCLAIMED not in str(exc):
                 raise
-            self._claim_again(exc)
+            self._claim_again(str(exc))
             link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
         reply = link.wait()
         self._pending_action = None
@@ -222,19 +236,19 @@ class ProxyEnv(gym.Env):
         self._pending_action = np.asarray(action)
         return sim_action
 
-    def finish_step(self, reply: Reply | None = None) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+    def finish_step(self, reply: Reply | SimLost | None = None) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         """The step in flight, from ``reply`` (its group's) or from waiting for it on this env's link."""
         if self._pending_action is None:
             raise RuntimeError(f"{self.name}: no step in flight")
         try:
             reply = reply if reply is not None else self.link.wait()
         except StepRefused as exc:
-            if UNCLAIMED not in str(exc):
-                raise
+            reply = sim_lost(exc)
+        if isinstance(reply, SimLost):
             # The episode is gone with the sim that held it: end it here, truncated (its return so far stands,
             # nothing after it is made up), and claim the env again so the next reset starts afresh.
             self._pending_action = None
-            self._claim_again(exc)
+            self._claim_again(reply.refusal)
             return self._last_obs, 0.0, False, True, self._last_info | {"ep": self.episode, "cause": CAUSE_SIM_LOST}
         action, self._pending_action = self._pending_action, None
         obs, reward, terminated, info = self.task.step(action, self._frame(reply))
@@ -342,11 +356,18 @@ class ProxyVecEnv(VecEnv):
             group.send(sim_actions[start : start + len(group.links)])
             start += len(group.links)
 
-    def _replies(self) -> list[Reply | None]:
-        """Each env's reply, gathered group by group (None without groups: each env waits on its own link)."""
+    def _replies(self) -> list[Reply | SimLost | None]:
+        """Each env's reply, gathered group by group (None without groups: each env waits on its own link); a group
+        whose sim restarted gives each of its envs a :class:`SimLost`."""
         if not self.groups:
             return [None] * self.num_envs
-        return [reply for group in self.groups for reply in group.wait()]
+        replies: list[Reply | SimLost | None] = []
+        for group in self.groups:
+            try:
+                replies += group.wait()
+            except StepRefused as exc:
+                replies += [sim_lost(exc)] * len(group.links)
+        return replies
 
     def step_wait(self) -> VecEnvStepReturn:
         observations, rewards, dones, infos = [], np.zeros(self.num_envs, np.float32), np.zeros(self.num_envs, bool), []

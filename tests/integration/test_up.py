@@ -197,3 +197,17 @@ def test_up_past_its_restart_limit_ends_the_run_and_keeps_the_model(spawn, names
     assert "sim exited with -9; its log ends" in up.log_path.read_text()
     assert (run_dir / "final_model.zip").is_file()
     assert_all_stopped(up, {"router", "sim", "learner"})
+
+
+@pytest.mark.slow
+def test_up_restarts_a_killed_sim_whose_envs_step_in_groups(spawn, namespace, tmp_path) -> None:
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--envs", "4", "--group-size", "2",
+                              "--steps", "3000", "--restart-backoff-s", "1"))  # fmt: skip
+    wait_for_steps(up, run_dir, 400)
+    os.kill(started_pids(up)["sim"], signal.SIGKILL)
+    assert wait_exit(up, 240) == 0, up.log_tail(60)
+    assert "sim exited with -9: restarted" in up.log_path.read_text()
+    learner_log = (run_dir / "logs" / "learner.log").read_text()
+    assert learner_log.count("the sim lost the episode") == 4  # every env of both groups, once
+    assert json.loads((run_dir / "result.json").read_text())["num_timesteps"] >= 3000
