@@ -93,6 +93,12 @@ def latency_steps(settings: EvalCommandSettings) -> list[tuple[str, float, dict[
     return played
 
 
+def condition_name(group: str, severity: float) -> str:
+    """A condition as a reader says it: ``delay 80 ms``, ``rate 25 Hz``, ``fog x1.50``."""
+    units = {DELAY: "ms", RATE: "Hz"}
+    return f"{group} {severity:g} {units[group]}" if group in units else f"{group} x{severity:.2f}"
+
+
 def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str, Any]]]:
     """(group, severity, reset options) in play order. Noise: severity 0 once, as ``none``; latency: each
     condition alone (the others at none)."""
@@ -135,8 +141,8 @@ def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
                 rows.append({"label": entry.label, "effects": group, "severity": severity, **summary,
                              "violations": violations / len(played)})  # fmt: skip
                 episodes += [{"label": entry.label, "effects": group, "severity": severity, **r} for r in played]
-                log.info("%s, %s x%.2f: return %.0f, violations in %d of %d episodes", entry.label, group, severity,
-                         summary["mean_return"], violations, len(played))  # fmt: skip
+                log.info("%s, %s: return %.0f, violations in %d of %d episodes", entry.label,
+                         condition_name(group, severity), summary["mean_return"], violations, len(played))  # fmt: skip
     table = pd.DataFrame(rows, columns=list(SWEEP_COLUMNS))
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "sweep.csv", index=False)
@@ -163,7 +169,7 @@ def sweep_figure(table: pd.DataFrame, preset: str, per_row: int = 5, kind: str =
     columns = min(per_row, len(groups))
     rows = math.ceil(len(groups) / columns)
     fig = Figure(figsize=(2.8 * columns, 4.4 * rows))
-    axes = fig.subplots(2 * rows, columns, sharex=True, squeeze=False)
+    axes = fig.subplots(2 * rows, columns, sharex=kind == "noise", squeeze=False)  # delays and rates: own axes
     for index, group in enumerate(groups):
         top, bottom = axes[2 * (index // columns), index % columns], axes[2 * (index // columns) + 1, index % columns]
         part = pd.concat([clean, table[table["effects"] == group]]).drop_duplicates()
