@@ -74,9 +74,16 @@ def test_cmvae_mode_over_zenoh_equals_in_process(group, namespace, zenoh_setting
     torch.save(make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), checkpoint)
     endpoint = group.start_router()
     start_sim(group, endpoint, namespace, "--eval-envs", "0")
-    group.start("encoder", "encoder", "--connect", endpoint, "--namespace", namespace, "--checkpoint", str(checkpoint))
+    # One torch thread on both sides: the same kernels, so the same bits (this process's thread count is whatever
+    # earlier tests left it at, and a convolution split over another number of threads differs in the last bits).
+    group.start("encoder", "encoder", "--connect", endpoint, "--namespace", namespace, "--checkpoint", str(checkpoint),
+                "--threads", "1")  # fmt: skip
     task = TaskSettings(obs="cmvae", max_steps=MAX_STEPS)
     remote = record_run(ProxyEnv(task, ProxySettings(zenoh=zenoh_settings(endpoint)), base_seed=BASE_SEED))
-    local = record_run(TrackingEnv(task, base_seed=BASE_SEED, encoder=LatentEncoder(checkpoint)))
+    threads = torch.get_num_threads()
+    try:
+        local = record_run(TrackingEnv(task, base_seed=BASE_SEED, encoder=LatentEncoder(checkpoint, threads=1)))
+    finally:
+        torch.set_num_threads(threads)
     assert_same_runs(remote, local)
     assert np.abs(np.array([row[0][:10] for row in local])).max() > 0  # real latents, not zeros
