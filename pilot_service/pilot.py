@@ -158,9 +158,9 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
                 surge, yaw = limited(policy.act(as_sim_frame(frame, settings.camera_hfov_deg, policy.image_size)),
                                      settings)  # fmt: skip
             elif not fresh:
-                if not stalled and number:
+                if not stalled and number:  # before the first frame there is nothing to have stalled
                     log.warning("no frame for %.2f s: neutral controls until frames return", now - at)
-                stalled, surge, yaw = bool(number) or stalled, 0.0, 0.0
+                stalled, surge, yaw = number > 0, 0.0, 0.0
             sent = vehicle.send_control(surge, yaw) if vehicle is not None else None
             controls.write(time_s=round(now - started, 4), frame=used, surge=surge, yaw=yaw, neutral=not fresh,
                            sent=" ".join(map(str, sent)) if sent else "")  # fmt: skip

@@ -107,6 +107,10 @@ class McapRecorder:
             channel = self._channels[topic] = self.writer.register_channel(topic, encoding, schema)
         return channel
 
+    @property
+    def topics(self) -> int:
+        return len(self._channels)
+
     def write(self, key: str, payload: bytes, received_ns: int) -> None:
         self.writer.add_message(self._channel(key, RAW_ENCODING), received_ns, payload, received_ns, self.messages)
         self.messages += 1
@@ -163,7 +167,7 @@ def record(settings: RecordSettings, stop: threading.Event) -> dict[str, Any]:
             recorder.write(*samples.get())
         recorder.close()
         session.close()
-    summary = {"file": str(out), "messages": recorder.messages, "topics": len(recorder._channels),
+    summary = {"file": str(out), "messages": recorder.messages, "topics": recorder.topics,
                "seconds": round(time.monotonic() - started, 1), "namespace": namespace}  # fmt: skip
     log.info("recorded %d messages on %d topics in %.1f s to %s", summary["messages"], summary["topics"],
              summary["seconds"], out)  # fmt: skip
