@@ -110,8 +110,9 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
     while not any(token.startswith(f"{target}/@live/encoder") for token in _tokens(watcher, target)):
         assert time.monotonic() < deadline, "the replay namespace's encoder never came up"
         time.sleep(0.2)
+    time.sleep(2.0)  # the new encoder's subscription reaches the router (its token can come first)
     replay = group.start("replay", "replay", str(out), "--connect", endpoint, "--namespace", target,
-                         "--no-namespace-from-file", "--keys", "*/*/obs/*", "--speed", "full")  # fmt: skip
+                         "--no-namespace-from-file", "--keys", "*/*/obs/*", "--speed", "recorded")  # fmt: skip
     assert replay.process.wait(timeout=60) == 0, replay.log_tail()
     deadline = time.monotonic() + 30
     while len(heard.get(f"{target}/train/0/latent", [])) < STEPS + 1:
