@@ -93,7 +93,8 @@ def await_reply(
 ) -> Any:
     """The first item of ``inbox`` that ``accept`` takes, re-sending (``resend``) each time ``waiter``'s
     ``step_timeout_s`` passes without one, up to ``max_retries`` times (counted in ``waiter.retries``); then
-    StepTimeout with ``missing()``'s message. A re-send that fails is logged and waited out like a lost one."""
+    StepTimeout with ``missing()``'s message. A re-send nobody answered is logged and waited out like a lost one; a
+    refused one (:class:`services.control.ControlError`, e.g. a restarted sim's "not claimed") is raised."""
     for attempt in range(waiter.max_retries + 1):
         deadline = time.monotonic() + waiter.step_timeout_s
         while (remaining := deadline - time.monotonic()) > 0:
@@ -107,7 +108,7 @@ def await_reply(
         log.warning("%s: no reply within %.1f s (try %d); re-sending", waiter.name, waiter.step_timeout_s, attempt + 1)
         try:
             resend()
-        except control.ControlError as exc:
+        except control.ControlTimeout as exc:
             log.warning("%s: re-send failed: %s", waiter.name, exc)
     raise StepTimeout(missing())
 

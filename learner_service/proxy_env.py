@@ -201,21 +201,24 @@ class ProxyEnv(gym.Env):
             self.base_seed, self.episode = seed, 0
         self.episode += 1
         world_seed = episode_seed(self.base_seed, self.episode)
-        link = self.link
         options = options or {}
         try:
-            link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
-        except ControlError as exc:
+            reply = self._start_episode(world_seed, options)
+        except ControlError as exc:  # refused at once, or on a re-send after the sim restarted mid-reset
             if UNCLAIMED not in str(exc):
                 raise
             self._claim_again(str(exc))
-            link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
-        reply = link.wait()
+            reply = self._start_episode(world_seed, options)
         self._pending_action = None
         obs = self._last_obs = self.task.reset(self._frame(reply), seed=world_seed)
         info = self._last_info = self.task.info(reply.telemetry) | {"ep": self.episode, "seed": world_seed}
         log.debug("%s: episode %d (seed %d) starts at d %.2f m", self.name, self.episode, world_seed, info["d"])
         return obs, info
+
+    def _start_episode(self, world_seed: int, options: dict) -> Reply:
+        link = self.link
+        link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
+        return link.wait()
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         self.send_step(action)

@@ -26,6 +26,9 @@ class ControlTimeout(ControlError):
     """Nobody answered a control request in time: worth retrying, unlike a refusal."""
 
 
+ZENOH_TIMEOUT = "Timeout"  # the error reply Zenoh delivers when a query's timeout passes before its responder replies
+
+
 def request(session: zenoh.Session, key: str, op: str, timeout_s: float = 5.0, **args: Any) -> dict[str, Any]:
     """Send one control request to exactly one responder and return its reply map.
 
@@ -43,7 +46,10 @@ def request(session: zenoh.Session, key: str, op: str, timeout_s: float = 5.0, *
         querier.undeclare()
     for reply in replies:
         if reply.ok is None:
-            raise ControlError(f"{op} on {key} failed: {reply.err.payload.to_bytes().decode(errors='replace')}")
+            reason = reply.err.payload.to_bytes().decode(errors="replace")
+            if reason == ZENOH_TIMEOUT:  # a responder that was too slow: as retryable as no responder at all
+                break
+            raise ControlError(f"{op} on {key} failed: {reason}")
         try:
             body = unpack(reply.ok.payload.to_bytes())
         except BadMessage as exc:

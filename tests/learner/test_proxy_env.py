@@ -3,6 +3,7 @@ claims (refused by name, released on close, lapsed with the holder's liveliness)
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -128,6 +129,22 @@ def test_a_stopped_sim_gives_a_step_timeout_naming_the_sim(served, processes: Pr
     with pytest.raises(StepTimeout, match="swimm sim"):
         env.step((0.1, 0.1))
     assert time.monotonic() - started < 5  # 3 tries of 0.3 s, bounded
+    env.close()
+
+
+@pytest.mark.slow
+def test_a_reset_sent_while_the_sim_restarts_claims_the_env_again(served, processes, namespace) -> None:
+    """The sim dies with a reset unanswered; the re-sent reset reaches its successor, which refuses it as unclaimed:
+    the env is claimed again and the episode starts there (the race a supervised `swimm up` meets)."""
+    env = ProxyEnv(TaskSettings(obs="state"), served(step_timeout_s=0.5, max_retries=40))
+    env.reset()
+    processes.stop(served.sim)
+    restart = threading.Timer(1.0, start_sim, (processes, served().zenoh.connect[0], namespace, "--train-envs", "2"))
+    restart.start()
+    obs, info = env.reset()  # first sent to no sim at all
+    restart.join()
+    assert env.sims_lost == 1 and env.observation_space.contains(obs)
+    env.step((0.1, 0.1))
     env.close()
 
 

@@ -73,6 +73,20 @@ def test_unanswered_request_times_out_retryably_naming_the_key(zenoh_router, zen
     assert time.monotonic() - started < 3.0
 
 
+def test_a_responder_slower_than_the_timeout_times_out_retryably(zenoh_router, zenoh_session, keys):
+    """Zenoh answers a query whose timeout passed with an error reply; that is a timeout, not a refusal."""
+    sim, learner = zenoh_session(zenoh_router), zenoh_session(zenoh_router)
+    key = keys.ctl("train", "0")
+
+    def slow(query: zenoh.Query) -> None:
+        time.sleep(1.5)
+        control.reply(query, True)
+
+    _queryable = sim.declare_queryable(key, slow)
+    with pytest.raises(control.ControlTimeout, match="reset on .*/train/0/ctl: no reply within 0.5 s"):
+        control.request(learner, key, "reset", timeout_s=0.5)
+
+
 def test_unreadable_reply_is_reported_not_raised_raw(zenoh_router, zenoh_session, keys):
     sim, learner = zenoh_session(zenoh_router), zenoh_session(zenoh_router)
     key = keys.ctl("train", "0")
