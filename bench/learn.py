@@ -89,6 +89,7 @@ def learn_settings(
         encoder_checkpoint=settings.encoder_checkpoint,
         envs=layout.envs,
         smooth=settings.smooth,
+        actor_average=settings.actor_average,
         hyperparams=settings.hyperparams,
     )
 

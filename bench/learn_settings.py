@@ -25,6 +25,7 @@ class LearnBenchSettings:
     resume: bool = True  # skip runs that already finished in ``out``
     encoder_checkpoint: str = ""  # the CMVAE (default: the shipped one)
     smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS for off-policy actors
+    actor_average: int = 0  # evaluate and keep the actor's weights averaged over ~N updates (swimm learn's flag)
     hyperparams: str = ""  # YAML mapping or file over each algorithm's shipped values: "{learning_rate: lin_7.3e-4}"
 
     def check(self) -> None:

@@ -22,6 +22,8 @@ import logging
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -70,9 +72,12 @@ class RolloutEvalCallback(BaseCallback):
         save_dir: str | Path,
         verbose: int = 0,
         started: float | None = None,
+        acting: Callable[[], AbstractContextManager] = nullcontext,
     ) -> None:
-        """``started``: the ``time.perf_counter()`` the rows' ``wall_s`` count from (default: when training starts)."""
+        """``started``: the ``time.perf_counter()`` the rows' ``wall_s`` count from (default: when training starts);
+        ``acting``: a context the evaluation and the best model's save run in (averaging.py swaps weights in)."""
         super().__init__(verbose)
+        self.acting = acting
         settings.check()
         self.started = started
         self.eval_env = eval_env
@@ -110,6 +115,10 @@ class RolloutEvalCallback(BaseCallback):
 
     def evaluate(self) -> dict[str, float]:
         """Play the evaluation episodes now; log, record, and save the model if it is the best so far."""
+        with self.acting():
+            return self._evaluate()
+
+    def _evaluate(self) -> dict[str, float]:
         started = time.perf_counter()
         wall_s = started - self.started  # the training time this evaluation's model cost, not its own
         rows = play_episodes(SB3Policy(self.model), self.eval_env, "eval", self.settings.episodes, self.settings.seed)

@@ -20,7 +20,7 @@ import logging
 import sys
 import threading
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -121,6 +121,8 @@ def check(settings: LearnCommandSettings) -> None:
         raise ValueError(f"group_size must be >= 0 (0: each env its own messages), got {settings.group_size}")
     if settings.envs < 1 or settings.steps < 0 or settings.checkpoint_every < 0 or settings.budget_min < 0:
         raise ValueError("envs must be >= 1, steps, checkpoint_every and budget_min >= 0")
+    if settings.actor_average < 0:
+        raise ValueError(f"actor_average counts actor updates (0: off), got {settings.actor_average}")
     if settings.resume and not Path(settings.resume).is_file():
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
 
@@ -224,13 +226,19 @@ class Training:
 
             keep_smooth(model, s.smooth, s.seed)
             log.info("actor updates keep CAPS smoothness terms: %s", s.smooth)
+        acting = nullcontext  # which weights evaluations and the saved models act with: the live ones...
+        if s.actor_average:
+            from learner_service.averaging import ActorAverage
+
+            acting = ActorAverage(model, s.actor_average).swapped_in  # ...or their running average
+            log.info("evaluations and the final model average the actor over ~%d updates", s.actor_average)
         start_steps = model.num_timesteps
         stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]
         callbacks += training_callbacks(s.algo, self.overrides, s.envs)
         evaluation = None
         if eval_env is not None:
-            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock)
+            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock, acting=acting)
             callbacks.append(evaluation)
         if s.budget_min:
             callbacks.append(WallClockLimit(s.budget_min * 60, clock))
@@ -252,7 +260,8 @@ class Training:
                     tb_log_name=tb_log_name,
                 )
         finally:
-            save_model(model, self.run_dir / FINAL_MODEL, s.save_replay_buffer)
+            with acting():
+                save_model(model, self.run_dir / FINAL_MODEL, s.save_replay_buffer)
             self.plot_summary()
         wall = time.perf_counter() - started
         best = evaluation.best_mean_return if evaluation is not None and evaluation.evaluations else None

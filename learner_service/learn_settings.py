@@ -100,6 +100,7 @@ class LearnCommandSettings:
     eval: EvalSettings = field(default_factory=EvalSettings)  # flags --eval-*
     demo: DemoSettings = field(default_factory=DemoSettings)  # flags --demo-*: the scripted tracker's head start
     smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS action smoothness
+    actor_average: int = 0  # evaluate and deliver an average of the actor's weights over ~N updates; 0 = live weights
     encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
     step_timeout_s: float = 2.0  # distributed: wait per try before re-sending a step
     max_retries: int = 10  # distributed: re-sends before a step fails naming the missing service
