@@ -27,6 +27,7 @@ import dataclasses
 import difflib
 import functools
 import inspect
+import math
 import os
 import re
 import types
@@ -214,16 +215,31 @@ def _adapter(kind: Any) -> pydantic.TypeAdapter:
     return pydantic.TypeAdapter(kind)
 
 
-def validated(leaf: _Leaf, value: Any, source: str) -> Any:
-    """``value`` as the leaf's type, or a ValueError naming the setting, where it came from, and what was wrong."""
+def validated(leaf: _Leaf, value: Any, source: str, strict: bool = False) -> Any:
+    """``value`` as the leaf's type, or a ValueError naming the setting, where it came from, and what was wrong.
+
+    ``strict``: no conversion at all (a message's typed values: no "3" for 3, no true for 1, no item for a list)."""
     base, _ = _base_type(leaf.kind)
-    if typing.get_origin(base) is list and value is not None and not isinstance(value, list | tuple):
+    if not strict and typing.get_origin(base) is list and value is not None and not isinstance(value, list | tuple):
         value = [value]  # one item where a list goes: a YAML `dataset: folder` means [folder]
     try:
-        return _adapter(leaf.kind).validate_python(value)
+        return _adapter(leaf.kind).validate_python(value, strict=strict)
     except pydantic.ValidationError as exc:
         reasons = "; ".join(error["msg"] for error in exc.errors())
         raise ValueError(f"{source}: setting {leaf.name!r} got {value!r}: {reasons}") from None
+
+
+def from_message(cls: type[T], values: typing.Mapping[str, Any], source: str) -> T:
+    """A flat settings dataclass from a message's map (a reset's ``noise`` or ``latency``): unknown keys refused
+    with the closest names, every value checked strictly against its field's type; the rest keep their defaults."""
+    check_keys(dict(values), cls, source)
+    leaves = {leaf.name: leaf for leaf in _leaves(cls)}
+    checked = {name: validated(leaves[name], value, source, strict=True) for name, value in values.items()}
+    for name, value in checked.items():
+        numbers = value if isinstance(value, list | tuple) else [value]
+        if any(isinstance(number, float) and not math.isfinite(number) for number in numbers):
+            raise ValueError(f"{source}: setting {name!r} got {value!r}: a finite number is needed")
+    return cls(**checked)
 
 
 def load(

@@ -17,9 +17,11 @@ episode's seed: a training aid, like randomised image noise; evaluation uses fix
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
+
+from services.settings import from_message
 
 NEUTRAL = (0.0, 0.0, 0.0, 0.0)
 
@@ -41,14 +43,7 @@ class LatencySettings:
     @classmethod
     def from_mapping(cls, values: dict) -> LatencySettings:
         """Settings from a reset's ``latency`` map, refusing unknown keys and wrong types by name."""
-        defaults = asdict(cls())
-        unknown = sorted(set(values) - set(defaults))
-        if unknown:
-            raise ValueError(f"unknown latency settings {unknown}; known: {', '.join(defaults)}")
-        for name, value in values.items():
-            if type(value) is not type(defaults[name]):  # bool is not an int here, nor an int a bool
-                raise ValueError(f"latency setting {name!r} must be {type(defaults[name]).__name__}, got {value!r}")
-        settings = cls(**values)
+        settings = from_message(cls, values, "latency")
         settings.check()
         return settings
 

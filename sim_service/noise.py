@@ -43,6 +43,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from services.settings import from_message
+
 _MAX_DOF_LEVELS = 4  # blur levels (besides the sharp image) that depth of field interpolates between
 _MIN_MOTION_PX = 1e-3  # smear shorter than this is no blur at all
 _KERNEL_SUPERSAMPLING = 8  # motion-blur kernels are drawn at this many sub-pixels per pixel
@@ -82,25 +84,7 @@ class NoiseSettings:
     @classmethod
     def from_mapping(cls, values: dict) -> NoiseSettings:
         """Settings from a message's map (a reset's ``noise``), refusing unknown keys and wrong types by name."""
-        defaults = dataclasses.asdict(cls())
-        unknown = sorted(set(values) - set(defaults))
-        if unknown:
-            raise ValueError(f"unknown noise settings {unknown}; known: {', '.join(defaults)}")
-        for name, value in values.items():
-            default = defaults[name]
-            if isinstance(default, list):
-                ok = isinstance(value, list) and all(_is_number(v) for v in value)
-            elif isinstance(default, bool):
-                ok = isinstance(value, bool)
-            elif isinstance(default, str):
-                ok = isinstance(value, str)
-            elif isinstance(default, int):
-                ok = isinstance(value, int) and not isinstance(value, bool)
-            else:
-                ok = _is_number(value) and math.isfinite(value)
-            if not ok:
-                raise ValueError(f"noise setting {name} must be like {default!r}, got {value!r}")
-        settings = cls(**values)
+        settings = from_message(cls, values, "noise")
         ImageNoise(settings)  # validates ranges and the preset
         return settings
 
@@ -366,10 +350,6 @@ def _jpeg(image: np.ndarray, quality: int) -> np.ndarray:
     if not ok:
         raise RuntimeError(f"OpenCV could not JPEG-encode a {image.shape} frame")
     return cv2.imdecode(encoded, cv2.IMREAD_COLOR)[..., ::-1].copy()
-
-
-def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _line_kernel(smear: np.ndarray, length: float) -> np.ndarray:

@@ -239,3 +239,29 @@ def test_a_choice_is_checked_in_one_place_whichever_layer_gives_it(tmp_path, cap
     config.write_text("mode: mesh\n")
     with pytest.raises(ValueError, match="setting 'mode' got 'mesh'"):
         _load(config_file=config)
+
+
+@pytest.mark.parametrize(
+    ("values", "reason"),
+    [
+        ({"fogg": 1.0}, "noise: unknown setting 'fogg'; did you mean fog"),
+        ({"fog": "0.1"}, "setting 'fog' got '0.1': Input should be a valid number"),  # no text for a number
+        ({"fog": True}, "setting 'fog' got True"),  # nor a bool
+        ({"jpeg_quality": 30.0}, "setting 'jpeg_quality' got 30.0: Input should be a valid integer"),
+        ({"attenuation_rgb": 1.0}, "setting 'attenuation_rgb' got 1.0"),  # no item where a list goes
+        ({"attenuation_rgb": [1.0, float("inf"), 0.3]}, "a finite number is needed"),
+        ({"fog": float("nan")}, "a finite number is needed"),
+    ],
+)
+def test_a_messages_settings_are_checked_strictly_by_name(values, reason) -> None:
+    from sim_service.noise import NoiseSettings
+
+    with pytest.raises(ValueError, match=re.escape(reason)):
+        settings_mod.from_message(NoiseSettings, values, "noise")
+
+
+def test_a_messages_settings_keep_the_defaults_they_leave_out() -> None:
+    from sim_service.latency import LatencySettings
+
+    got = settings_mod.from_message(LatencySettings, {"action_delay": 4, "randomise": True}, "latency")
+    assert got == LatencySettings(action_delay=4, randomise=True)
