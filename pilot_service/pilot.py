@@ -8,7 +8,9 @@ A reader thread keeps the newest frame of the source; the control loop runs at t
 sent as MANUAL_CONTROL (pilot_service.vehicle). Safety: nothing is armed unless ``--arm``; a watchdog sends
 neutral controls, and says so, while no frame has come for ``--frame-timeout-s`` (the policy's history starts
 afresh when frames return); Ctrl-C, the end of a file and any error leave the vehicle with neutral controls.
-Every control sent (or, with ``--dry-run``, computed) is appended to ``<out>/controls.csv`` as it happens.
+Every control sent (or, with ``--dry-run``, computed) is appended to ``<out>/controls.csv`` as it happens, and
+(``--record``, on by default) the session goes to ``<out>/session.mcap`` as `swimm record` writes a sim's: each
+frame the policy saw as a ``foxglove.CompressedImage`` on ``pilot/camera``, each control on ``pilot/controls``.
 """
 
 from __future__ import annotations
@@ -26,10 +28,27 @@ import numpy as np
 from pilot_service.frames import FrameSource, SourceError, as_sim_frame
 from pilot_service.policy import OnnxPolicy
 from services.lifecycle import stop_on_signals
+from services.record import McapRecorder
 
 log = logging.getLogger(__name__)
 
 CONTROL_FIELDS = ("time_s", "frame", "surge", "yaw", "neutral", "sent")
+SESSION_FILE = "session.mcap"
+SESSION_NAMESPACE = "pilot"  # the recording's metadata: it holds no wire samples for `swimm replay` to publish
+CAMERA_TOPIC, CONTROLS_TOPIC = "pilot/camera", "pilot/controls"
+#: One control tick, as session.mcap's JSON schema gives it to a viewer.
+CONTROL_SCHEMA = {
+    "title": "swimm.PilotControl",
+    "type": "object",
+    "properties": {
+        "time_s": {"type": "number"},
+        "frame": {"type": "integer"},
+        "surge": {"type": "number"},
+        "yaw": {"type": "number"},
+        "neutral": {"type": "boolean"},
+        "sent": {"type": "string"},
+    },
+}
 
 
 @dataclass
@@ -50,7 +69,8 @@ class PilotSettings:
     heartbeat_timeout_s: float = 10.0  # how long to wait for the vehicle's first HEARTBEAT
     stream_timeout_s: float = 5.0  # a stream silent this long has stopped: the pilot ends, in neutral, saying so
     threads: int = 1  # onnxruntime threads
-    out: str = ""  # the run folder (controls.csv); default runs/pilot-<UTC time>
+    record: bool = True  # keep the session in <out>/session.mcap: every frame the policy saw, every control
+    out: str = ""  # the run folder (controls.csv, session.mcap); default runs/pilot-<UTC time>
 
     def check(self) -> None:
         if not 0 < self.max_surge <= 1 or not 0 < self.max_yaw <= 1:
@@ -89,21 +109,36 @@ class LatestFrame:
 
 
 class ControlLog:
-    """controls.csv, one row per control tick, flushed as written: a crash keeps every row before it."""
+    """controls.csv, one row per control tick, flushed as written: a crash keeps every row before it; with
+    ``record``, also session.mcap, the frames the policy acted on beside the controls, for a viewer to replay."""
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, record: bool) -> None:
         folder.mkdir(parents=True, exist_ok=True)
         self.path = folder / "controls.csv"
         self._file = self.path.open("w", newline="")
         self._writer = csv.DictWriter(self._file, fieldnames=CONTROL_FIELDS)
         self._writer.writeheader()
+        self.session: McapRecorder | None = None
+        if record:
+            self.session = McapRecorder(folder / SESSION_FILE, SESSION_NAMESPACE, images=False)
+            self._control_schema = self.session.schema("swimm.PilotControl", CONTROL_SCHEMA)
+
+    def frame(self, frame: np.ndarray, number: int) -> None:
+        """The frame (as the policy saw it) that the next controls act on."""
+        if self.session is not None:
+            now_ns = time.time_ns()
+            self.session.write_image(CAMERA_TOPIC, frame, now_ns, f"frame {number}", now_ns)
 
     def write(self, **row: object) -> None:
         self._writer.writerow(row)
         self._file.flush()
+        if self.session is not None:
+            self.session.write_json(CONTROLS_TOPIC, row, time.time_ns(), self._control_schema)
 
     def close(self) -> None:
         self._file.close()
+        if self.session is not None:
+            self.session.close()
 
 
 def limited(action: np.ndarray, settings: PilotSettings) -> tuple[float, float]:
@@ -125,7 +160,7 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
         vehicle = Vehicle(settings.mavlink, settings.source_system, settings.heartbeat_timeout_s)
     source = FrameSource(settings.source, settings.stream_timeout_s)
     folder = Path(settings.out or f"runs/pilot-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}")
-    controls = ControlLog(folder)
+    controls = ControlLog(folder, settings.record)
     latest = LatestFrame(source)
     started = time.monotonic()
     used, stalled = 0, False
@@ -155,8 +190,9 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
                     log.warning("frames are back (frame %d): the policy starts afresh", number)
                     policy.reset()
                 stalled, used = False, number
-                surge, yaw = limited(policy.act(as_sim_frame(frame, settings.camera_hfov_deg, policy.image_size)),
-                                     settings)  # fmt: skip
+                seen = as_sim_frame(frame, settings.camera_hfov_deg, policy.image_size)
+                controls.frame(seen, number)
+                surge, yaw = limited(policy.act(seen), settings)
             elif not fresh:
                 if not stalled and number:  # before the first frame there is nothing to have stalled
                     log.warning("no frame for %.2f s: neutral controls until frames return", now - at)

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import zenoh
 
 from services.lifecycle import stop_on_signals
@@ -95,9 +96,7 @@ class McapRecorder:
         self.writer.start(profile="", library="swimm")
         self.writer.add_metadata(METADATA_NAME, {"namespace": namespace})
         self.images = images
-        self._image_schema = self.writer.register_schema(
-            "foxglove.CompressedImage", "jsonschema", json.dumps(COMPRESSED_IMAGE_SCHEMA).encode()
-        )
+        self._image_schema = self.schema("foxglove.CompressedImage", COMPRESSED_IMAGE_SCHEMA)
         self._channels: dict[str, int] = {}
         self.messages = 0
 
@@ -118,22 +117,34 @@ class McapRecorder:
             self._write_image(key, payload, received_ns)
 
     def _write_image(self, key: str, payload: bytes, received_ns: int) -> None:
-        import cv2  # only where frames are recorded as images
-
         try:
             msg = ObservationMsg.decode(payload)
         except BadMessage:
             return  # a group's batch, or not an observation: kept raw above
-        if msg.image is None:
-            return
-        ok, png = cv2.imencode(".png", cv2.cvtColor(msg.image, cv2.COLOR_RGB2BGR))
+        if msg.image is not None:
+            self.write_image(key + IMAGE_TOPIC_SUFFIX, msg.image, int(msg.sent_at * 1e9), msg.env, received_ns)
+
+    def write_image(self, topic: str, rgb: np.ndarray, stamp_ns: int, frame_id: str, log_ns: int) -> None:
+        """An RGB frame on ``topic`` as a foxglove.CompressedImage (PNG, lossless)."""
+        import cv2  # only where frames are recorded as images
+
+        ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         if not ok:
-            return
-        sec, nsec = divmod(int(msg.sent_at * 1e9), 1_000_000_000)
-        body = {"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": msg.env, "format": "png",
+            raise ValueError(f"OpenCV could not PNG-encode a {rgb.shape} frame for {topic}")
+        sec, nsec = divmod(stamp_ns, 1_000_000_000)
+        body = {"timestamp": {"sec": sec, "nsec": nsec}, "frame_id": frame_id, "format": "png",
                 "data": base64.b64encode(png.tobytes()).decode()}  # fmt: skip
-        channel = self._channel(key + IMAGE_TOPIC_SUFFIX, "json", self._image_schema)
-        self.writer.add_message(channel, received_ns, json.dumps(body).encode(), received_ns, self.messages)
+        self.write_json(topic, body, log_ns, self._image_schema)
+
+    def write_json(self, topic: str, body: dict[str, Any], log_ns: int, schema: int = 0) -> None:
+        """A JSON message on ``topic`` (``schema``: an id from :meth:`schema`; 0 = schemaless)."""
+        channel = self._channel(topic, "json", schema)
+        self.writer.add_message(channel, log_ns, json.dumps(body).encode(), log_ns, self.messages)
+        self.messages += 1
+
+    def schema(self, name: str, json_schema: dict[str, Any]) -> int:
+        """Register a JSON schema, for viewers to read a topic's fields by."""
+        return self.writer.register_schema(name, "jsonschema", json.dumps(json_schema).encode())
 
     def close(self) -> None:
         self.writer.finish()

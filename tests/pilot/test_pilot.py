@@ -4,6 +4,7 @@ pymavlink stand-in for ArduSub in a process of its own."""
 
 from __future__ import annotations
 
+import base64
 import csv
 import json
 import os
@@ -82,13 +83,34 @@ def test_a_dry_run_on_a_dive_video_acts_as_the_policy_on_each_frame(exported: Pa
     first_of_frame.pop(0, None)  # neutral ticks before the first frame came
     assert sorted(first_of_frame) == list(range(1, FRAMES + 1))  # every frame of the file used, none skipped
 
-    policy, source, expected = OnnxPolicy(exported), FrameSource(str(dive_video)), []
+    policy, source, expected, seen = OnnxPolicy(exported), FrameSource(str(dive_video)), [], []
     while (frame := source.read()) is not None:
-        expected.append(limited(policy.act(as_sim_frame(frame, HFOV_DEG, 64)), settings))
+        seen.append(as_sim_frame(frame, HFOV_DEG, 64))
+        expected.append(limited(policy.act(seen[-1]), settings))
     source.close()
     got = [(float(row["surge"]), float(row["yaw"])) for _, row in sorted(first_of_frame.items())]
     np.testing.assert_allclose(got, expected, atol=1e-6)
     assert max(abs(surge) for surge, _ in got) <= settings.max_surge and all(row["sent"] == "" for row in rows)
+
+    # The session as a viewer reads it: each frame the policy saw, bit for bit, and every control row.
+    recorded = _session(tmp_path / "pilot" / "session.mcap")
+    frames = [cv2.cvtColor(cv2.imdecode(np.frombuffer(base64.b64decode(body["data"]), np.uint8), cv2.IMREAD_COLOR),
+                           cv2.COLOR_BGR2RGB) for body in recorded["pilot/camera"]]  # fmt: skip
+    assert len(frames) == FRAMES and all(np.array_equal(a, b) for a, b in zip(frames, seen, strict=True))
+    assert [{key: str(value) for key, value in body.items()} for body in recorded["pilot/controls"]] == rows
+
+
+def _session(path: Path) -> dict[str, list[dict]]:
+    """The JSON messages of a pilot's session.mcap by topic, read with the mcap library (schemas checked)."""
+    from mcap.reader import make_reader
+
+    topics: dict[str, list[dict]] = {}
+    with path.open("rb") as handle:
+        for schema, channel, message in make_reader(handle).iter_messages(log_time_order=True):
+            assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
+            assert schema.name == {"pilot/camera": "foxglove.CompressedImage"}.get(channel.topic, "swimm.PilotControl")
+            topics.setdefault(channel.topic, []).append(json.loads(message.data))
+    return topics
 
 
 def test_what_cannot_be_flown_is_refused_by_name(exported: Path, tmp_path) -> None:
