@@ -14,10 +14,11 @@ import logging
 
 import zenoh
 
-from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, await_reply, choose_route, decode_reply
+from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, await_reply, decode_reply
 from services.keys import GROUPS, Keys
 from services.messages import DIRECT_ROUTE, BadMessage, BatchItem, BatchMsg
 from services.polling import Inbox, prepare_to_poll
+from services.presence import choose_route
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,6 @@ off a dead encoder.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import queue
 import time
@@ -38,7 +37,7 @@ from services.messages import (
     ObservationMsg,
 )
 from services.polling import Inbox, prepare_to_poll
-from services.presence import Roster
+from services.presence import Roster, choose_route
 from services.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
@@ -62,20 +61,6 @@ class Reply:
     image: np.ndarray | None  # direct mode
     mu: np.ndarray | None  # cmvae mode
     logvar: np.ndarray | None
-
-
-def rendezvous_choice(env_key: str, members: set[str]) -> str:
-    """The member with the highest hash for this env: stable, and only the dead member's envs move."""
-    return max(members, key=lambda m: hashlib.blake2b(f"{env_key}|{m}".encode(), digest_size=8).digest())
-
-
-def choose_route(encoders: Roster | None, key: str, wait_s: float) -> str:
-    """Where a step's observation goes: ``direct`` without encoders, else the live encoder rendezvous hashing
-    picks for ``key`` (waiting up to ``wait_s`` for one to come back if none is live)."""
-    if encoders is None:
-        return DIRECT_ROUTE
-    members = encoders.members() or encoders.wait_for(1, timeout_s=wait_s)
-    return rendezvous_choice(key, members)
 
 
 def decode_reply(payload: bytes, encoded: bool) -> Reply:

@@ -19,7 +19,7 @@ import csv
 import logging
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -27,8 +27,10 @@ import numpy as np
 
 from pilot_service.frames import FrameSource, SourceError, as_sim_frame
 from pilot_service.policy import OnnxPolicy
+from services.keys import check_chunk
 from services.lifecycle import stop_on_signals
 from services.record import McapRecorder
+from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +60,7 @@ class PilotSettings:
     camera_hfov_deg: float = 80.0  # the real camera's horizontal field of view (the BlueROV2 low-light camera's)
     mavlink: str = "udpin:0.0.0.0:14550"  # the vehicle's MAVLink endpoint (BlueOS sends to the GCS on UDP 14550)
     source_system: int = 255  # our MAVLink system id: ArduSub takes control from its SYSID_MYGCS (255)
-    mode: Literal["ALT_HOLD", "STABILIZE", "MANUAL"] = "ALT_HOLD"  # the dive mode set at start
+    dive_mode: Literal["ALT_HOLD", "STABILIZE", "MANUAL"] = "ALT_HOLD"  # the ArduSub flight mode set at start
     arm: bool = False  # arm the vehicle at start; never without this flag
     dry_run: bool = False  # compute and log every action, connect to nothing and send nothing
     rate_hz: float = 0.0  # MANUAL_CONTROL per second; 0 = the policy's control rate
@@ -70,6 +72,9 @@ class PilotSettings:
     stream_timeout_s: float = 5.0  # a stream silent this long has stopped: the pilot ends, in neutral, saying so
     threads: int = 1  # onnxruntime threads
     record: bool = True  # keep the session in <out>/session.mcap: every frame the policy saw, every control
+    publish: bool = False  # also publish those frames into the namespace (--connect, --namespace) as a sim would
+    publish_env: str = "pilot"  # the eval-channel env id the published frames go out as
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})  # where --publish goes
     out: str = ""  # the run folder (controls.csv, session.mcap); default runs/pilot-<UTC time>
 
     def check(self) -> None:
@@ -77,6 +82,7 @@ class PilotSettings:
             raise ValueError(f"--max-surge and --max-yaw must be in (0, 1], got {self.max_surge}, {self.max_yaw}")
         if self.rate_hz < 0 or self.frame_timeout_s <= 0 or self.duration_s < 0:
             raise ValueError("--rate-hz and --duration-s must be >= 0 and --frame-timeout-s > 0")
+        check_chunk(self.publish_env, "--publish-env")
 
 
 class LatestFrame:
@@ -161,12 +167,17 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
     source = FrameSource(settings.source, settings.stream_timeout_s)
     folder = Path(settings.out or f"runs/pilot-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}")
     controls = ControlLog(folder, settings.record)
+    publisher = None
+    if settings.publish:
+        from pilot_service.publish import FramePublisher  # Zenoh only where frames are published
+
+        publisher = FramePublisher(settings.zenoh, settings.publish_env)
     latest = LatestFrame(source)
     started = time.monotonic()
     used, stalled = 0, False
     try:
         if vehicle is not None:
-            vehicle.set_mode(settings.mode)
+            vehicle.set_mode(settings.dive_mode)
             if settings.arm:
                 vehicle.arm()
         target = " (dry run: nothing is sent)" if vehicle is None else f" to {settings.mavlink}"
@@ -192,6 +203,8 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
                 stalled, used = False, number
                 seen = as_sim_frame(frame, settings.camera_hfov_deg, policy.image_size)
                 controls.frame(seen, number)
+                if publisher is not None:
+                    publisher.publish(seen, number)
                 surge, yaw = limited(policy.act(seen), settings)
             elif not fresh:
                 if not stalled and number:  # before the first frame there is nothing to have stalled
@@ -208,6 +221,8 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
             vehicle.close()
         controls.close()
         source.close()
+        if publisher is not None:
+            publisher.close()
     log.info("stopped after %.1f s; %d frames used; controls in %s", time.monotonic() - started, used, controls.path)
     return controls.path
 

@@ -7,6 +7,7 @@ how encoder load moves away from a dead encoder.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import threading
 import time
@@ -15,6 +16,7 @@ from collections.abc import Callable
 import zenoh
 
 from services.keys import Keys
+from services.messages import DIRECT_ROUTE
 
 log = logging.getLogger(__name__)
 
@@ -99,3 +101,17 @@ class Roster:
 
     def close(self) -> None:
         self._subscriber.undeclare()
+
+
+def rendezvous_choice(env_key: str, members: set[str]) -> str:
+    """The member with the highest hash for this env: stable, and only the dead member's envs move."""
+    return max(members, key=lambda m: hashlib.blake2b(f"{env_key}|{m}".encode(), digest_size=8).digest())
+
+
+def choose_route(encoders: Roster | None, key: str, wait_s: float) -> str:
+    """Where a step's observation goes: ``direct`` without encoders, else the live encoder rendezvous hashing
+    picks for ``key`` (waiting up to ``wait_s`` for one to come back if none is live)."""
+    if encoders is None:
+        return DIRECT_ROUTE
+    members = encoders.members() or encoders.wait_for(1, timeout_s=wait_s)
+    return rendezvous_choice(key, members)

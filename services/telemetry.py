@@ -60,6 +60,14 @@ class Telemetry:
                 raise ValueError(f"telemetry field {name!r} must have {size} numbers")
         return cls(**values)
 
+    @classmethod
+    def unknown(cls, sim_time: float) -> Telemetry:
+        """What a real camera's frame carries (`swimm pilot --publish`): no ground truth, so every position,
+        orientation and velocity NaN and neither flag set; only the seconds since the session began."""
+        nan = float("nan")
+        values = {name: (False if size == 0 else nan if size == 1 else (nan,) * size) for name, size in _SCHEMA}
+        return cls(**values | {"sim_time": float(sim_time)})
+
 
 #: (field name, how many numbers: 0 a bool, 1 a float, 3 a vector, 4 a quaternion), worked out once: looking the
 #: dataclass fields up on every message cost more than decoding them.

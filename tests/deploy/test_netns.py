@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from encoder_service.model import CMVAE, make_checkpoint
-from learner_service.link import rendezvous_choice
+from services.presence import rendezvous_choice
 from services.procs import ProcessGroup
 from sim_service.settings import WorldSettings
 from tests.deploy.netns import VirtualLan, netns_unavailable_reason

@@ -23,8 +23,9 @@ import pytest
 import torch
 
 from encoder_service.model import CMVAE, make_checkpoint
-from learner_service.link import Reply, rendezvous_choice
+from learner_service.link import Reply
 from services.messages import LatentMsg
+from services.presence import rendezvous_choice
 from tests.integration.conftest import start_sim
 
 pytestmark = pytest.mark.slow

@@ -100,6 +100,49 @@ def test_a_dry_run_on_a_dive_video_acts_as_the_policy_on_each_frame(exported: Pa
     assert [{key: str(value) for key, value in body.items()} for body in recorded["pilot/controls"]] == rows
 
 
+@pytest.mark.slow
+def test_published_frames_reach_a_live_encoder_as_a_sims_observations(
+    exported: Path, dive_video: Path, processes, zenoh_router, zenoh_settings, zenoh_session, tmp_path
+) -> None:
+    """`--publish`: each frame the policy saw goes out as eval/pilot's observation, and the shipped CMVAE in an
+    encoder process answers with the latent it gives that frame in-process."""
+    from encoder_service.inference import LatentEncoder
+    from services.keys import Keys
+    from services.messages import LatentMsg, ObservationMsg
+    from services.presence import Roster
+
+    keys = Keys(zenoh_settings(zenoh_router).namespace)
+    processes.start("encoder", "encoder", "--connect", zenoh_router, "--namespace", keys.namespace,
+                    "--ident", "enc-0", "--threads", "1")  # fmt: skip
+    session = zenoh_session(zenoh_router)
+    Roster(session, keys, "encoder").wait_for(1, timeout_s=90)
+    observations, latents = [], []
+    _subscribers = [session.declare_subscriber(keys.obs("eval", "pilot", "*"),
+                                               lambda sample: observations.append(sample.payload.to_bytes())),
+                    session.declare_subscriber(keys.latent("eval", "pilot"),
+                                               lambda sample: latents.append(sample.payload.to_bytes()))]  # fmt: skip
+    time.sleep(1.0)  # the subscriptions reach the router
+    settings = PilotSettings(policy=str(exported), source=str(dive_video), camera_hfov_deg=HFOV_DEG, dry_run=True,
+                             publish=True, zenoh=zenoh_settings(zenoh_router), out=str(tmp_path / "pilot"))  # fmt: skip
+    fly(settings, threading.Event())
+    time.sleep(2.0)  # the last latents come back
+
+    source, seen = FrameSource(str(dive_video)), []
+    while (frame := source.read()) is not None:
+        seen.append(as_sim_frame(frame, HFOV_DEG, 64))
+    source.close()
+    published = [ObservationMsg.decode(payload) for payload in observations]
+    assert [msg.seq for msg in published] == list(range(1, FRAMES + 1))
+    assert all(np.array_equal(msg.image, frame) for msg, frame in zip(published, seen, strict=True))
+    assert all(np.isnan(msg.telemetry.rover_pos[0]) for msg in published)  # a real camera has no ground truth
+    answered = {msg.seq: msg for msg in map(LatentMsg.decode, latents)}
+    assert len(answered) >= FRAMES - 5  # the first frames may leave before the pilot has seen the encoder
+    encoder = LatentEncoder()
+    for seq, msg in answered.items():
+        mu, _ = encoder.encode(seen[seq - 1][None])
+        np.testing.assert_allclose(np.asarray(msg.mu, np.float32), mu[0], atol=1e-4)
+
+
 def _session(path: Path) -> dict[str, list[dict]]:
     """The JSON messages of a pilot's session.mcap by topic, read with the mcap library (schemas checked)."""
     from mcap.reader import make_reader
