@@ -13,29 +13,19 @@ from __future__ import annotations
 
 import json
 import subprocess
-import threading
 import time
-from collections import defaultdict
 
 import pytest
 import torch
 
 from encoder_service.model import CMVAE, make_checkpoint
 from services.keys import Keys
-from services.messages import LatentMsg
 from services.presence import Roster
 from services.procs import free_tcp_port
 from services.session import open_session
 from services.settings import ZenohSettings
-from sim_service.settings import WorldSettings
-from tests.deploy.docker_stack import (
-    SIM_TAG,
-    TORCH_TAG,
-    ComposeProject,
-    Images,
-    base_image_unavailable_reason,
-    docker_unavailable_reason,
-)
+from tests.deploy.docker_stack import SIM_TAG, TORCH_TAG, ComposeProject, Images
+from tests.deploy.observe import LatentLog, check_no_step_lost_or_repeated, wait_until
 
 pytestmark = [
     pytest.mark.slow,
@@ -46,48 +36,6 @@ pytestmark = [
 ENVS = 2
 STEPS_BEFORE_SCALING = 150
 STEPS_AFTER_KILL = 300
-
-
-class LatentLog:
-    """Every latent on ``<ns>/train/*/latent``, as seen by an outside observer."""
-
-    def __init__(self, session, keys: Keys) -> None:
-        self.rows: list[tuple[str, int, int, float, str]] = []
-        self._lock = threading.Lock()
-        self._sub = session.declare_subscriber(f"{keys.namespace}/train/*/latent", self._on_latent)
-
-    def _on_latent(self, sample) -> None:
-        msg = LatentMsg.decode(sample.payload.to_bytes())
-        with self._lock:
-            self.rows.append((msg.env, msg.ep, msg.seq, msg.telemetry.sim_time, msg.encoder))
-
-    def snapshot(self) -> list[tuple[str, int, int, float, str]]:
-        with self._lock:
-            return list(self.rows)
-
-    def steps(self) -> int:
-        return len({row[:3] for row in self.snapshot()})
-
-    def close(self) -> None:
-        self._sub.undeclare()
-
-
-def wait_until(condition, timeout_s: float, what: str, stack: ComposeProject) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s:.0f} s waiting for {what}\n{stack.logs()}")
-        time.sleep(1.0)
-
-
-@pytest.fixture(scope="module")
-def images() -> Images:
-    reason = docker_unavailable_reason() or base_image_unavailable_reason()
-    if reason:
-        pytest.skip(reason)
-    built = Images()
-    built.build()
-    return built
 
 
 @pytest.fixture(scope="module")
@@ -164,27 +112,9 @@ def test_training_goes_on_when_encoders_scale_and_one_is_killed(stack: ComposePr
     assert {row[0] for row in late} == {str(i) for i in range(ENVS)}
     assert victim not in {row[4] for row in late}
     assert victim_envs <= {row[0] for row in late}  # the victim's envs moved to live encoders
-    check_no_step_lost_or_repeated(rows)
+    check_no_step_lost_or_repeated(rows, ENVS)
     report = {"first_steps_s": round(first_steps_s, 1), "recovered_s": round(recovered_s, 1), "steps": len(rows)}
     (stack.folder / "compose-timings.json").write_text(json.dumps(report))
-
-
-def check_no_step_lost_or_repeated(rows: list[tuple[str, int, int, float, str]]) -> None:
-    """Each (env, ep) seen: seqs 0..n without a gap, and the sim's clock at seq * dt (applied once each).
-
-    A latent may arrive twice (a re-sent step is answered from the sim's cache and encoded again); both
-    copies then carry the same clock. Episodes already running when the observer joined are skipped.
-    """
-    dt = WorldSettings().physics_dt
-    clocks: dict[tuple[str, int], dict[int, set[int]]] = defaultdict(lambda: defaultdict(set))
-    for env, ep, seq, sim_time, _ in rows:
-        clocks[(env, ep)][seq].add(round(sim_time / dt))
-    whole = [key for key, seqs in clocks.items() if 0 in seqs]
-    assert len(whole) >= ENVS
-    for key in whole:
-        seqs = clocks[key]
-        assert sorted(seqs) == list(range(max(seqs) + 1)), f"{key}: a step is missing"
-        assert all(ticks == {seq} for seq, ticks in seqs.items()), f"{key}: a step was applied twice"
 
 
 def test_the_eval_profile_attaches_to_the_live_sim_and_reports(stack: ComposeProject) -> None:
