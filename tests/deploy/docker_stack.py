@@ -135,3 +135,47 @@ class ComposeProject:
             self("down", "-v", "--remove-orphans", "-t", "5", timeout_s=120)
         except RuntimeError:
             pass  # the project may never have come up
+
+
+@dataclass
+class SwarmStack:
+    """One `docker stack deploy` of deploy/docker-stack.yml, configured by environment variables."""
+
+    env: dict[str, str]
+    endpoint: str = ""  # the router as the host reaches it
+    name: str = field(default_factory=lambda: f"swimmtest{uuid.uuid4().hex[:6]}")
+
+    def deploy(self) -> None:
+        # --resolve-image never: the images are this machine's own, in no registry.
+        run("docker", "stack", "deploy", "--resolve-image", "never", "-c", str(DEPLOY / "docker-stack.yml"),
+            self.name, env={**os.environ, **self.env})  # fmt: skip
+
+    def containers(self, service: str) -> list[str]:
+        """Ids of the service's running containers."""
+        listed = run("docker", "ps", "-q", "--no-trunc", "--filter",
+                     f"label=com.docker.swarm.service.name={self.name}_{service}")  # fmt: skip
+        return listed.stdout.split()
+
+    def logs(self) -> str:
+        tasks = run("docker", "stack", "ps", "--no-trunc", self.name).stdout
+        tails = []
+        for service in ("router", "sim", "encoder", "learner"):
+            result = subprocess.run(["docker", "service", "logs", "--tail", "15", f"{self.name}_{service}"],
+                                    capture_output=True, text=True, timeout=60)  # fmt: skip
+            tails.append(f"--- {service}\n{result.stdout[-2000:]}{result.stderr[-1000:]}")
+        return tasks + "\n".join(tails)
+
+    def remove(self) -> None:
+        subprocess.run(["docker", "stack", "rm", self.name], capture_output=True, timeout=120)
+        deadline = time.monotonic() + 120  # rm returns at once; the containers and the network go after
+        while time.monotonic() < deadline:
+            left = run("docker", "ps", "-aq", "--filter", f"label=com.docker.stack.namespace={self.name}").stdout
+            networks = run("docker", "network", "ls", "-q", "--filter", f"label=com.docker.stack.namespace={self.name}")
+            if not left.strip() and not networks.stdout.strip():
+                return
+            time.sleep(1.0)
+
+
+def swarm_state() -> str:
+    """This engine's Swarm state: "active" when it is a node of a swarm, else "inactive" (or "pending", "error")."""
+    return run("docker", "info", "--format", "{{.Swarm.LocalNodeState}}").stdout.strip()

@@ -1,16 +1,45 @@
-"""What the deployment tests watch from outside a stack, through the router's published port: every latent."""
+"""The deployment tests' shared parts: a stack's settings and mounted folders, and what they watch from outside
+through the router's published port (every latent)."""
 
 from __future__ import annotations
 
 import threading
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import pytest
+import torch
 
+from encoder_service.model import CMVAE, make_checkpoint
 from services.keys import Keys
 from services.messages import LatentMsg
 from sim_service.settings import WorldSettings
+from tests.deploy.docker_stack import SIM_TAG, TORCH_TAG
+
+
+def stack_settings(folder: Path, port: int, label: str, envs: int) -> dict[str, str]:
+    """The SWIMM_* variables of a test stack of ``envs`` train envs whose router the host reaches on ``port``, with
+    ``folder``'s models/ (an untrained CMVAE: the tests are about the pipeline, not the latents' meaning) and runs/."""
+    (folder / "models").mkdir()
+    (folder / "runs").mkdir()
+    torch.manual_seed(0)
+    torch.save(
+        make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={}), folder / "models" / "cmvae.pt"
+    )
+    return {
+        "SWIMM_SIM_IMAGE": SIM_TAG,
+        "SWIMM_TORCH_IMAGE": TORCH_TAG,
+        "SWIMM_ROUTER_PORT": str(port),
+        "SWIMM_NAMESPACE": f"swimm/{label}-{time.time_ns() % 10**8}",
+        "SWIMM_MODELS": str(folder / "models"),
+        "SWIMM_RUNS": str(folder / "runs"),
+        "SWIMM_ENCODER_CHECKPOINT": "/models/cmvae.pt",
+        "SWIMM_ENVS": str(envs),
+        "SWIMM_STEPS": "100000",
+        # Small and frequent: updates and checkpoints show up within the test's minutes on a CPU.
+        "SWIMM_HYPERPARAMS": "{learning_starts: 100, train_freq: [16, step], gradient_steps: 8, batch_size: 64}",
+    }
 
 
 class LatentLog:

@@ -16,16 +16,14 @@ import subprocess
 import time
 
 import pytest
-import torch
 
-from encoder_service.model import CMVAE, make_checkpoint
 from services.keys import Keys
 from services.presence import Roster
 from services.procs import free_tcp_port
 from services.session import open_session
 from services.settings import ZenohSettings
-from tests.deploy.docker_stack import SIM_TAG, TORCH_TAG, ComposeProject, Images
-from tests.deploy.observe import LatentLog, check_no_step_lost_or_repeated, wait_until
+from tests.deploy.docker_stack import ComposeProject, Images
+from tests.deploy.observe import LatentLog, check_no_step_lost_or_repeated, stack_settings, wait_until
 
 pytestmark = [
     pytest.mark.slow,
@@ -41,27 +39,9 @@ STEPS_AFTER_KILL = 300
 @pytest.fixture(scope="module")
 def stack(images: Images, tmp_path_factory):
     folder = tmp_path_factory.mktemp("compose")
-    (folder / "models").mkdir()
-    (folder / "runs").mkdir()
-    torch.manual_seed(0)  # an untrained CMVAE: the test is about the pipeline, not the latents' meaning
-    checkpoint = make_checkpoint(CMVAE(n_z=10), beta=8.0, epoch=1, val_loss=1.0, metrics={})
-    torch.save(checkpoint, folder / "models" / "cmvae.pt")
     port = free_tcp_port()
     project = ComposeProject(
-        {
-            "SWIMM_SIM_IMAGE": SIM_TAG,
-            "SWIMM_TORCH_IMAGE": TORCH_TAG,
-            "SWIMM_ROUTER_PORT": str(port),
-            "SWIMM_NAMESPACE": f"swimm/compose-{time.time_ns() % 10**8}",
-            "SWIMM_MODELS": str(folder / "models"),
-            "SWIMM_RUNS": str(folder / "runs"),
-            "SWIMM_ENCODER_CHECKPOINT": "/models/cmvae.pt",
-            "SWIMM_ENVS": str(ENVS),
-            "SWIMM_STEPS": "100000",
-            # Small and frequent: updates and checkpoints show up within the test's minutes on a CPU.
-            "SWIMM_HYPERPARAMS": "{learning_starts: 100, train_freq: [16, step], gradient_steps: 8, batch_size: 64}",
-            "SWIMM_CHECKPOINT_EVERY": "200",
-        },
+        stack_settings(folder, port, "compose", ENVS) | {"SWIMM_CHECKPOINT_EVERY": "200"},
         folder=folder,
         endpoint=f"tcp/127.0.0.1:{port}",
     )
