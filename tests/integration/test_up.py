@@ -16,6 +16,8 @@ import torch
 
 from encoder_service.model import CMVAE, make_checkpoint
 from services import cli
+from services.keys import Keys
+from services.presence import live_now
 from services.procs import Service
 
 TINY_SAC = "{learning_starts: 50, gradient_steps: 1, batch_size: 32, buffer_size: 2000}"
@@ -210,4 +212,24 @@ def test_up_restarts_a_killed_sim_whose_envs_step_in_groups(spawn, namespace, tm
     assert "sim exited with -9: restarted" in up.log_path.read_text()
     learner_log = (run_dir / "logs" / "learner.log").read_text()
     assert learner_log.count("the sim lost the episode") >= 4  # each env of both groups (and maybe the eval env)
+    assert json.loads((run_dir / "result.json").read_text())["num_timesteps"] >= 3000
+
+
+@pytest.mark.slow
+def test_up_restarts_a_killed_router_and_training_goes_on(spawn, namespace, zenoh_session, tmp_path) -> None:
+    """The router only introduces the peers: with it dead they go on stepping to one another, and the restarted
+    router (the same port) takes the sessions back."""
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "3000", "--restart-backoff-s", "1"))
+    wait_for_steps(up, run_dir, 300)
+    os.kill(started_pids(up)["router"], signal.SIGKILL)
+    wait_for_steps(up, run_dir, 1500)
+    endpoint = re.search(r"router at (tcp/\S+),", up.log_path.read_text()).group(1)
+    observer = zenoh_session(endpoint)  # joins the new router: it must know the sim and the learner again
+    deadline = time.monotonic() + 30
+    while not (live_now(observer, Keys(namespace), "sim") and live_now(observer, Keys(namespace), "learner")):
+        assert time.monotonic() < deadline, "the sim and the learner never came back to the restarted router"
+    assert wait_exit(up, 240) == 0, up.log_tail(60)
+    assert "router exited with -9: restarted" in up.log_path.read_text()
+    assert_all_stopped(up, {"router", "sim", "learner"})
     assert json.loads((run_dir / "result.json").read_text())["num_timesteps"] >= 3000
