@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
 # Set up swimm on a fresh Debian/Ubuntu machine with Python 3.11+: the EGL/GL libraries MuJoCo renders with
-# (apt-get, when they are missing) and this checkout with every service's dependencies and the dev tools (pip).
+# (apt-get, when they are missing), then a virtual environment (.venv) holding this checkout with every
+# service's dependencies and the dev tools (pip), and a `swimm` launcher on PATH.
 #
 #   ./install.sh                 (from anywhere; it works from the repository root)
-#   PYTHON=python3.11 ./install.sh
+#   PYTHON=python3.11 ./install.sh               the Python the environment is made with
+#   SWIMM_VENV=/opt/swimm ./install.sh           the environment somewhere else (default: .venv here)
+#   SWIMM_BIN_DIR=~/bin ./install.sh             where the launcher goes (default: /usr/local/bin as root,
+#                                                else ~/.local/bin)
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")"
 
@@ -43,13 +47,16 @@ install_gl_libraries() {
     $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
 }
 
-# True when this checkout is already pip-installed (editable) and the extras' heavy packages are importable.
-# Re-running pip then changes nothing we need, and on a machine whose torch was installed without triton it
-# would add triton, which crashes next to Mesa's EGL (see tests/conftest.py).
+VENV=${SWIMM_VENV:-.venv}
+VENV_PYTHON="$VENV/bin/python"
+
+# True when the environment already holds this checkout (editable) and the extras' heavy packages: re-running
+# pip would then change nothing we need.
 already_installed() {
     local location
-    location=$("$PYTHON" -m pip show swimm 2>/dev/null | sed -n 's/^Editable project location: //p')
-    [ -n "$location" ] && [ "$location" -ef . ] && "$PYTHON" -c '
+    [ -x "$VENV_PYTHON" ] || return 1
+    location=$("$VENV_PYTHON" -m pip show swimm 2>/dev/null | sed -n 's/^Editable project location: //p')
+    [ -n "$location" ] && [ "$location" -ef . ] && "$VENV_PYTHON" -c '
 import importlib.util, sys
 extras = ("zenoh", "mujoco", "cv2", "torch", "stable_baselines3", "gymnasium", "pandas", "scipy", "onnx", "onnxruntime",
           "pytest_timeout", "ruff", "importlinter")
@@ -58,16 +65,35 @@ sys.exit(not all(importlib.util.find_spec(name) for name in extras))'
 
 install_python_packages() {
     if already_installed; then
-        echo "swimm (editable, from this checkout) and its dev extras are already installed"
+        echo "swimm (editable, from this checkout) and its dev extras are already installed in $VENV"
         return 0
     fi
-    # Debian's own python3 refuses pip installs outside a venv (PEP 668); a CI machine is throwaway.
-    if [ -e "$("$PYTHON" -c 'import sysconfig; print(sysconfig.get_path("stdlib"))')/EXTERNALLY-MANAGED" ]; then
-        export PIP_BREAK_SYSTEM_PACKAGES=1
+    if [ ! -x "$VENV_PYTHON" ]; then
+        "$PYTHON" -m venv "$VENV" || {
+            echo "cannot make a virtual environment with $PYTHON: on Debian/Ubuntu, apt-get install python3-venv" >&2
+            return 1
+        }
     fi
-    "$PYTHON" -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+    "$VENV_PYTHON" -m pip install --quiet --disable-pip-version-check --upgrade pip
+    "$VENV_PYTHON" -m pip install --quiet --disable-pip-version-check -e '.[dev]'
+}
+
+# `swimm` on PATH: a link to the environment's console script, which runs the environment's Python.
+install_launcher() {
+    local bin_dir=${SWIMM_BIN_DIR:-}
+    if [ -z "$bin_dir" ]; then
+        if [ "$(id -u)" -eq 0 ]; then bin_dir=/usr/local/bin; else bin_dir=$HOME/.local/bin; fi
+    fi
+    mkdir -p "$bin_dir"
+    ln -sf "$(cd "$VENV" && pwd)/bin/swimm" "$bin_dir/swimm"
+    echo "swimm launcher: $bin_dir/swimm -> $VENV/bin/swimm"
+    case ":$PATH:" in
+        *":$bin_dir:"*) ;;
+        *) echo "note: $bin_dir is not on PATH; add it, or run $VENV/bin/swimm" ;;
+    esac
 }
 
 install_gl_libraries
 install_python_packages
-echo "swimm is installed: try 'swimm --help'"
+install_launcher
+echo "swimm is installed in $VENV: try 'swimm --help'; tests: $VENV/bin/python -m pytest"

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-import shutil
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -66,8 +66,9 @@ def test_help_imports_neither_torch_nor_mujoco():
 
 
 def test_console_script_is_installed():
-    executable = shutil.which("swimm")
-    assert executable is not None, "run `pip install -e '.[dev]'` (as .ci/run does) to install the swimm command"
+    """The environment's own `swimm` (install.sh links a launcher on PATH to it)."""
+    executable = Path(sys.executable).with_name("swimm")
+    assert executable.is_file(), "run ./install.sh (as .ci/run does) to install the swimm command"
     result = subprocess.run([executable, "--help"], capture_output=True, text=True, timeout=30)
     assert result.returncode == 0
     assert "router" in result.stdout
