@@ -36,7 +36,7 @@ class ActorAverage:
         self.decay = 1.0 - 1.0 / updates
         self.updates = 0
         self.average = [parameter.detach().clone() for parameter in self.network.parameters()]
-        self.handle = self.network.optimizer.register_step_post_hook(lambda *_: self.fold_in())
+        self.network.optimizer.register_step_post_hook(lambda *_: self.fold_in())
 
     @torch.no_grad()
     def fold_in(self) -> None:
@@ -60,6 +60,3 @@ class ActorAverage:
     def _load(self, weights: list[torch.Tensor]) -> None:
         for parameter, value in zip(self.network.parameters(), weights, strict=True):
             parameter.copy_(value)
-
-    def remove(self) -> None:
-        self.handle.remove()
