@@ -43,7 +43,7 @@ from learner_service.checkpoints import load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.episodic import episodic_schedule
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
-from learner_service.progress import FINAL_MODEL, PROGRESS_FILE
+from learner_service.progress import FINAL_MODEL, LIVE_MODEL, PROGRESS_FILE
 from learner_service.registry import (
     LATENT_SCRIPTED,
     SCRIPTED_NAMES,
@@ -260,6 +260,8 @@ class Training:
                     tb_log_name=tb_log_name,
                 )
         finally:
+            if s.actor_average:
+                save_model(model, self.run_dir / LIVE_MODEL, replay_buffer=False)
             with acting():
                 save_model(model, self.run_dir / FINAL_MODEL, s.save_replay_buffer)
             self.plot_summary()

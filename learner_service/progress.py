@@ -19,6 +19,7 @@ BEST_MODEL = "best_model.zip"  # the evaluation callback's best model so far
 BEST_MODEL_SCORE = "best_model.json"  # its evaluation, with the zip's SHA-256
 EVALUATIONS_CSV = "evaluations.csv"  # one row per evaluation
 FINAL_MODEL = "final_model.zip"  # the model as training ended
+LIVE_MODEL = "final_model_live.zip"  # with --actor-average: the learner's own weights as training ended, to resume
 DEMOS_FILE = "demonstrations.npz"  # the scripted tracker's demonstrations, for a resumed run's cloning loss
 LEARN_CONFIG = "learn.yaml"  # the settings `swimm up` handed to its learner
 

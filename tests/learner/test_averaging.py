@@ -88,3 +88,6 @@ def test_swimm_learn_evaluates_and_saves_the_average_and_checkpoints_the_live_we
     )  # fmt: skip
     # SB3 trains once more after the last rollout, which moves the average by a few percent of one live update.
     assert torch.dist(final, best) < 0.2 * torch.dist(live, best)
+    # The learner's own weights at the end, beside the average, to resume from: one update past the checkpoint.
+    live_end = torch.cat([p.detach().flatten() for p in SAC.load(tmp_path / "final_model_live.zip").actor.parameters()])
+    assert torch.dist(live_end, live) < torch.dist(live_end, final)
