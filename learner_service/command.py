@@ -226,12 +226,13 @@ class Training:
 
             keep_smooth(model, s.smooth, s.seed)
             log.info("actor updates keep CAPS smoothness terms: %s", s.smooth)
-        acting = nullcontext  # which weights evaluations and the saved models act with: the live ones...
+        average = None
         if s.actor_average:
             from learner_service.averaging import ActorAverage
 
-            acting = ActorAverage(model, s.actor_average).swapped_in  # ...or their running average
+            average = ActorAverage(model, s.actor_average)
             log.info("evaluations and the final model average the actor over ~%d updates", s.actor_average)
+        acting = average.swapped_in if average is not None else nullcontext  # the weights evaluations and saves use
         start_steps = model.num_timesteps
         stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
         callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]
@@ -260,7 +261,7 @@ class Training:
                     tb_log_name=tb_log_name,
                 )
         finally:
-            if s.actor_average:
+            if average is not None:
                 save_model(model, self.run_dir / LIVE_MODEL, replay_buffer=False)
             with acting():
                 save_model(model, self.run_dir / FINAL_MODEL, s.save_replay_buffer)

@@ -99,6 +99,12 @@ class Images:
         self.timings_s[what] = round(time.monotonic() - start, 1)
 
 
+def running_containers(*labels: str) -> list[str]:
+    """Ids of the running containers that carry every one of ``labels`` (``key=value``)."""
+    filters = [arg for label in labels for arg in ("--filter", f"label={label}")]
+    return run("docker", "ps", "-q", "--no-trunc", *filters).stdout.split()
+
+
 @dataclass
 class ComposeProject:
     """One `docker compose` project of deploy/docker-compose.yml, configured by environment variables."""
@@ -114,12 +120,7 @@ class ComposeProject:
 
     def containers(self, service: str) -> list[str]:
         """Ids of the service's running containers."""
-        listed = run(
-            "docker", "ps", "-q", "--no-trunc",
-            "--filter", f"label=com.docker.compose.project={self.name}",
-            "--filter", f"label=com.docker.compose.service={service}",
-        )  # fmt: skip
-        return listed.stdout.split()
+        return running_containers(f"com.docker.compose.project={self.name}", f"com.docker.compose.service={service}")
 
     def health(self, container: str) -> str:
         return run("docker", "inspect", "-f", "{{.State.Health.Status}}", container).stdout.strip()
@@ -152,9 +153,7 @@ class SwarmStack:
 
     def containers(self, service: str) -> list[str]:
         """Ids of the service's running containers."""
-        listed = run("docker", "ps", "-q", "--no-trunc", "--filter",
-                     f"label=com.docker.swarm.service.name={self.name}_{service}")  # fmt: skip
-        return listed.stdout.split()
+        return running_containers(f"com.docker.swarm.service.name={self.name}_{service}")
 
     def logs(self) -> str:
         tasks = run("docker", "stack", "ps", "--no-trunc", self.name).stdout
