@@ -42,7 +42,7 @@ from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
 from learner_service.envs import BACKENDS, IMAGE_MODES
 from learner_service.evaluation import Contender, play_episodes
 from learner_service.export import SHIPPED_POLICY
-from learner_service.learn_settings import Backend, ObsMode, RewardVersion
+from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TrackerGains
 from learner_service.metrics import summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
@@ -70,6 +70,7 @@ class EvalCommandSettings:
     reward: RewardVersion = "swimm2"
     noise: str = KEEP_NOISE  # keep (a live sim's noise as it was started) | off | on | murky | harsh
     latency: LatencySettings = field(default_factory=LatencySettings)  # --latency-*: delays (default: the sim's own)
+    scripted: TrackerGains = field(default_factory=TrackerGains)  # --scripted-*: the scripted trackers' control law
     backend: Backend = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
     out: str = ""  # run folder; default runs/eval-<UTC time>
     trajectory_episode: int = 1  # the episode drawn from above
@@ -114,6 +115,7 @@ def check(settings: EvalCommandSettings) -> None:
     if settings.episodes < 1 or settings.steps < 1:
         raise ValueError("episodes and steps must be >= 1")
     settings.latency.check()
+    settings.scripted.check()
     task_settings(settings)  # validates obs and reward
     if settings.live_env and settings.live_port < 0:
         raise ValueError("--live-env shows envs in the live view: give --live-port too (0 for any free port)")
@@ -167,7 +169,10 @@ def load_policies(settings: EvalCommandSettings, entries: list[Contender]) -> di
         import torch
 
         torch.set_num_threads(settings.threads)  # before the policies and the CMVAE run (docs/eval.md, threads)
-    return {entry.label: load_policy(entry.algo, checkpoint(entry), device=settings.device) for entry in entries}
+    return {
+        entry.label: load_policy(entry.algo, checkpoint(entry), device=settings.device, gains=settings.scripted)
+        for entry in entries
+    }
 
 
 def default_labels(pairs: list[tuple[str, str | None]]) -> list[str]:

@@ -106,6 +106,7 @@ def check(settings: LearnCommandSettings) -> None:
     settings.eval.check()
     settings.demo.check()
     settings.smooth.check()
+    settings.scripted.check()
     if settings.algo in SCRIPTED_NAMES:
         raise ValueError(f"a scripted baseline has nothing to learn; evaluate it: `swimm eval --algo {settings.algo}`")
     if settings.demo.teacher not in SCRIPTED_NAMES:
@@ -219,7 +220,7 @@ class Training:
             if s.resume:
                 resume_cloning(model, s.demo, s.seed, Path(s.resume), self.run_dir)
             else:
-                teacher = load_policy(s.demo.teacher, s.encoder_checkpoint or None)
+                teacher = load_policy(s.demo.teacher, s.encoder_checkpoint or None, gains=s.scripted)
                 demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher)
         if s.smooth.enabled:
             from learner_service.smoothness import keep_smooth

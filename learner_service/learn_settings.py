@@ -62,6 +62,29 @@ class DemoSettings:
 
 
 @dataclass
+class TrackerGains:
+    """The scripted tracker's control law (flags ``--scripted-*``): proportional gains, and damping for a late loop.
+
+    ``yaw_damping`` subtracts that many times the mean yaw command of ActPrev, the last actions the observation
+    carries: the turn already commanded and still to come, which a loop that is late (docs/eval_report.md, "slow
+    loop") would otherwise overshoot. It reads only what a policy sees, so a policy can clone it.
+    """
+
+    # Defaults from a sweep on the in-process env (3 evaluation episodes, seed 113): yaw gains above ~1/45 per
+    # degree make the heading oscillate (A and S_A grow), lower ones lag the dolphin; surge gain matters less.
+    yaw_gain: float = 1.0 / 60.0  # command per degree of azimuth: full turn at 60 degrees
+    surge_gain: float = 1.0  # command per metre of distance error: full surge 1 m off opt_d
+    yaw_damping: float = 0.0  # command per unit of ActPrev's mean yaw command (0: none, the undelayed optimum)
+
+    def check(self) -> None:
+        if min(self.yaw_gain, self.surge_gain, self.yaw_damping) < 0:
+            raise ValueError(
+                "scripted gains must be >= 0: yaw_gain, surge_gain and yaw_damping are "
+                f"{self.yaw_gain}, {self.surge_gain} and {self.yaw_damping}"
+            )
+
+
+@dataclass
 class SmoothSettings:
     """Flags ``--smooth-*`` of `swimm learn`: CAPS action smoothness for off-policy actors (see smoothness.py)."""
 
@@ -100,6 +123,7 @@ class LearnCommandSettings:
     eval: EvalSettings = field(default_factory=EvalSettings)  # flags --eval-*
     demo: DemoSettings = field(default_factory=DemoSettings)  # flags --demo-*: the scripted tracker's head start
     smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS action smoothness
+    scripted: TrackerGains = field(default_factory=TrackerGains)  # flags --scripted-*: the demonstrations' tracker
     actor_average: int = 0  # evaluate and deliver an average of the actor's weights over ~N updates; 0 = live weights
     encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
     step_timeout_s: float = 2.0  # distributed: wait per try before re-sending a step

@@ -42,7 +42,7 @@ from learner_service.task import (
 )
 from services.control import ControlError
 from services.keys import CHANNELS, Keys, check_chunk
-from services.messages import UNCLAIMED
+from services.messages import refused_as_unclaimed
 from services.presence import Roster, announce
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -61,7 +61,7 @@ class SimLost:
 
 def sim_lost(refusal: StepRefused) -> SimLost:
     """The refusal as a lost episode, or raised again if it is any other refusal."""
-    if UNCLAIMED not in str(refusal):
+    if not refused_as_unclaimed(refusal):
         raise refusal
     return SimLost(str(refusal))
 
@@ -205,7 +205,7 @@ class ProxyEnv(gym.Env):
         try:
             reply = self._start_episode(world_seed, options)
         except ControlError as exc:  # refused at once, or on a re-send after the sim restarted mid-reset
-            if UNCLAIMED not in str(exc):
+            if not refused_as_unclaimed(exc):
                 raise
             self._claim_again(str(exc))
             reply = self._start_episode(world_seed, options)

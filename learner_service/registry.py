@@ -29,6 +29,7 @@ from stable_baselines3.common.noise import ActionNoise, NormalActionNoise, Ornst
 from stable_baselines3.common.utils import LinearSchedule
 
 from learner_service.episodic import episodic_callbacks, vectorised_kwargs
+from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
 
 log = logging.getLogger(__name__)
@@ -205,18 +206,21 @@ def training_callbacks(algo: str, overrides: dict[str, Any] | None, n_envs: int)
     return episodic_callbacks(merge_overrides(defaults, overrides), n_envs)
 
 
-def load_policy(algo: str, checkpoint: str | Path | None, env: Any = None, device: str = "auto") -> Policy:
-    """A deterministic policy: the scripted baseline (no checkpoint), or a saved model of ``algo``.
+def load_policy(
+    algo: str, checkpoint: str | Path | None, env: Any = None, device: str = "auto", gains: TrackerGains | None = None
+) -> Policy:
+    """A deterministic policy: the scripted baseline (no checkpoint) with ``gains``, or a saved model of ``algo``.
 
     For ``scripted-camera`` the checkpoint is the CMVAE whose state decoders it reads (None: the shipped one).
     """
+    gains = gains or TrackerGains()
     if algo == SCRIPTED:
-        return ScriptedTracker()
+        return ScriptedTracker(gains)
     if algo == LATENT_SCRIPTED:
         from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder  # torch only when asked for
 
         encoder = LatentEncoder(checkpoint or DEFAULT_CHECKPOINT)
-        return LatentTracker(encoder.decode_state, encoder.n_z)
+        return LatentTracker(encoder.decode_state, encoder.n_z, gains)
     cls, _ = resolve_algorithm(algo)
     if checkpoint is None:
         raise ValueError(f"algorithm {algo!r} needs a checkpoint to load")

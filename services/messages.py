@@ -30,6 +30,11 @@ DIRECT_ROUTE = "direct"  # observation goes straight to the learner, no encoder
 UNCLAIMED = "is not claimed"
 
 
+def refused_as_unclaimed(refusal: Exception) -> bool:
+    """Whether a refusal says the sim no longer holds the env's claim (it restarted), so claiming again helps."""
+    return UNCLAIMED in str(refusal)
+
+
 class BadMessage(ValueError):
     """A message that cannot be accepted; ``str(exc)`` is the reason sent back."""
 

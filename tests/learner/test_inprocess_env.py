@@ -13,10 +13,12 @@ from stable_baselines3.common.monitor import Monitor
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.inprocess_env import TrackingEnv
+from learner_service.learn_settings import TrackerGains
 from learner_service.registry import make_model
 from learner_service.scripted import ScriptedTracker
 from learner_service.task import TaskSettings, TrackingTask, episode_seed
 from services.geometry import ALPHA_DEG, yaw_of
+from sim_service.latency import LatencySettings
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -175,6 +177,40 @@ def test_scripted_signs_on_world_telemetry(physics_world: World) -> None:
     assert tracker.act(None, placed_info(physics_world, 5.5, 0.0))[0] == pytest.approx(-0.5)
     assert tracker.act(None, placed_info(physics_world, 7.0, 180.0))[0] == pytest.approx(-1.0)  # behind: reverse
     assert tracker.act(None, placed_info(physics_world, 7.0, 90.0))[0] == pytest.approx(0.0, abs=1e-6)  # beside
+
+
+def test_damped_tracker_subtracts_the_mean_yaw_that_actprev_commanded(physics_world: World) -> None:
+    info = placed_info(physics_world, 6.0, 30.0)
+    history = np.zeros(20, np.float32)
+    history[1::2] = np.linspace(0.0, 0.9, 10)  # yaw commands oldest to newest, mean 0.45; surges are ignored
+    history[0::2] = 0.7
+    obs = np.concatenate([np.full(10, 5.0, np.float32), history])  # a cmvae observation: latent, then ActPrev
+    damped = ScriptedTracker(TrackerGains(yaw_gain=1 / 90, yaw_damping=2.0))
+    assert damped.act(obs, info)[1] == pytest.approx(30.0 / 90 - 2.0 * 0.45, abs=1e-6)
+    assert damped.act({"image": None, "actions": history}, info)[1] == pytest.approx(30.0 / 90 - 0.9, abs=1e-6)
+    assert ScriptedTracker().act(obs, info)[1] == pytest.approx(0.5)  # no damping: ActPrev unread
+    with pytest.raises(ValueError, match="yaw_damping"):
+        TrackerGains(yaw_damping=-1.0).check()
+
+
+def episode_return(tracker: ScriptedTracker, latency: LatencySettings) -> float:
+    """One episode of 3000 steps from BASE_SEED with the loop delayed as ``latency`` says."""
+    env = TrackingEnv(TaskSettings(obs="state", early_termination=False), base_seed=BASE_SEED)
+    env.world.configure_latency(latency)
+    obs, info = env.reset()
+    total, truncated = 0.0, False
+    while not truncated:
+        obs, reward, _, truncated, info = env.step(tracker.act(obs, info))
+        total += reward
+    env.close()
+    return total
+
+
+def test_damping_keeps_the_tracker_steady_when_its_actions_arrive_160_ms_late() -> None:
+    late = LatencySettings(action_delay=8)
+    proportional = episode_return(ScriptedTracker(), late)
+    damped = episode_return(ScriptedTracker(TrackerGains(yaw_gain=1 / 90, yaw_damping=1.5)), late)
+    assert damped > proportional + 500.0  # the undamped tracker oscillates about the dolphin's bearing
 
 
 def test_positive_yaw_turns_the_rover_counter_clockwise(physics_world: World) -> None:

@@ -16,6 +16,7 @@ import torch
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
+from learner_service.learn_settings import TrackerGains
 from learner_service.registry import (
     Policy,
     SB3Policy,
@@ -179,3 +180,10 @@ def test_scripted_needs_no_checkpoint() -> None:
     assert isinstance(policy, ScriptedTracker) and isinstance(policy, Policy)
     with pytest.raises(ValueError, match="info\\['telemetry'\\]"):
         policy.act(np.zeros(30), {})
+
+
+def test_scripted_trackers_take_the_gains_they_are_given() -> None:
+    gains = TrackerGains(yaw_gain=1 / 90, yaw_damping=1.5)
+    assert load_policy("scripted", None, gains=gains).gains == gains
+    assert load_policy("scripted-camera", None, gains=gains).gains == gains  # the shipped CMVAE's decoders
+    assert load_policy("scripted", None).gains == TrackerGains()
