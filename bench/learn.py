@@ -13,8 +13,9 @@ episodes in-process on seeds the training never evaluated on (``final_seed``). T
   (:mod:`bench.scores`), best evaluation, the best model's return, and wall minutes and steps to each return threshold;
 - ``learn.png``: mean return across seeds against env steps and against wall minutes, with 95% bootstrap bands.
 
-A run whose ``final-eval/summary.json`` exists is not trained again, so a stopped benchmark goes on where it
-stopped when run again with the same ``--out`` (``--no-resume`` trains everything afresh).
+A run whose ``final-eval/summary.json`` exists is not trained again, and one whose training ran to its budget
+is only evaluated, so a stopped benchmark goes on where it stopped when run again with the same ``--out``
+(``--no-resume`` trains everything afresh).
 """
 
 from __future__ import annotations
@@ -106,6 +107,19 @@ def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = L
         code = up.run(up.UpSettings(learn=learn, port=0, sims=layout.sims))
     if code != 0 or not (folder / FINAL_MODEL).is_file():
         raise RuntimeError(f"{algo} seed {seed}: swimm up exited with {code}; see {folder / 'logs'}")
+
+
+def trained(folder: Path) -> bool:
+    """Whether a run's training ended by its budget (not stopped by a signal), so only its evaluation is missing."""
+    from learner_service.command import RESULT_FILE  # torch loads only when a run is looked at
+
+    result = folder / RESULT_FILE
+    if not (result.is_file() and (folder / FINAL_MODEL).is_file()):
+        return False
+    try:
+        return json.loads(result.read_text())["stopped_early"] is False
+    except (ValueError, KeyError, TypeError):
+        return False  # a result cut short or from elsewhere: train again
 
 
 def final_evaluation(
@@ -255,9 +269,12 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
             finals[(algo, seed)] = read_final(final)
             bests[(algo, seed)] = best_evaluation(settings, algo, seed)
             continue
-        log.info("%s seed %d: training from scratch (%d steps or %g min at most)", algo, seed,
-                 settings.budget_steps, settings.budget_min)  # fmt: skip
-        train(settings, algo, seed, layout)
+        if settings.resume and trained(run_dir(settings, algo, seed)):
+            log.info("%s seed %d: trained earlier, evaluating its models", algo, seed)
+        else:
+            log.info("%s seed %d: training from scratch (%d steps or %g min at most)", algo, seed,
+                     settings.budget_steps, settings.budget_min)  # fmt: skip
+            train(settings, algo, seed, layout)
         finals[(algo, seed)] = final_evaluation(settings, algo, seed)
         bests[(algo, seed)] = best_evaluation(settings, algo, seed)
         log.info("%s seed %d: final return %.1f, best model %.1f", algo, seed, finals[(algo, seed)]["mean_return"],

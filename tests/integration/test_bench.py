@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import subprocess
 import sys
 import time
@@ -117,3 +118,12 @@ def test_bench_learn_trains_seeds_over_real_processes_and_resumes(tmp_path) -> N
     again = bench(*args, timeout_s=300)
     assert again["algos"] == summary["algos"]  # read back, not trained again
     assert time.monotonic() - started < 60
+
+    # Trained but not evaluated (the evaluation was stopped): only the evaluations run again, to the same returns.
+    run = out / "runs" / "sac-101"
+    trained_at = (run / "final_model.zip").stat().st_mtime_ns
+    shutil.rmtree(run / "final-eval")
+    shutil.rmtree(run / "best-eval")
+    evaluated = bench(*args, timeout_s=300)
+    assert (run / "final_model.zip").stat().st_mtime_ns == trained_at
+    assert evaluated["algos"]["sac"]["final_returns"] == summary["algos"]["sac"]["final_returns"]
