@@ -213,9 +213,8 @@ def load_policy(
 
     For ``scripted-camera`` the checkpoint is the CMVAE whose state decoders it reads (None: the shipped one).
     """
-    gains = gains or TrackerGains()
     if algo == SCRIPTED:
-        return ScriptedTracker(gains)
+        return ScriptedTracker(gains or TrackerGains())
     if algo == LATENT_SCRIPTED:
         from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder  # torch only when asked for
 

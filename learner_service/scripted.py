@@ -24,7 +24,7 @@ from learner_service.task import ACTION_SIZE, TaskSettings
 from services.geometry import OPT_D, relative_geometry
 from services.telemetry import Telemetry
 
-ACT_PREV_SIZE = TaskSettings().n_prev_actions * ACTION_SIZE  # ActPrev as the task's observations carry it
+ACT_PREV_SIZE = TaskSettings().history_size  # ActPrev as the task's observations carry it
 
 
 def commanded_yaw(obs: Any) -> float:

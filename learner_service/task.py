@@ -63,6 +63,11 @@ class TaskSettings:
     max_steps: int = 3000  # truncation (time limit)
     early_termination: bool = True  # False for evaluation episodes: they always run max_steps
 
+    @property
+    def history_size(self) -> int:
+        """Values of ActPrev in an observation: the last n_prev_actions actions, flattened."""
+        return self.n_prev_actions * ACTION_SIZE
+
     def __post_init__(self) -> None:
         if self.obs not in typing.get_args(ObsMode):
             raise ValueError(f"unknown observation mode {self.obs!r}; choose {', '.join(typing.get_args(ObsMode))}")
@@ -143,7 +148,7 @@ class TrackingTask:
     # --- spaces --------------------------------------------------------------------------------
     @property
     def history_size(self) -> int:
-        return self.settings.n_prev_actions * ACTION_SIZE
+        return self.settings.history_size
 
     def _observation_space(self) -> gym.Space:
         history_low = np.full(self.history_size, -1.0, np.float32)
