@@ -254,6 +254,10 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
     from learner_service.command import check as check_learner
 
     settings.check()
+    if settings.merge:
+        from bench.learn_merge import merge
+
+        return write_results(Path(settings.out), *merge(settings))
     layout.check()
     for algo in settings.algos:  # a learner's mistake (hyperparams, smoothing) refused before the first run
         check_learner(learn_settings(settings, algo, settings.seeds[0], layout))
@@ -280,8 +284,13 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
         log.info("%s seed %d: final return %.1f, best model %.1f", algo, seed, finals[(algo, seed)]["mean_return"],
                  bests[(algo, seed)]["mean_return"])  # fmt: skip
     evaluations = collect(settings)
+    return write_results(out, summarise(settings, evaluations, finals, layout, bests), evaluations)
+
+
+def write_results(out: Path, summary: dict[str, Any], evaluations: pd.DataFrame) -> dict[str, Any]:
+    """The results folder: the summary, every evaluation in one table and the learning curves; returns the summary."""
+    out.mkdir(parents=True, exist_ok=True)
     evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
-    summary = summarise(settings, evaluations, finals, layout, bests)
     (out / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
     if not evaluations.empty:
         learning_figure(evaluations).savefig(out / FIGURE, dpi=110)

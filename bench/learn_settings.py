@@ -27,6 +27,7 @@ class LearnBenchSettings:
     smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS for off-policy actors
     actor_average: int = 0  # evaluate and keep the actor's weights averaged over ~N updates (swimm learn's flag)
     hyperparams: str = ""  # YAML mapping or file over each algorithm's shipped values: "{learning_rate: lin_7.3e-4}"
+    merge: list[str] = field(default_factory=list)  # summary.json files to combine into --out instead of training
 
     def check(self) -> None:
         self.smooth.check()
