@@ -27,6 +27,7 @@ from typing import Any
 
 import yaml
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.utils import configure_logger
 from tqdm.contrib.logging import logging_redirect_tqdm
 
@@ -114,9 +115,9 @@ def check(settings: LearnCommandSettings) -> None:
     if settings.demo.teacher == LATENT_SCRIPTED and settings.obs != "cmvae":
         raise ValueError(f"demo teacher {LATENT_SCRIPTED} reads the latent: it needs --obs cmvae, got {settings.obs}")
     algorithm, defaults = resolve_algorithm(settings.algo)
-    if settings.smooth.enabled and not issubclass(algorithm, OffPolicyAlgorithm):
-        raise ValueError(f"--smooth-* needs an off-policy learner (an actor and a replay buffer); {settings.algo} "
-                         f"({algorithm.__name__}) is on-policy")  # fmt: skip
+    if settings.smooth.enabled and not issubclass(algorithm, OffPolicyAlgorithm | OnPolicyAlgorithm):
+        raise ValueError(f"--smooth-* needs a stable-baselines3 off-policy or on-policy learner; {settings.algo} "
+                         f"({algorithm.__name__}) is neither")  # fmt: skip
     episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
     if settings.group_size < 0:
         raise ValueError(f"group_size must be >= 0 (0: each env its own messages), got {settings.group_size}")

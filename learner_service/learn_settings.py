@@ -86,12 +86,12 @@ class TrackerGains:
 
 @dataclass
 class SmoothSettings:
-    """Flags ``--smooth-*`` of `swimm learn`: CAPS action smoothness for off-policy actors (see smoothness.py)."""
+    """Flags ``--smooth-*`` of `swimm learn`: CAPS action smoothness of the actor (see smoothness.py)."""
 
     temporal: float = 0.0  # weight of the squared action change between consecutive observations (0: off)
     spatial: float = 0.0  # weight of the squared action change under observation noise of std sigma (0: off)
     sigma: float = 0.05  # std of the spatial term's observation noise
-    batch_size: int = 256  # replay minibatch of each term, per actor update
+    batch_size: int = 256  # minibatch of each term (replay buffer or rollout), per actor update
 
     @property
     def enabled(self) -> bool:

@@ -1,4 +1,4 @@
-"""Smooth actions by regularising the actor (CAPS, Mysore et al., ICRA 2021), for off-policy learners.
+"""Smooth actions by regularising the actor (CAPS, Mysore et al., ICRA 2021).
 
 A policy whose action jumps between nearly equal observations makes the rover twitch: the SPEC's smoothness
 metrics S_D and S_A count those jumps, and SAC trained from scratch here scores several times the paper's. CAPS adds
@@ -12,12 +12,18 @@ two terms to every actor update, each on a minibatch from the replay buffer:
 Neither term touches the reward or the critic. The learner's own ``train`` stays untouched: like the kept cloning
 loss (``learner_service.demonstrations.keep_cloning``), a hook on the actor's optimizer adds the terms' gradient to
 the one the learner's loss left, just before each step.
+
+An off-policy learner's minibatches come from its replay buffer. An on-policy one (PPO) has the current rollout
+instead: its pairs are consecutive steps of one env that no episode start separates, and the hook sits on the
+policy's optimizer (one network for actor and value), so every minibatch step of every epoch adds the terms.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 import torch
 from gymnasium import spaces
 
@@ -40,21 +46,59 @@ def smoothness_loss(policy: Any, observations: torch.Tensor, next_observations: 
     return loss
 
 
-def keep_smooth(model: Any, settings: SmoothSettings, seed: int) -> Any:
-    """Add the CAPS terms to every actor update of an off-policy ``model`` from now on; returns the hook's handle.
+Pairs = Callable[[int], tuple[torch.Tensor, torch.Tensor]]  # batch size -> (observations, their successors)
 
-    Refused, naming why, for a learner without an actor and a replay buffer (PPO) or, for the spatial term, an
-    observation that is not one flat vector (image observations).
+
+def replay_pairs(model: Any) -> Pairs:
+    """Minibatches of (s, s') from an off-policy learner's replay buffer."""
+
+    def sample(batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        batch = model.replay_buffer.sample(batch_size)
+        return batch.observations, batch.next_observations
+
+    return sample
+
+
+def rollout_pairs(model: Any, seed: int) -> Pairs:
+    """Minibatches of (s, s') from an on-policy learner's current rollout: step t and t + 1 of one env where no
+    episode starts at t + 1."""
+    rng = np.random.default_rng(seed)
+
+    def sample(batch_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        buffer = model.rollout_buffer
+        steps, envs = buffer.buffer_size, buffer.n_envs
+        observations = buffer.observations
+        if observations.ndim == 2:  # flattened env-major for training (RolloutBuffer.swap_and_flatten): to (t, env)
+            observations = observations.reshape(envs, steps, -1).swapaxes(0, 1)
+        continuing = np.argwhere(buffer.episode_starts[1:] == 0)  # (t, env) whose next step is the same episode's
+        if len(continuing) == 0:
+            raise ValueError("the rollout has no two consecutive steps of one episode; lengthen n_steps")
+        step, env = continuing[rng.integers(len(continuing), size=batch_size)].T
+        return buffer.to_torch(observations[step, env]), buffer.to_torch(observations[step + 1, env])
+
+    return sample
+
+
+def keep_smooth(model: Any, settings: SmoothSettings, seed: int) -> Any:
+    """Add the CAPS terms to every actor update of ``model`` from now on; returns the hook's handle.
+
+    Refused, naming why, for a learner with neither an actor and a replay buffer (SAC, TD3) nor a policy and a
+    rollout buffer (PPO, A2C), or, for the spatial term, an observation that is not one flat vector (image
+    observations).
     """
-    if not (hasattr(model, "actor") and hasattr(model, "replay_buffer")):
-        raise ValueError(f"--smooth-* needs an off-policy learner with an actor and a replay buffer; "
-                         f"{type(model).__name__} has none")  # fmt: skip
+    if hasattr(model, "actor") and hasattr(model, "replay_buffer"):
+        pairs, optimizer = replay_pairs(model), model.actor.optimizer
+    elif hasattr(model, "rollout_buffer") and hasattr(model.policy, "optimizer"):
+        pairs, optimizer = rollout_pairs(model, seed), model.policy.optimizer
+    else:
+        raise ValueError(f"--smooth-* needs an actor and a replay buffer or a policy and a rollout buffer; "
+                         f"{type(model).__name__} has neither")  # fmt: skip
     if settings.spatial > 0 and not isinstance(model.observation_space, spaces.Box):
         raise ValueError("--smooth-spatial perturbs one flat observation vector; use cmvae or state observations")
     generator = torch.Generator(device=model.device).manual_seed(seed)
 
     def add_smoothness_gradient(optimizer: torch.optim.Optimizer, args: Any, kwargs: Any) -> None:
-        batch = model.replay_buffer.sample(settings.batch_size)
-        smoothness_loss(model.policy, batch.observations, batch.next_observations, settings, generator).backward()
+        observations, next_observations = pairs(settings.batch_size)
+        smoothness_loss(model.policy, observations, next_observations, settings, generator).backward()
 
-    return model.actor.optimizer.register_step_pre_hook(add_smoothness_gradient)
+    return optimizer.register_step_pre_hook(add_smoothness_gradient)

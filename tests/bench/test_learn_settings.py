@@ -29,12 +29,3 @@ def test_hyperparams_that_are_not_a_mapping_are_refused_before_the_first_run(tmp
     with pytest.raises(ValueError, match="--hyperparams must be a YAML mapping"):
         run(settings)
     assert not out.exists()
-
-
-def test_smoothing_an_on_policy_learner_is_refused_before_the_off_policy_one_trains(tmp_path) -> None:
-    out = tmp_path / "bench"
-    settings = LearnBenchSettings(algos=["sac", "ppo"], seeds=[97], out=str(out))
-    settings.smooth.temporal = 1.0
-    with pytest.raises(ValueError, match="ppo .* is on-policy"):
-        run(settings)
-    assert not out.exists()

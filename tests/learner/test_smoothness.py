@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.env_util import make_vec_env
 
 from learner_service.learn_settings import SmoothSettings
 from learner_service.registry import deterministic_action
-from learner_service.smoothness import keep_smooth, smoothness_loss
+from learner_service.smoothness import keep_smooth, rollout_pairs, smoothness_loss
 
 
 def _sac(seed: int = 0) -> SAC:
@@ -49,9 +50,43 @@ def test_the_loss_is_zero_for_equal_observations_and_weighs_each_term() -> None:
     assert spatial.item() > 0  # the noisy neighbours' actions differ
 
 
-def test_an_on_policy_learner_is_refused_by_name() -> None:
-    with pytest.raises(ValueError, match="off-policy.*PPO"):
-        keep_smooth(PPO("MlpPolicy", gym.make("Pendulum-v1")), SmoothSettings(temporal=1.0), seed=0)
+def _ppo(seed: int = 0) -> PPO:
+    return PPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=seed), n_steps=128, batch_size=64, n_epochs=4,
+               seed=seed, policy_kwargs={"net_arch": [32, 32]})  # fmt: skip
+
+
+def _rollout_action_change(model: PPO) -> float:
+    """Mean squared change of the deterministic action between consecutive steps of the last rollout's envs."""
+    buffer = model.rollout_buffer
+    observations = buffer.observations.reshape(buffer.n_envs, buffer.buffer_size, -1)  # flattened env-major
+    with torch.no_grad():
+        actions = deterministic_action(model.policy, buffer.to_torch(observations.reshape(-1, observations.shape[-1])))
+    actions = actions.reshape(buffer.n_envs, buffer.buffer_size, -1)
+    return float((actions[:, 1:] - actions[:, :-1]).pow(2).sum(dim=2).mean())
+
+
+def test_an_on_policy_learner_smooths_from_its_rollout() -> None:
+    plain, smooth = _ppo(), _ppo()
+    keep_smooth(smooth, SmoothSettings(temporal=50.0, spatial=1.0), seed=0)
+    for model in (plain, smooth):
+        model.learn(1024)
+    assert _rollout_action_change(smooth) < 0.5 * _rollout_action_change(plain)
+
+
+def test_a_rollout_with_no_consecutive_steps_of_one_episode_is_named() -> None:
+    model = _ppo()
+    model.learn(256)
+    model.rollout_buffer.episode_starts[:] = 1.0  # every step starts an episode: no (s, s') pair exists
+    with pytest.raises(ValueError, match="no two consecutive steps of one episode"):
+        rollout_pairs(model, seed=0)(8)
+
+
+def test_a_learner_without_a_buffer_is_refused_by_name() -> None:
+    class Planner:
+        policy = None
+
+    with pytest.raises(ValueError, match="Planner has neither"):
+        keep_smooth(Planner(), SmoothSettings(temporal=1.0), seed=0)
 
 
 def test_bad_smoothness_settings_are_refused() -> None:
@@ -61,10 +96,9 @@ def test_bad_smoothness_settings_are_refused() -> None:
     assert not SmoothSettings().enabled and SmoothSettings(spatial=0.1).enabled
 
 
-def test_swimm_learn_refuses_smoothing_an_on_policy_learner_before_anything_starts() -> None:
+def test_swimm_learn_accepts_smoothing_for_off_and_on_policy_learners() -> None:
     from learner_service.command import check
     from learner_service.learn_settings import LearnCommandSettings
 
-    with pytest.raises(ValueError, match="off-policy.*ppo"):
-        check(LearnCommandSettings(algo="ppo", smooth=SmoothSettings(temporal=1.0)))
-    check(LearnCommandSettings(algo="sac", smooth=SmoothSettings(temporal=1.0)))  # accepted
+    for algo in ("sac", "td3", "ppo"):
+        check(LearnCommandSettings(algo=algo, smooth=SmoothSettings(temporal=1.0)))
