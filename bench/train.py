@@ -163,9 +163,10 @@ def run(
     group_size: int = -1,
     sims: int = 0,
     policy: str = "auto",
+    engine: str = "torch",
 ) -> dict:
     """``steps`` 0: :func:`default_steps`; ``sims`` 0 and ``group_size`` -1: :func:`default_layout`; ``policy``: see
-    :func:`starting_policy`."""
+    :func:`starting_policy`; ``engine``: the CMVAE's inference engine, the same in both halves."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
     sims, group_size = default_layout(envs, sims, group_size)
@@ -181,13 +182,15 @@ def run(
         for index, (first, count) in enumerate(sim_shares(envs, sims)):
             group.start(f"sim-{index}", "sim", *common, "--train-envs", str(count), "--first-train-env", str(first),
                         "--eval-envs", "0", "--ident", f"sim-{index}")  # fmt: skip
-        group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS))
+        group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS),
+                    "--engine", engine)  # fmt: skip
         zenoh = ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency)
         proxy = ProxySettings(zenoh=zenoh, group_size=group_size)
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
         distributed_env = make_vec_env("zenoh", task, proxy, n_envs=envs, base_seed=SEED)
         try:
-            inprocess_env = make_vec_env("inprocess", task, base_seed=SEED, encoder=LatentEncoder(checkpoint))
+            encoder = LatentEncoder(checkpoint, engine=engine)
+            inprocess_env = make_vec_env("inprocess", task, base_seed=SEED, encoder=encoder)
             try:
                 inprocess = train(algo, inprocess_env, steps, services={}, policy=start)
             finally:
@@ -200,6 +203,7 @@ def run(
     return {
         "algo": algo,
         "envs": envs,
+        "engine": engine,
         "start": "scratch" if start is None else str(start),
         "sims": sims,
         "group_size": group_size,

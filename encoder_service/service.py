@@ -52,7 +52,8 @@ class EncoderSettings:
     max_batch: int = 32  # frames per forward pass
     max_wait_ms: float = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
     device: str = "cpu"
-    threads: int = 0  # torch threads; 0 = torch's default
+    threads: int = 0  # torch threads; 0 = torch's default (onnx: one)
+    engine: str = "torch"  # torch (a frozen TorchScript trace) | onnx (onnxruntime, CPU; faster, batch-invariant)
     ident: str = ""  # this encoder's id in routing keys and liveliness; default enc-<pid>
     metrics_period_s: float = 2.0  # how often counters go out on <ns>/metrics/encoder/<id>
 
@@ -159,7 +160,7 @@ class EncoderService:
         self.keys = Keys(settings.zenoh.namespace)
         self.ident = settings.ident or f"enc-{os.getpid()}"
         self.encoder = LatentEncoder(
-            settings.checkpoint or DEFAULT_CHECKPOINT, settings.device, settings.threads or None
+            settings.checkpoint or DEFAULT_CHECKPOINT, settings.device, settings.threads or None, settings.engine
         )
         self.batcher = LatentBatcher(settings.max_batch, settings.max_wait_ms)
         self.metrics = EncoderMetrics()

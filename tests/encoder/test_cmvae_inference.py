@@ -86,3 +86,22 @@ def test_a_foreign_file_is_not_taken_for_a_checkpoint(tmp_path: Path) -> None:
     torch.save({"format": "something-else"}, path)
     with pytest.raises(ValueError, match="not a swimm-cmvae checkpoint"):
         LatentEncoder(path)
+
+
+def test_the_onnx_engine_gives_torchs_latents_and_the_same_latent_in_any_batch(
+    saved: tuple[CMVAE, Path], frames: np.ndarray
+) -> None:
+    _, path = saved
+    torch_mu, torch_logvar = LatentEncoder(path, threads=1).encode(frames)
+    onnx = LatentEncoder(path, engine="onnx")
+    mu, logvar = onnx.encode(frames)
+    np.testing.assert_allclose(mu, torch_mu, atol=1e-4)
+    np.testing.assert_allclose(logvar, torch_logvar, atol=1e-4)
+    alone = np.concatenate([onnx.encode(frames[row : row + 1])[0] for row in range(len(frames))])
+    np.testing.assert_array_equal(alone, mu)  # batch-invariant: grouped envs see the latents of single ones
+
+
+@pytest.mark.parametrize(("engine", "device"), [("tensorrt", "cpu"), ("onnx", "cuda")])
+def test_an_unknown_engine_or_onnx_off_the_cpu_is_refused(saved: tuple[CMVAE, Path], engine: str, device: str) -> None:
+    with pytest.raises(ValueError, match=f"encoder engine must be one of torch, onnx .* got '{engine}' on '{device}'"):
+        LatentEncoder(saved[1], device=device, engine=engine)
