@@ -32,12 +32,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from encoder_service import ENGINES
 from encoder_service.model import IMAGE_SHAPE, denormalise_labels, images_to_tensor, load_model
 
 log = logging.getLogger(__name__)
 
 DEFAULT_CHECKPOINT = Path(__file__).parent / "models" / "cmvae.pt"
-ENGINES = ("torch", "onnx")
 Encoder = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 

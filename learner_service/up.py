@@ -64,6 +64,7 @@ class UpSettings:
     learn: LearnCommandSettings = field(default_factory=LearnCommandSettings, metadata={"flatten": True})
     port: int = 7447  # the router's TCP port on 127.0.0.1; 0 = any free port
     encoders: int = 1  # encoder processes (cmvae only)
+    encoder_engine: str = "torch"  # the encoders' CMVAE inference: torch | onnx (onnxruntime; `swimm encoder --engine`)
     sims: int = 1  # sim processes, the train envs split between them in equal ranges (the eval envs on the first)
     sim_eval_envs: int = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
     topology: Literal["peer", "client"] = "peer"  # peer: direct links once the router introduces them; client: via it
@@ -163,7 +164,8 @@ class LocalSystem:
         encoders = self.settings.encoders if checkpoint is not None else 0
         for index in range(encoders):
             name = "encoder" if encoders == 1 else f"encoder-{index}"
-            self.group.start(name, "encoder", *common, "--checkpoint", str(checkpoint), "--ident", f"enc-{index}")
+            self.group.start(name, "encoder", *common, "--checkpoint", str(checkpoint), "--ident", f"enc-{index}",
+                             "--engine", self.settings.encoder_engine)  # fmt: skip
         watcher = ZenohSettings(connect=[endpoint], namespace=self.namespace, startup_timeout_s=self.wait_s)
         session = open_session(watcher, role="up")
         try:
@@ -300,6 +302,9 @@ def run(settings: UpSettings) -> int:
     if settings.restart_limit < 0 or settings.restart_backoff_s < 0:
         raise ValueError(f"--restart-limit and --restart-backoff-s must be >= 0, got {settings.restart_limit} and "
                          f"{settings.restart_backoff_s}")  # fmt: skip
+    if settings.encoder_engine not in encoder_service.ENGINES:
+        raise ValueError(f"--encoder-engine must be one of {', '.join(encoder_service.ENGINES)}, "
+                         f"got {settings.encoder_engine!r}")  # fmt: skip
     if settings.sim_config and not Path(settings.sim_config).is_file():
         raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
     sim_shares(learn.envs, settings.sims)  # refuses a split that leaves envs over

@@ -137,6 +137,7 @@ def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capf
         (["--envs", "3", "--sims", "2"], "divide --envs into equal shares"),
         (["--envs", "4", "--sims", "0"], "--sims must be >= 1"),
         (["--envs", "8", "--sims", "2", "--group-size", "3"], "--group-size 3 does not divide the 4 envs"),
+        (["--encoder-engine", "tensorrt"], "--encoder-engine must be one of torch, onnx, got 'tensorrt'"),
     ],
 )
 def test_up_refuses_sims_that_cannot_share_the_envs(tmp_path, capfd, flags, message) -> None:
