@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from services import settings as settings_mod
+from services.lifecycle import stop_when_launcher_exits
 from services.logs import setup_logging
 
 log = logging.getLogger(__name__)
@@ -110,6 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     spec = COMMANDS[args.command]
     setup_logging(args.command, args.log_level)
+    stop_when_launcher_exits()
     try:
         settings = settings_mod.load(_resolve(spec.settings), args, config_file(args.command, args.config))
         result = _resolve(spec.run)(settings)

@@ -1,15 +1,20 @@
-"""Running a service until SIGTERM/SIGINT and then draining it."""
+"""Running a service until SIGTERM/SIGINT and then draining it; stopping it when its launcher is gone."""
 
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any, Protocol
 
 log = logging.getLogger(__name__)
+
+#: Set by services.procs.ProcessGroup to its own pid in every process it starts.
+LAUNCHER_PID_ENV = "SWIMM_LAUNCHER_PID"
 
 
 class Service(Protocol):
@@ -72,3 +77,23 @@ def sigterm_as_ctrl_c() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def stop_when_launcher_exits(period_s: float = 1.0) -> None:
+    """In a process that a ProcessGroup started, send this process SIGTERM once its launcher is gone.
+
+    A launcher that is killed outright (SIGKILL, a crash, the OOM killer) cannot stop its services in order, and
+    they would otherwise live on, holding ports and cores; each then stops as on Ctrl-C (a learner saves).
+    Nothing happens in a process started any other way.
+    """
+    launcher = os.environ.get(LAUNCHER_PID_ENV, "")
+    if not launcher.isdigit() or os.getppid() != int(launcher):
+        return  # not started by a ProcessGroup, or started by one that is already gone
+
+    def watch() -> None:
+        while os.getppid() == int(launcher):
+            time.sleep(period_s)
+        log.warning("the launcher (pid %s) is gone: stopping", launcher)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="launcher-watch", daemon=True).start()

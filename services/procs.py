@@ -19,6 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from services.lifecycle import LAUNCHER_PID_ENV
+
 log = logging.getLogger(__name__)
 
 
@@ -96,7 +98,8 @@ class ProcessGroup:
                     service.restarts)  # fmt: skip
 
     def _spawn(self, argv: Sequence[str], log_path: Path) -> subprocess.Popen:
-        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **self.env}
+        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **self.env,
+               LAUNCHER_PID_ENV: str(os.getpid())}  # fmt: skip
         with open(log_path, "ab") as log_file:
             return subprocess.Popen(
                 list(argv),
