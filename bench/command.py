@@ -18,6 +18,7 @@ import sys
 from dataclasses import dataclass, field
 
 from bench.learn_settings import LearnBenchSettings
+from encoder_service import check_engine
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,7 @@ def run(settings: BenchSettings) -> int:
         raise ValueError(f"unknown benchmark {settings.target!r}; choose one of {', '.join(BENCHMARKS)}")
     if settings.mode not in ("peer", "client"):
         raise ValueError(f"--mode must be peer or client, got {settings.mode!r}")
+    check_engine(settings.engine, "--engine")
     if settings.repeat < 1:
         raise ValueError(f"--repeat must be at least 1, got {settings.repeat}")
     if settings.target == "learn":

@@ -1,10 +1,10 @@
 """`swimm bench learn --merge A B ...`: one results folder from the summaries of several `swimm bench learn` runs.
 
-Each algorithm learns best with its own recipe (CAPS smoothing is for off-policy actors only; TD3 and PPO have
-their own hyperparameters), and a benchmark of three algorithms x three seeds takes longer than one working
-session, so the runs behind one report are made by several invocations. Merging takes each algorithm of
-``--algos`` from the one summary that has it, keeps that summary's settings beside it (``settings``, ``source``)
-and writes ``summary.json``, ``evaluations.csv`` and ``learn.png`` to ``--out`` as a training run would.
+Each algorithm learns best with its own recipe (its own hyperparameters, smoothing and averaging), and a
+benchmark of three algorithms x three seeds takes longer than one working session, so the runs behind one report
+are made by several invocations. Merging takes each algorithm of ``--algos`` from the one summary that has it,
+keeps that summary's settings beside it (``settings``, ``source``) and writes ``summary.json``,
+``evaluations.csv`` and ``learn.png`` to ``--out`` as a training run would.
 
 A summary is a results folder's ``summary.json`` (its ``evaluations.csv`` beside it) or a committed copy
 ``<name>.json`` with ``<name>-evaluations.csv`` beside it (as in docs/bench/).

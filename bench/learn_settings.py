@@ -24,7 +24,7 @@ class LearnBenchSettings:
     out: str = "runs/bench-learn"  # the results folder
     resume: bool = True  # skip runs that already finished in ``out``
     encoder_checkpoint: str = ""  # the CMVAE (default: the shipped one)
-    smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS for off-policy actors
+    smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS action smoothness
     actor_average: int = 0  # evaluate and keep the actor's weights averaged over ~N updates (swimm learn's flag)
     hyperparams: str = ""  # YAML mapping or file over each algorithm's shipped values: "{learning_rate: lin_7.3e-4}"
     merge: list[str] = field(default_factory=list)  # summary.json files to combine into --out instead of training

@@ -302,9 +302,7 @@ def run(settings: UpSettings) -> int:
     if settings.restart_limit < 0 or settings.restart_backoff_s < 0:
         raise ValueError(f"--restart-limit and --restart-backoff-s must be >= 0, got {settings.restart_limit} and "
                          f"{settings.restart_backoff_s}")  # fmt: skip
-    if settings.encoder_engine not in encoder_service.ENGINES:
-        raise ValueError(f"--encoder-engine must be one of {', '.join(encoder_service.ENGINES)}, "
-                         f"got {settings.encoder_engine!r}")  # fmt: skip
+    encoder_service.check_engine(settings.encoder_engine, "--encoder-engine")
     if settings.sim_config and not Path(settings.sim_config).is_file():
         raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
     sim_shares(learn.envs, settings.sims)  # refuses a split that leaves envs over

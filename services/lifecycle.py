@@ -86,14 +86,15 @@ def stop_when_launcher_exits(period_s: float = 1.0) -> None:
     they would otherwise live on, holding ports and cores; each then stops as on Ctrl-C (a learner saves).
     Nothing happens in a process started any other way.
     """
-    launcher = os.environ.get(LAUNCHER_PID_ENV, "")
-    if not launcher.isdigit() or os.getppid() != int(launcher):
+    variable = os.environ.get(LAUNCHER_PID_ENV, "")
+    launcher = int(variable) if variable.isdigit() else None
+    if launcher is None or os.getppid() != launcher:
         return  # not started by a ProcessGroup, or started by one that is already gone
 
     def watch() -> None:
-        while os.getppid() == int(launcher):
+        while os.getppid() == launcher:
             time.sleep(period_s)
-        log.warning("the launcher (pid %s) is gone: stopping", launcher)
+        log.warning("the launcher (pid %d) is gone: stopping", launcher)
         os.kill(os.getpid(), signal.SIGTERM)
 
     threading.Thread(target=watch, name="launcher-watch", daemon=True).start()
