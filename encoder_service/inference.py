@@ -16,9 +16,9 @@ batch 32). torch marks ``jit.trace`` deprecated; should tracing fail or
 disappear, the encoder falls back to eager mode with a logged warning and
 stays correct, only slower.
 
-``engine="onnx"`` runs the same encoder under onnxruntime instead (exported in memory at load, CPU only): on
-this CPU about 2.5x faster than the frozen trace at a batch of 4 frames, with latents within 1e-5 of torch's,
-and batch-invariant (a frame's latent is bit for bit the same alone or in any batch, which the trace's is not).
+``engine="onnx"`` runs the same encoder under onnxruntime instead (exported in memory at load, CPU only): faster
+(docs/benchmarks.md), latents within 1e-4 of torch's (tested), and batch-invariant (a frame's latent is bit for
+bit the same alone or in any batch, which the trace's is not).
 """
 
 from __future__ import annotations
