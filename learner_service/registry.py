@@ -8,8 +8,9 @@ change to the services.
 
 YAML values that cannot be plain data are written as names and resolved here:
 ``"lin_<x>"`` is a schedule falling linearly from x to 0 over training; ``policy_kwargs.activation_fn``
-names a ``torch.nn`` class; ``action_noise: {type: ornstein_uhlenbeck | normal, sigma: s}`` becomes an
-SB3 noise object sized to the env's action space; a ``train_freq`` list becomes SB3's (n, unit) tuple.
+names a ``torch.nn`` class; ``action_noise: {type: ornstein_uhlenbeck | normal | pink, sigma: s}`` becomes an
+SB3 noise object sized to the env's action space (pink: one seeded process per env, ``seq_len`` steps long); a
+``train_freq`` list becomes SB3's (n, unit) tuple.
 """
 
 from __future__ import annotations
@@ -25,7 +26,12 @@ import numpy as np
 import torch
 import yaml
 from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.noise import ActionNoise, NormalActionNoise, OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.noise import (
+    ActionNoise,
+    NormalActionNoise,
+    OrnsteinUhlenbeckActionNoise,
+    VectorizedActionNoise,
+)
 from stable_baselines3.common.utils import LinearSchedule
 
 from learner_service.episodic import episodic_callbacks, vectorised_kwargs
@@ -40,6 +46,8 @@ LATENT_SCRIPTED = "scripted-camera"  # the scripted tracker on the CMVAE's decod
 SCRIPTED_NAMES = (SCRIPTED, LATENT_SCRIPTED)
 LINEAR_SCHEDULE_PREFIX = "lin_"
 ACTION_NOISES = {"ornstein_uhlenbeck": OrnsteinUhlenbeckActionNoise, "normal": NormalActionNoise}
+PINK_NOISE = "pink"  # colored noise with a 1/f spectrum (pink-noise-rl), built per env from the model's seed
+PINK_SEQ_LEN = 3000  # its default period: the SPEC's episode length
 SB3_API = ("learn", "predict", "load")
 
 
@@ -128,14 +136,17 @@ def merge_overrides(defaults: Mapping[str, Any], overrides: Mapping[str, Any] | 
     return merged
 
 
-def resolve_kwargs(kwargs: Mapping[str, Any], action_space: gym.spaces.Space) -> dict[str, Any]:
-    """Turn the YAML's names into objects: schedules, action noise, train_freq tuples, activation classes."""
+def resolve_kwargs(
+    kwargs: Mapping[str, Any], action_space: gym.spaces.Space, n_envs: int = 1, seed: int | None = None
+) -> dict[str, Any]:
+    """Turn the YAML's names into objects: schedules, action noise (for ``n_envs`` envs, seeded by ``seed``),
+    train_freq tuples, activation classes."""
     resolved: dict[str, Any] = {}
     for key, value in kwargs.items():
         if isinstance(value, str) and value.startswith(LINEAR_SCHEDULE_PREFIX):
             resolved[key] = linear_schedule(value)
         elif key == "action_noise" and isinstance(value, Mapping):
-            resolved[key] = action_noise(value, action_space)
+            resolved[key] = action_noise(value, action_space, n_envs, seed)
         elif key == "train_freq" and isinstance(value, list):
             resolved[key] = tuple(value)
         elif key == "policy_kwargs" and isinstance(value, Mapping):
@@ -154,13 +165,34 @@ def linear_schedule(spec: str) -> LinearSchedule:
     return LinearSchedule(start, 0.0, 1.0)
 
 
-def action_noise(spec: Mapping[str, Any], action_space: gym.spaces.Space) -> ActionNoise:
+def action_noise(
+    spec: Mapping[str, Any], action_space: gym.spaces.Space, n_envs: int = 1, seed: int | None = None
+) -> ActionNoise:
     kind = spec.get("type")
-    if kind not in ACTION_NOISES:
-        raise ValueError(f"unknown action noise {kind!r}; choose one of {', '.join(ACTION_NOISES)}")
     size = int(np.prod(action_space.shape))
     sigma = float(spec.get("sigma", 0.1))
+    if kind == PINK_NOISE:
+        return pink_noise(sigma, int(spec.get("seq_len", PINK_SEQ_LEN)), size, n_envs, seed)
+    if kind not in ACTION_NOISES:
+        raise ValueError(f"unknown action noise {kind!r}; choose one of {', '.join([*ACTION_NOISES, PINK_NOISE])}")
     return ACTION_NOISES[kind](mean=np.zeros(size), sigma=np.full(size, sigma))
+
+
+def pink_noise(sigma: float, seq_len: int, size: int, n_envs: int, seed: int | None) -> ActionNoise:
+    """Pink (1/f) action noise: slow drifts with fast jitter on top, which explores a tracking task's distance and
+    bearing further than white noise of the same scale. Each env draws from its own generator spawned from ``seed``:
+    SB3 would otherwise deep-copy one noise per env, and the copies would repeat each other's draws."""
+    from pink import PinkActionNoise  # pink-noise-rl, the learner's extra
+
+    if seq_len < 2 or sigma <= 0:
+        raise ValueError(f"pink action noise needs seq_len >= 2 and sigma > 0, got seq_len {seq_len}, sigma {sigma}")
+    generators = np.random.default_rng(seed).spawn(n_envs)
+    noises = [PinkActionNoise(sigma, seq_len, size, rng=generator) for generator in generators]
+    if n_envs == 1:
+        return noises[0]
+    vectorised = VectorizedActionNoise(noises[0], n_envs)
+    vectorised.noises = noises
+    return vectorised
 
 
 def resolve_policy_kwargs(policy_kwargs: Mapping[str, Any]) -> dict[str, Any]:
@@ -194,7 +226,7 @@ def make_model(
     """
     cls, defaults = resolve_algorithm(algo)
     merged = vectorised_kwargs(merge_overrides(defaults, overrides), getattr(env, "num_envs", 1))
-    kwargs = resolve_kwargs(merged, env.action_space)
+    kwargs = resolve_kwargs(merged, env.action_space, getattr(env, "num_envs", 1), seed)
     policy = kwargs.pop("policy", default_policy(env.observation_space))
     log.info("building %s (%s) with policy %s, seed %d, settings %s", algo, cls.__name__, policy, seed, kwargs)
     return cls(policy, env, seed=seed, tensorboard_log=tensorboard_log, **kwargs)

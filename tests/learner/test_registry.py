@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 
@@ -95,6 +96,41 @@ def test_td3_carries_the_tuned_values() -> None:
     layers = [m for m in model.policy.actor.mu if isinstance(m, torch.nn.Linear)]
     assert [(m.in_features, m.out_features) for m in layers] == [(30, 400), (400, 300), (300, 2)]
     assert load_hyperparams("td3")["model"]["buffer_size"] == 1_000_000  # the override did not touch the defaults
+
+
+def pink_td3(seed: int, n_envs: int) -> Any:
+    env = make_vec_env(TaskSpacesEnv, n_envs=n_envs, seed=seed)
+    overrides = {"device": "cpu", "buffer_size": 1000, "learning_starts": 16, "train_freq": [8, "step"],
+                 "gradient_steps": 1, "action_noise": {"type": "pink", "sigma": 0.3, "seq_len": 64}}  # fmt: skip
+    return make_model("td3", env, seed=seed, overrides=overrides)
+
+
+def noise_draws(seed: int, n_envs: int, steps: int = 64) -> np.ndarray:
+    """A pink-noise TD3's exploration noise over ``steps`` steps: (time, env, action)."""
+    noise = pink_td3(seed, n_envs).action_noise
+    return np.stack([noise() for _ in range(steps)])
+
+
+def test_pink_action_noise_is_per_env_seeded_and_slow() -> None:
+    draws = noise_draws(seed=5, n_envs=3)
+    np.testing.assert_array_equal(draws, noise_draws(seed=5, n_envs=3))  # reproducible from the model's seed
+    other = noise_draws(seed=6, n_envs=3)
+    assert not np.allclose(draws, other)
+    assert draws.shape == (64, 3, 2)
+    assert not np.allclose(draws[:, 0], draws[:, 1]) and not np.allclose(draws[:, 1], draws[:, 2])
+    # pink noise drifts: consecutive draws are correlated, as white noise's are not
+    lag_one = [np.corrcoef(draws[:-1, env, k], draws[1:, env, k])[0, 1] for env in range(3) for k in range(2)]
+    assert np.mean(lag_one) > 0.3
+
+
+def test_td3_trains_with_pink_noise_on_several_envs() -> None:
+    model = pink_td3(seed=7, n_envs=2)
+    model.learn(64)
+    assert model.num_timesteps == 64
+    with pytest.raises(ValueError, match="seq_len >= 2 and sigma > 0"):
+        make_model("td3", TaskSpacesEnv(), seed=0, overrides={"action_noise": {"type": "pink", "sigma": 0}})
+    with pytest.raises(ValueError, match="unknown action noise 'brown'.*normal, pink"):
+        make_model("td3", TaskSpacesEnv(), seed=0, overrides={"action_noise": {"type": "brown"}})
 
 
 def test_ppo_carries_the_tuned_values() -> None:
