@@ -91,15 +91,16 @@ class SmoothSettings:
     temporal: float = 0.0  # weight of the squared action change between consecutive observations (0: off)
     spatial: float = 0.0  # weight of the squared action change under observation noise of std sigma (0: off)
     sigma: float = 0.05  # std of the spatial term's observation noise
+    bound: float = 0.0  # weight of the squared excess of the action beyond the action space (PPO's mean; 0: off)
     batch_size: int = 256  # minibatch of each term (replay buffer or rollout), per actor update
 
     @property
     def enabled(self) -> bool:
-        return self.temporal > 0 or self.spatial > 0
+        return self.temporal > 0 or self.spatial > 0 or self.bound > 0
 
     def check(self) -> None:
-        if min(self.temporal, self.spatial) < 0 or self.sigma <= 0 or self.batch_size < 1:
-            raise ValueError("smooth temporal and spatial must be >= 0, sigma > 0 and batch_size >= 1")
+        if min(self.temporal, self.spatial, self.bound) < 0 or self.sigma <= 0 or self.batch_size < 1:
+            raise ValueError("smooth temporal, spatial and bound must be >= 0, sigma > 0 and batch_size >= 1")
 
 
 @dataclass

@@ -7,7 +7,12 @@ two terms to every actor update, each on a minibatch from the replay buffer:
 - temporal: ``temporal`` x the mean squared difference of the deterministic actions at consecutive observations
   (s, s'), so the action changes no faster than the observation does;
 - spatial: ``spatial`` x the mean squared difference between the action at s and at s plus Gaussian noise of std
-  ``sigma``, so nearby observations map to nearby actions.
+  ``sigma``, so nearby observations map to nearby actions;
+- bound: ``bound`` x the mean squared excess of the deterministic action beyond the action space. An on-policy
+  Gaussian's mean is unbounded and the env clips it, so PPO can learn a bang-bang controller that alternates the
+  clipped extremes every step (its actions' means reached 122 here), which the two CAPS terms cannot tame at a
+  weight PPO's small loss survives; kept inside the bounds, the mean's steps are at most the action range.
+  Squashed actors (SAC, TD3) never leave the bounds, so the term is zero for them.
 
 Neither term touches the reward or the critic. The learner's own ``train`` stays untouched: like the kept cloning
 loss (``learner_service.demonstrations.keep_cloning``), a hook on the actor's optimizer adds the terms' gradient to
@@ -43,7 +48,16 @@ def smoothness_loss(policy: Any, observations: torch.Tensor, next_observations: 
         noise = torch.randn(observations.shape, generator=generator, device=observations.device) * settings.sigma
         nearby = deterministic_action(policy, observations + noise)
         loss = loss + settings.spatial * (actions - nearby).pow(2).sum(dim=1).mean()
+    if settings.bound > 0:
+        loss = loss + settings.bound * bound_excess(actions, policy.action_space).pow(2).sum(dim=1).mean()
     return loss
+
+
+def bound_excess(actions: torch.Tensor, action_space: spaces.Box) -> torch.Tensor:
+    """How far each action lies beyond the action space's box (0 inside it)."""
+    low = torch.as_tensor(action_space.low, dtype=actions.dtype, device=actions.device)
+    high = torch.as_tensor(action_space.high, dtype=actions.dtype, device=actions.device)
+    return torch.relu(actions - high) + torch.relu(low - actions)
 
 
 Pairs = Callable[[int], tuple[torch.Tensor, torch.Tensor]]  # batch size -> (observations, their successors)

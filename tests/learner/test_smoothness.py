@@ -11,7 +11,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from learner_service.learn_settings import SmoothSettings
 from learner_service.registry import deterministic_action
-from learner_service.smoothness import keep_smooth, rollout_pairs, smoothness_loss
+from learner_service.smoothness import bound_excess, keep_smooth, rollout_pairs, smoothness_loss
 
 
 def _sac(seed: int = 0) -> SAC:
@@ -50,9 +50,9 @@ def test_the_loss_is_zero_for_equal_observations_and_weighs_each_term() -> None:
     assert spatial.item() > 0  # the noisy neighbours' actions differ
 
 
-def _ppo(seed: int = 0) -> PPO:
+def _ppo(seed: int = 0, learning_rate: float = 3e-4) -> PPO:
     return PPO("MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=seed), n_steps=128, batch_size=64, n_epochs=4,
-               seed=seed, policy_kwargs={"net_arch": [32, 32]})  # fmt: skip
+               learning_rate=learning_rate, seed=seed, policy_kwargs={"net_arch": [32, 32]})  # fmt: skip
 
 
 def _rollout_action_change(model: PPO) -> float:
@@ -73,6 +73,39 @@ def test_an_on_policy_learner_smooths_from_its_rollout() -> None:
     assert _rollout_action_change(smooth) < 0.5 * _rollout_action_change(plain)
 
 
+def _pushed_out_ppo() -> PPO:
+    """A PPO on Pendulum (actions in [-2, 2]) whose deterministic actions all start at 3, outside the bounds; its
+    learning rate lets a few hundred steps move them back."""
+    model = _ppo(learning_rate=0.05)
+    with torch.no_grad():
+        model.policy.action_net.weight.zero_()
+        model.policy.action_net.bias.fill_(3.0)
+    return model
+
+
+def _largest_excess(model: PPO) -> float:
+    observations = torch.as_tensor(model.rollout_buffer.observations.reshape(-1, 3))
+    with torch.no_grad():
+        return float(bound_excess(deterministic_action(model.policy, observations), model.action_space).max())
+
+
+def test_the_bound_term_is_the_squared_excess_and_zero_for_a_squashed_actor() -> None:
+    observations = torch.as_tensor(np.random.default_rng(0).normal(size=(8, 3)), dtype=torch.float32)
+    generator = torch.Generator().manual_seed(0)
+    bound = SmoothSettings(bound=2.0)
+    assert smoothness_loss(_pushed_out_ppo().policy, observations, observations, bound, generator).item() == \
+        pytest.approx(2.0 * 1.0**2)  # fmt: skip
+    assert smoothness_loss(_sac().policy, observations, observations, bound, generator).item() == 0.0
+
+
+def test_the_bound_term_brings_an_on_policy_mean_back_inside_the_action_space() -> None:
+    plain, bounded = _pushed_out_ppo(), _pushed_out_ppo()
+    keep_smooth(bounded, SmoothSettings(bound=1.0), seed=0)
+    for model in (plain, bounded):
+        model.learn(1024)
+    assert _largest_excess(bounded) < 0.2 * _largest_excess(plain), (_largest_excess(bounded), _largest_excess(plain))
+
+
 def test_a_rollout_with_no_consecutive_steps_of_one_episode_is_named() -> None:
     model = _ppo()
     model.learn(256)
@@ -90,10 +123,11 @@ def test_a_learner_without_a_buffer_is_refused_by_name() -> None:
 
 
 def test_bad_smoothness_settings_are_refused() -> None:
-    for bad in (SmoothSettings(temporal=-1.0), SmoothSettings(sigma=0.0), SmoothSettings(batch_size=0)):
+    for bad in (SmoothSettings(temporal=-1.0), SmoothSettings(sigma=0.0), SmoothSettings(batch_size=0),
+                SmoothSettings(bound=-0.5)):  # fmt: skip
         with pytest.raises(ValueError, match="smooth"):
             bad.check()
-    assert not SmoothSettings().enabled and SmoothSettings(spatial=0.1).enabled
+    assert not SmoothSettings().enabled and SmoothSettings(spatial=0.1).enabled and SmoothSettings(bound=1).enabled
 
 
 def test_swimm_learn_accepts_smoothing_for_off_and_on_policy_learners() -> None:
