@@ -236,7 +236,7 @@ def learning_figure(evaluations: pd.DataFrame) -> Any:
             runs = [run for _, run in table.groupby("seed")]
             grid = np.linspace(table[x].min(), table[x].max(), CURVE_POINTS)
             band = curve_band(runs, x, grid)
-            line = axis.plot(band[x], band["mean"], label=f"{algo} ({len(runs)} seeds)")[0]
+            line = axis.plot(band[x], band["mean"], label=f"{algo} ({len(runs)} seed{'s' * (len(runs) > 1)})")[0]
             axis.fill_between(band[x], band["low"], band["high"], color=line.get_color(), alpha=0.2)
         axis.set_xlabel(label)
         axis.grid(alpha=0.3)
