@@ -225,8 +225,9 @@ def make_model(
     (learner_service/episodic.py): pass those to ``learn()``.
     """
     cls, defaults = resolve_algorithm(algo)
-    merged = vectorised_kwargs(merge_overrides(defaults, overrides), getattr(env, "num_envs", 1))
-    kwargs = resolve_kwargs(merged, env.action_space, getattr(env, "num_envs", 1), seed)
+    n_envs = getattr(env, "num_envs", 1)
+    merged = vectorised_kwargs(merge_overrides(defaults, overrides), n_envs)
+    kwargs = resolve_kwargs(merged, env.action_space, n_envs, seed)
     policy = kwargs.pop("policy", default_policy(env.observation_space))
     log.info("building %s (%s) with policy %s, seed %d, settings %s", algo, cls.__name__, policy, seed, kwargs)
     return cls(policy, env, seed=seed, tensorboard_log=tensorboard_log, **kwargs)

@@ -2,7 +2,7 @@
 
 A policy whose action jumps between nearly equal observations makes the rover twitch: the SPEC's smoothness
 metrics S_D and S_A count those jumps, and SAC trained from scratch here scores several times the paper's. CAPS adds
-two terms to every actor update, each on a minibatch from the replay buffer:
+two terms to every actor update, each on a minibatch from the replay buffer, and a third keeps the action in range:
 
 - temporal: ``temporal`` x the mean squared difference of the deterministic actions at consecutive observations
   (s, s'), so the action changes no faster than the observation does;
@@ -14,7 +14,7 @@ two terms to every actor update, each on a minibatch from the replay buffer:
   weight PPO's small loss survives; kept inside the bounds, the mean's steps are at most the action range.
   Squashed actors (SAC, TD3) never leave the bounds, so the term is zero for them.
 
-Neither term touches the reward or the critic. The learner's own ``train`` stays untouched: like the kept cloning
+No term touches the reward or the critic. The learner's own ``train`` stays untouched: like the kept cloning
 loss (``learner_service.demonstrations.keep_cloning``), a hook on the actor's optimizer adds the terms' gradient to
 the one the learner's loss left, just before each step.
 
