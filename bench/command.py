@@ -16,6 +16,7 @@ import logging
 import statistics
 import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from bench.learn_settings import LearnBenchSettings
 from encoder_service import check_engine
@@ -38,6 +39,7 @@ class BenchSettings:
     sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one; learn: 1
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
+    profile: str = ""  # train: write a cProfile of the distributed half's learner (CPU time) to this file
     repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
     learn: LearnBenchSettings = field(default_factory=LearnBenchSettings, metadata={"flatten": True})  # learn only
 
@@ -50,6 +52,12 @@ def run(settings: BenchSettings) -> int:
     check_engine(settings.engine, "--engine")
     if settings.repeat < 1:
         raise ValueError(f"--repeat must be at least 1, got {settings.repeat}")
+    if settings.profile:
+        folder = Path(settings.profile).parent
+        if settings.target != "train" or settings.repeat != 1:
+            raise ValueError("--profile is for one run of `swimm bench train` (without --repeat)")
+        if not folder.is_dir():
+            raise ValueError(f"--profile {settings.profile}: no folder {folder} to write it in")
     if settings.target == "learn":
         if settings.repeat != 1:
             raise ValueError("bench learn repeats over seeds (--seeds), not --repeat")
@@ -66,6 +74,7 @@ def run(settings: BenchSettings) -> int:
         kwargs["sims"] = settings.sims
         kwargs["policy"] = settings.policy
         kwargs["engine"] = settings.engine
+        kwargs["profile"] = settings.profile
     if settings.envs and settings.target in ("encoder", "train", "sim"):
         kwargs["envs"] = settings.envs
     runs = []

@@ -23,6 +23,8 @@ the chain needs (measured on the 2-core machine: a batch-1 encode took 11-28 ms 
 
 from __future__ import annotations
 
+import contextlib
+import cProfile
 import logging
 import os
 import tempfile
@@ -129,9 +131,12 @@ class TrainingRun:
         return self.steps / self.rollout_seconds
 
 
-def train(algo: str, vec_env, steps: int, services: dict[str, int], policy: Path | None = None) -> TrainingRun:
+def train(
+    algo: str, vec_env, steps: int, services: dict[str, int], policy: Path | None = None, profile: Path | None = None
+) -> TrainingRun:
     """Time ``model.learn(steps)`` of a new model, or of ``policy`` trained on, and the CPU it costs the learner and
-    the ``services`` (name: pid).
+    the ``services`` (name: pid); ``profile``: where to write a cProfile of the learner's ``learn`` (CPU time, so
+    other processes' load does not inflate it), for ``python -m pstats`` or snakeviz.
 
     SAC trains per episode (on several envs through learner_service/episodic.py), so it may run a little past
     ``steps``.
@@ -145,9 +150,14 @@ def train(algo: str, vec_env, steps: int, services: dict[str, int], policy: Path
     clock = RolloutClock()
     callbacks = [clock, *training_callbacks(algo, overrides, vec_env.num_envs)]
     cpu_before = {name: process_cpu_s(pid) for name, pid in services.items()}
+    profiler = cProfile.Profile(time.process_time) if profile else None
     learner_cpu, started = time.process_time(), time.perf_counter()
-    model.learn(total_timesteps=steps, callback=callbacks)
+    with profiler or contextlib.nullcontext():
+        model.learn(total_timesteps=steps, callback=callbacks)
     elapsed, learner_cpu = time.perf_counter() - started, time.process_time() - learner_cpu
+    if profiler is not None:
+        profiler.dump_stats(profile)
+        log.info("the learner's profile is in %s (python -m pstats %s)", profile, profile)
     cpu = {"learner": learner_cpu} | {name: process_cpu_s(pid) - cpu_before[name] for name, pid in services.items()}
     episodes = [(round(float(info["r"]), 4), int(info["l"])) for info in model.ep_info_buffer]
     cpu_ms = {name: round(seconds * 1e3 / model.num_timesteps, 3) for name, seconds in cpu.items()}
@@ -164,9 +174,11 @@ def run(
     sims: int = 0,
     policy: str = "auto",
     engine: str = "torch",
+    profile: str = "",
 ) -> dict:
     """``steps`` 0: :func:`default_steps`; ``sims`` 0 and ``group_size`` -1: :func:`default_layout`; ``policy``: see
-    :func:`starting_policy`; ``engine``: the CMVAE's inference engine, the same in both halves."""
+    :func:`starting_policy`; ``engine``: the CMVAE's inference engine, the same in both halves; ``profile``: a file
+    for the cProfile of the distributed half's learner (see :func:`train`), empty for none."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
     sims, group_size = default_layout(envs, sims, group_size)
@@ -196,7 +208,9 @@ def run(
             finally:
                 inprocess_env.close()
             pids = {s.name: s.process.pid for s in group.services}
-            distributed = train(algo, distributed_env, steps, pids, policy=start)
+            distributed = train(
+                algo, distributed_env, steps, pids, policy=start, profile=Path(profile) if profile else None
+            )
         finally:
             distributed_env.close()
         group.check_alive()

@@ -19,6 +19,7 @@ grows, starting after the sim's current episode, because the sim refuses to go b
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -359,18 +360,21 @@ class ProxyVecEnv(VecEnv):
             group.send(sim_actions[start : start + len(group.links)])
             start += len(group.links)
 
-    def _replies(self) -> list[Reply | SimLost | None]:
-        """Each env's reply, gathered group by group (None without groups: each env waits on its own link); a group
-        whose sim restarted gives each of its envs a :class:`SimLost`."""
+    def _replies(self) -> Iterator[Reply | SimLost | None]:
+        """Each env's reply in env order (None without groups: each env waits on its own link); a group whose sim
+        restarted gives each of its envs a :class:`SimLost`.
+
+        A generator, so that ``step_wait`` turns one group's replies into observations (and resets its finished
+        episodes) while the later groups are still with the sim and the encoder, rather than after all of them.
+        """
         if not self.groups:
-            return [None] * self.num_envs
-        replies: list[Reply | SimLost | None] = []
+            yield from [None] * self.num_envs
+            return
         for group in self.groups:
             try:
-                replies += group.wait()
+                yield from group.wait()
             except StepRefused as exc:
-                replies += [sim_lost(exc)] * len(group.links)
-        return replies
+                yield from [sim_lost(exc)] * len(group.links)
 
     def step_wait(self) -> VecEnvStepReturn:
         observations, rewards, dones, infos = [], np.zeros(self.num_envs, np.float32), np.zeros(self.num_envs, bool), []

@@ -24,3 +24,16 @@ def test_repeated_runs_report_each_numbers_median_and_a_flag_only_when_every_run
 def test_repeat_below_one_is_refused_before_anything_runs() -> None:
     with pytest.raises(ValueError, match="--repeat must be at least 1"):
         run(BenchSettings(target="sim", repeat=0))
+
+
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        (BenchSettings(target="sim", profile="sim.prof"), "--profile is for one run of `swimm bench train`"),
+        (BenchSettings(target="train", profile="x.prof", repeat=2), "without --repeat"),
+        (BenchSettings(target="train", profile="/no/such/folder/x.prof"), "no folder /no/such/folder"),
+    ],
+)
+def test_a_profile_the_run_could_not_write_is_refused_before_anything_runs(settings, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        run(settings)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import pstats
 import shutil
 import subprocess
 import sys
@@ -72,9 +73,13 @@ def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services(
     assert set(result["distributed_cpu_ms_per_step"]) == {"learner", "router", "sim-0", "encoder"}
 
 
-def test_bench_train_on_several_envs_splits_them_between_two_sims_in_groups() -> None:
-    """From the shipped policy (the steady state's default), 4 envs: two sims, one group of 2 envs each."""
-    result = bench("train", "--algo", "sac", "--envs", "4", "--steps", "400")
+def test_bench_train_on_several_envs_splits_them_between_two_sims_in_groups(tmp_path) -> None:
+    """From the shipped policy (the steady state's default), 4 envs: two sims, one group of 2 envs each; the
+    learner's profile shows where its time went, down to the vector env's steps."""
+    profile = tmp_path / "learner.prof"
+    result = bench("train", "--algo", "sac", "--envs", "4", "--steps", "400", "--profile", str(profile))
+    calls = {name: stats[1] for (_, _, name), stats in pstats.Stats(str(profile)).stats.items()}
+    assert calls["step_wait"] >= 400 // 4 and calls["learn"] == 1  # the distributed half's learn(), profiled whole
     assert result["start"].endswith("sac_cmvae.zip")
     assert (result["envs"], result["sims"], result["group_size"]) == (4, 2, 2)
     assert_rates(result, "distributed_rollout_steps_per_s", "rollout_ratio", "distributed_steps_per_s", "ratio")
