@@ -110,10 +110,10 @@ def _float_list(body: dict[str, Any], name: str, size: int | None) -> tuple[floa
         want = f"{size} numbers" if size is not None else "a list of numbers"
         raise BadMessage(f"field {name!r} must be {want}, got {value!r}")
     try:
-        numbers = tuple(float(x) for x in value)
+        numbers = tuple(map(float, value))  # map, not a generator: this runs on every latent the learner reads
     except (TypeError, ValueError):
         raise BadMessage(f"field {name!r} holds a non-number") from None
-    if not all(math.isfinite(x) for x in numbers):
+    if not all(map(math.isfinite, numbers)):
         raise BadMessage(f"field {name!r} holds NaN or infinity")
     return numbers
 
