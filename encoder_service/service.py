@@ -51,7 +51,6 @@ class EncoderSettings:
     checkpoint: str = ""  # a CMVAE checkpoint; default: the shipped model
     max_batch: int = 32  # frames per forward pass
     max_wait_ms: float = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
-    group_wait_ms: float = 0.5  # how long a batch that begins with a group waits for the other groups seen lately
     device: str = "cpu"
     threads: int = 0  # torch threads; 0 = torch's default (onnx: one)
     engine: str = "torch"  # torch (a frozen TorchScript trace) | onnx (onnxruntime, CPU; faster, batch-invariant)
@@ -65,36 +64,19 @@ class _Frame:
     payload: bytes
     received_at: float
 
-    @property
-    def is_group(self) -> bool:
-        return f"/{GROUPS}/" in self.key
-
 
 class LatentBatcher:
     """Gathers frames into batches: the first waits at most ``max_wait_ms`` for up to ``max_batch - 1`` more.
 
     Frames already queued join at once, so under load batches fill without
     waiting; the wait only matters when frames trickle in.
-
-    Groups: a learner sends the groups of one vector step together, and their frames reach here from different
-    sims a fraction of a millisecond apart. A batch that begins with a group waits up to ``group_wait_ms`` until
-    it holds a frame of every group seen in the last ``group_memory_s``, so one forward pass encodes them all
-    rather than one pass each in turn; a lone group (nothing else seen lately) does not wait.
     """
 
-    def __init__(
-        self, max_batch: int, max_wait_ms: float, group_wait_ms: float = 0.0, group_memory_s: float = 1.0
-    ) -> None:
-        if max_batch < 1 or min(max_wait_ms, group_wait_ms) < 0:
-            raise ValueError(
-                f"max_batch must be >= 1, max_wait_ms and group_wait_ms >= 0 (got {max_batch}, {max_wait_ms}, "
-                f"{group_wait_ms})"
-            )
+    def __init__(self, max_batch: int, max_wait_ms: float) -> None:
+        if max_batch < 1 or max_wait_ms < 0:
+            raise ValueError(f"max_batch must be >= 1 and max_wait_ms >= 0 (got {max_batch}, {max_wait_ms})")
         self.max_batch = max_batch
         self.max_wait_s = max_wait_ms / 1e3
-        self.group_wait_s = group_wait_ms / 1e3
-        self.group_memory_s = group_memory_s
-        self._groups_seen: dict[str, float] = {}  # group frame key -> when it last came
         self.inbox: queue.Queue[_Frame | None] = queue.Queue()
 
     def put(self, frame: _Frame) -> None:
@@ -109,17 +91,9 @@ class LatentBatcher:
         if first is None:
             return None
         batch = [first]
-        started = time.perf_counter()
-        deadline = started + self.max_wait_s
-        awaited: set[str] = set()  # the groups this batch still waits for
-        if first.is_group and self.group_wait_s > 0:
-            awaited = {key for key, seen in self._groups_seen.items() if started - seen <= self.group_memory_s}
-            awaited.discard(first.key)
-            deadline = max(deadline, started + self.group_wait_s) if awaited else deadline
+        deadline = time.perf_counter() + self.max_wait_s
         while len(batch) < self.max_batch:
             left = deadline - time.perf_counter()
-            if awaited and not awaited.difference(frame.key for frame in batch):
-                left = min(left, started + self.max_wait_s - time.perf_counter())  # every group is in
             try:
                 item = self.inbox.get(timeout=left) if left > 0 else self.inbox.get_nowait()
             except queue.Empty:
@@ -128,13 +102,7 @@ class LatentBatcher:
                 self.inbox.put(None)  # finish this batch, stop on the next call
                 break
             batch.append(item)
-        self._remember_groups(batch)
         return batch
-
-    def _remember_groups(self, batch: list[_Frame]) -> None:
-        now = time.perf_counter()
-        self._groups_seen.update((frame.key, now) for frame in batch if frame.is_group)
-        self._groups_seen = {key: seen for key, seen in self._groups_seen.items() if now - seen <= self.group_memory_s}
 
     def close(self) -> None:
         """Stop after the frames already queued have been served (a drain, not a drop)."""
@@ -194,7 +162,7 @@ class EncoderService:
         self.encoder = LatentEncoder(
             settings.checkpoint or DEFAULT_CHECKPOINT, settings.device, settings.threads or None, settings.engine
         )
-        self.batcher = LatentBatcher(settings.max_batch, settings.max_wait_ms, settings.group_wait_ms)
+        self.batcher = LatentBatcher(settings.max_batch, settings.max_wait_ms)
         self.metrics = EncoderMetrics()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._worker = threading.Thread(target=self._work, name="encoder-worker", daemon=True)
@@ -279,7 +247,7 @@ class EncoderService:
         singles: list[_Decoded] = []
         groups: list[_Group] = []
         for frame in batch:
-            if frame.is_group:
+            if f"/{GROUPS}/" in frame.key:
                 if (group := self._decode_group(frame)) is not None:
                     groups.append(group)
             elif (item := self._decode(frame)) is not None:

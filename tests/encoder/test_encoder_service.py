@@ -9,7 +9,6 @@ error handling over real Zenoh; the sim itself is covered elsewhere.
 from __future__ import annotations
 
 import queue
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -23,7 +22,7 @@ import zenoh
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
-from services.keys import GROUPS, Keys
+from services.keys import Keys
 from services.messages import PROTOCOL_VERSION, ErrorMsg, LatentMsg, ObservationMsg, image_to_fields
 from services.presence import Roster
 from services.settings import ZenohSettings
@@ -209,39 +208,3 @@ def test_the_batcher_caps_batches_and_drains_before_closing() -> None:
     assert waiting.next_batch(idle_timeout_s=0.01) == []
     with pytest.raises(ValueError, match="max_batch"):
         LatentBatcher(max_batch=0, max_wait_ms=1.0)
-
-
-def test_a_group_waits_for_the_other_groups_seen_lately_and_no_longer() -> None:
-    """Two groups of one vector step are encoded in one pass; a lone group, or a single env's frame, never waits."""
-    groups = [f"swimm/train/{GROUPS}/learner-1.{i}/obs/enc-0" for i in range(2)]
-    batcher = LatentBatcher(max_batch=8, max_wait_ms=0.0, group_wait_ms=300.0)
-    batcher.put(_Frame(groups[0], b"", 0.0))
-    started = time.perf_counter()
-    assert len(batcher.next_batch()) == 1  # the first group ever: no other group known, so no wait
-    assert time.perf_counter() - started < 0.1
-    for key in groups:
-        batcher.put(_Frame(key, b"", 0.0))
-    assert len(batcher.next_batch()) == 2  # queued together: taken together, and both now known
-
-    batcher.put(_Frame(groups[0], b"", 0.0))
-    threading.Timer(0.05, batcher.put, [_Frame(groups[1], b"", 0.0)]).start()
-    started = time.perf_counter()
-    batch = batcher.next_batch()
-    waited = time.perf_counter() - started
-    assert [frame.key for frame in batch] == groups  # group 0 waited for group 1 ...
-    assert 0.04 <= waited < 0.25  # ... until it came, not for the whole 300 ms
-
-    batcher.put(_Frame(groups[0], b"", 0.0))
-    started = time.perf_counter()
-    assert len(batcher.next_batch()) == 1 and time.perf_counter() - started >= 0.28  # group 1 late: waited it out
-    batcher.put(_Frame("swimm/train/3/obs/enc-0", b"", 0.0))
-    started = time.perf_counter()
-    assert len(batcher.next_batch()) == 1 and time.perf_counter() - started < 0.1  # a single env's frame: no wait
-
-    forgetful = LatentBatcher(max_batch=8, max_wait_ms=0.0, group_wait_ms=300.0, group_memory_s=0.05)
-    forgetful.put(_Frame(groups[1], b"", 0.0))
-    forgetful.next_batch()
-    time.sleep(0.1)  # the learner of group 1 went away
-    forgetful.put(_Frame(groups[0], b"", 0.0))
-    started = time.perf_counter()
-    assert len(forgetful.next_batch()) == 1 and time.perf_counter() - started < 0.1
