@@ -132,10 +132,10 @@ class TrainingRun:
 
 
 def train(
-    algo: str, vec_env, steps: int, services: dict[str, int], policy: Path | None = None, profile: Path | None = None
+    algo: str, vec_env, steps: int, services: dict[str, int], policy: Path | None = None, profile: str = ""
 ) -> TrainingRun:
     """Time ``model.learn(steps)`` of a new model, or of ``policy`` trained on, and the CPU it costs the learner and
-    the ``services`` (name: pid); ``profile``: where to write a cProfile of the learner's ``learn`` (CPU time, so
+    the ``services`` (name: pid); ``profile``: a file to write a cProfile of the learner's ``learn`` (CPU time, so
     other processes' load does not inflate it), for ``python -m pstats`` or snakeviz.
 
     SAC trains per episode (on several envs through learner_service/episodic.py), so it may run a little past
@@ -208,9 +208,7 @@ def run(
             finally:
                 inprocess_env.close()
             pids = {s.name: s.process.pid for s in group.services}
-            distributed = train(
-                algo, distributed_env, steps, pids, policy=start, profile=Path(profile) if profile else None
-            )
+            distributed = train(algo, distributed_env, steps, pids, policy=start, profile=profile)
         finally:
             distributed_env.close()
         group.check_alive()

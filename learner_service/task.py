@@ -182,7 +182,7 @@ class TrackingTask:
             raise ValueError(f"the policy action must be (surge, yaw), got shape {np.shape(action)}")
         if not np.isfinite(array).all():
             raise ValueError(f"the policy action must be finite, got {array.tolist()}")
-        return array.clip(-1.0, 1.0)  # the method: half the cost of np.clip on two values, twice every step
+        return array.clip(-1.0, 1.0)  # the method skips np.clip's dispatch, which outweighs clipping two values
 
     @classmethod
     def to_sim_action(cls, action: Any) -> tuple[float, float, float, float]:
