@@ -91,7 +91,7 @@ class SmoothSettings:
     temporal: float = 0.0  # weight of the squared action change between consecutive observations (0: off)
     spatial: float = 0.0  # weight of the squared action change under observation noise of std sigma (0: off)
     sigma: float = 0.05  # std of the spatial term's observation noise
-    bound: float = 0.0  # weight of the squared excess of the action beyond the action space (PPO's mean; 0: off)
+    bound: float = 0.0  # weight of the squared excess beyond the action space (PPO) or tanh's saturation (SAC, TD3)
     batch_size: int = 256  # minibatch of each term (replay buffer or rollout), per actor update
 
     @property

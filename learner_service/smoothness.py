@@ -8,11 +8,14 @@ two terms to every actor update, each on a minibatch from the replay buffer, and
   (s, s'), so the action changes no faster than the observation does;
 - spatial: ``spatial`` x the mean squared difference between the action at s and at s plus Gaussian noise of std
   ``sigma``, so nearby observations map to nearby actions;
-- bound: ``bound`` x the mean squared excess of the deterministic action beyond the action space. An on-policy
-  Gaussian's mean is unbounded and the env clips it, so PPO can learn a bang-bang controller that alternates the
-  clipped extremes every step (its actions' means reached 122 here), which the two CAPS terms cannot tame at a
-  weight PPO's small loss survives; kept inside the bounds, the mean's steps are at most the action range.
-  Squashed actors (SAC, TD3) never leave the bounds, so the term is zero for them.
+- bound: ``bound`` x the mean squared excess of the deterministic action beyond where the actor can still move
+  it. An on-policy Gaussian's mean is unbounded and the env clips it, so PPO can learn a bang-bang controller that
+  alternates the clipped extremes every step (its actions' means reached 122 here), which the two CAPS terms
+  cannot tame at a weight PPO's small loss survives; kept inside the bounds, the mean's steps are at most the
+  action range. A squashed actor (SAC, TD3) never leaves the bounds but can saturate: its tanh's input grows until
+  the slope, and with it every gradient the critic sends, is gone (a TD3 seed here held full surge into the
+  dolphin for 80k steps, its pre-squash surge 8 on average). For it the excess is that input's beyond
+  ``SATURATION``, where tanh reaches 0.99 of the range, so nothing inside 99% of the range is penalised.
 
 No term touches the reward or the critic. The learner's own ``train`` stays untouched: like the kept cloning
 loss (``learner_service.demonstrations.keep_cloning``), a hook on the actor's optimizer adds the terms' gradient to
@@ -31,6 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 from gymnasium import spaces
+from torch import nn
 
 from learner_service.learn_settings import SmoothSettings
 from learner_service.registry import deterministic_action
@@ -49,8 +53,35 @@ def smoothness_loss(policy: Any, observations: torch.Tensor, next_observations: 
         nearby = deterministic_action(policy, observations + noise)
         loss = loss + settings.spatial * (actions - nearby).pow(2).sum(dim=1).mean()
     if settings.bound > 0:
-        loss = loss + settings.bound * bound_excess(actions, policy.action_space).pow(2).sum(dim=1).mean()
+        loss = loss + settings.bound * action_excess(policy, observations, actions).pow(2).sum(dim=1).mean()
     return loss
+
+
+#: tanh's input beyond which it is within 1% of its bound (and its slope under 2%): a squashed actor saturates there.
+SATURATION = float(np.arctanh(0.99))
+
+
+def presquash_action(policy: Any, observations: torch.Tensor) -> torch.Tensor | None:
+    """A squashed actor's deterministic action before its tanh (SAC's mean, TD3's and DDPG's last layer); None for
+    an actor that does not squash."""
+    actor = getattr(policy, "actor", None)
+    if actor is None:
+        return None
+    if hasattr(actor, "get_action_dist_params"):  # SAC: the squashed Gaussian's mean
+        return actor.get_action_dist_params(observations)[0]
+    head = getattr(actor, "mu", None)
+    if isinstance(head, nn.Sequential) and isinstance(head[-1], nn.Tanh):  # TD3, DDPG: a network ending in tanh
+        return head[:-1](actor.extract_features(observations, actor.features_extractor))
+    return None
+
+
+def action_excess(policy: Any, observations: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """The bound term's excess of each action: beyond the action space for an unsquashed actor, beyond
+    ``SATURATION`` before the squash for a squashed one (0 where the actor can still move the action)."""
+    presquash = presquash_action(policy, observations)
+    if presquash is None:
+        return bound_excess(actions, policy.action_space)
+    return torch.relu(presquash.abs() - SATURATION)
 
 
 def bound_excess(actions: torch.Tensor, action_space: spaces.Box) -> torch.Tensor:

@@ -6,12 +6,19 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from stable_baselines3 import PPO, SAC
+from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
 from learner_service.learn_settings import SmoothSettings
 from learner_service.registry import deterministic_action
-from learner_service.smoothness import bound_excess, keep_smooth, rollout_pairs, smoothness_loss
+from learner_service.smoothness import (
+    SATURATION,
+    bound_excess,
+    keep_smooth,
+    presquash_action,
+    rollout_pairs,
+    smoothness_loss,
+)
 
 
 def _sac(seed: int = 0) -> SAC:
@@ -89,13 +96,44 @@ def _largest_excess(model: PPO) -> float:
         return float(bound_excess(deterministic_action(model.policy, observations), model.action_space).max())
 
 
-def test_the_bound_term_is_the_squared_excess_and_zero_for_a_squashed_actor() -> None:
+def _saturated_td3() -> TD3:
+    """A TD3 on Pendulum whose actor's tanh starts saturated: its input is 8 for every observation, where tanh's
+    slope (4.5e-7) leaves no gradient for the critic to turn it with; its learning rate lets a few hundred actor
+    updates move it."""
+    model = TD3("MlpPolicy", gym.make("Pendulum-v1"), learning_starts=100, batch_size=64, learning_rate=0.05,
+                seed=0, policy_kwargs={"net_arch": [32, 32]})  # fmt: skip
+    last_layer = model.actor.mu[-2]
+    with torch.no_grad():
+        last_layer.weight.zero_()
+        last_layer.bias.fill_(8.0)
+    return model
+
+
+def _largest_presquash(model: TD3) -> float:
+    batch = model.replay_buffer.sample(512)
+    with torch.no_grad():
+        return float(presquash_action(model.policy, batch.observations).abs().max())
+
+
+def test_the_bound_term_is_the_squared_excess_beyond_the_box_or_beyond_the_squash_saturating() -> None:
     observations = torch.as_tensor(np.random.default_rng(0).normal(size=(8, 3)), dtype=torch.float32)
     generator = torch.Generator().manual_seed(0)
     bound = SmoothSettings(bound=2.0)
     assert smoothness_loss(_pushed_out_ppo().policy, observations, observations, bound, generator).item() == \
         pytest.approx(2.0 * 1.0**2)  # fmt: skip
-    assert smoothness_loss(_sac().policy, observations, observations, bound, generator).item() == 0.0
+    assert smoothness_loss(_sac().policy, observations, observations, bound, generator).item() == 0.0  # unsaturated
+    assert smoothness_loss(_saturated_td3().policy, observations, observations, bound, generator).item() == \
+        pytest.approx(2.0 * (8.0 - SATURATION) ** 2, rel=1e-5)  # fmt: skip
+    assert presquash_action(_ppo().policy, observations) is None  # PPO's Gaussian does not squash
+
+
+def test_the_bound_term_brings_a_saturated_squashed_actor_back_where_its_gradient_lives() -> None:
+    plain, bounded = _saturated_td3(), _saturated_td3()
+    keep_smooth(bounded, SmoothSettings(bound=1.0), seed=0)
+    for model in (plain, bounded):
+        model.learn(600)
+    assert _largest_presquash(plain) > 7.5  # without the term nothing moves it
+    assert _largest_presquash(bounded) < SATURATION + 0.5, _largest_presquash(bounded)
 
 
 def test_the_bound_term_brings_an_on_policy_mean_back_inside_the_action_space() -> None:
