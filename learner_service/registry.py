@@ -9,7 +9,8 @@ change to the services.
 YAML values that cannot be plain data are written as names and resolved here:
 ``"lin_<x>"`` is a schedule falling linearly from x to 0 over training; ``policy_kwargs.activation_fn``
 names a ``torch.nn`` class; ``action_noise: {type: ornstein_uhlenbeck | normal | pink, sigma: s}`` becomes an
-SB3 noise object sized to the env's action space (pink: one seeded process per env, ``seq_len`` steps long); a
+SB3 noise object sized to the env's action space (``sigma`` one scale, or a list of one per action dimension;
+pink: one seeded process per env, ``seq_len`` steps long); a
 ``train_freq`` list becomes SB3's (n, unit) tuple.
 """
 
@@ -170,21 +171,34 @@ def action_noise(
 ) -> ActionNoise:
     kind = spec.get("type")
     size = int(np.prod(action_space.shape))
-    sigma = float(spec.get("sigma", 0.1))
+    sigma = noise_scales(spec.get("sigma", 0.1), size)
     if kind == PINK_NOISE:
         return pink_noise(sigma, int(spec.get("seq_len", PINK_SEQ_LEN)), size, n_envs, seed)
     if kind not in ACTION_NOISES:
         raise ValueError(f"unknown action noise {kind!r}; choose one of {', '.join([*ACTION_NOISES, PINK_NOISE])}")
-    return ACTION_NOISES[kind](mean=np.zeros(size), sigma=np.full(size, sigma))
+    return ACTION_NOISES[kind](mean=np.zeros(size), sigma=sigma)
 
 
-def pink_noise(sigma: float, seq_len: int, size: int, n_envs: int, seed: int | None) -> ActionNoise:
+def noise_scales(sigma: Any, size: int) -> np.ndarray:
+    """An action noise's ``sigma``, one number for every action dimension or a list of one each (a tracker may
+    want its surge explored further than its yaw), as ``size`` non-negative scales."""
+    try:
+        scales = np.broadcast_to(np.asarray(sigma, dtype=float), (size,)).copy()
+    except (TypeError, ValueError):
+        raise ValueError(f"action noise sigma must be a number or a list of {size} numbers (one per action "
+                         f"dimension), got {sigma!r}") from None  # fmt: skip
+    if not np.all(np.isfinite(scales)) or np.any(scales < 0):
+        raise ValueError(f"action noise sigma must be finite and >= 0, got {sigma!r}")
+    return scales
+
+
+def pink_noise(sigma: np.ndarray, seq_len: int, size: int, n_envs: int, seed: int | None) -> ActionNoise:
     """Pink (1/f) action noise: slow drifts with fast jitter on top, which explores a tracking task's distance and
     bearing further than white noise of the same scale. Each env draws from its own generator spawned from ``seed``:
     SB3 would otherwise deep-copy one noise per env, and the copies would repeat each other's draws."""
     from pink import PinkActionNoise  # pink-noise-rl, the learner's extra
 
-    if seq_len < 2 or sigma <= 0:
+    if seq_len < 2 or not np.any(sigma > 0):
         raise ValueError(f"pink action noise needs seq_len >= 2 and sigma > 0, got seq_len {seq_len}, sigma {sigma}")
     generators = np.random.default_rng(seed).spawn(n_envs)
     noises = [PinkActionNoise(sigma, seq_len, size, rng=generator) for generator in generators]

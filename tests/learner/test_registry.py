@@ -133,6 +133,21 @@ def test_td3_trains_with_pink_noise_on_several_envs() -> None:
         make_model("td3", TaskSpacesEnv(), seed=0, overrides={"action_noise": {"type": "brown"}})
 
 
+def test_action_noise_takes_one_scale_per_action_dimension() -> None:
+    def noise(spec: dict[str, Any]) -> Any:
+        return make_model("td3", TaskSpacesEnv(), seed=0, overrides={"device": "cpu", "buffer_size": 1000,
+                                                                       "action_noise": spec}).action_noise  # fmt: skip
+
+    np.testing.assert_allclose(noise({"type": "ornstein_uhlenbeck", "sigma": [0.3, 0.05]})._sigma, [0.3, 0.05])
+    surge_only = noise({"type": "normal", "sigma": [0.3, 0.0]})
+    draws = np.stack([surge_only() for _ in range(200)])
+    assert np.all(draws[:, 1] == 0.0) and 0.2 < draws[:, 0].std() < 0.4  # yaw held still, surge explored
+    for bad, message in (([0.3, 0.1, 0.1], "a list of 2 numbers"), ("wide", "a list of 2 numbers"),
+                         ([0.3, -0.1], "finite and >= 0"), ([float("nan"), 0.1], "finite and >= 0")):  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            noise({"type": "normal", "sigma": bad})
+
+
 def test_ppo_carries_the_tuned_values() -> None:
     model = make_model("ppo", TaskSpacesEnv(), seed=103, overrides={"device": "cpu"})
     assert model.lr_schedule(1.0) == pytest.approx(1e-4)
