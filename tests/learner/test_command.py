@@ -163,6 +163,17 @@ def test_flags_reach_the_settings() -> None:
     assert settings.zenoh.connect == ["tcp/10.0.0.1:7447"] and settings.zenoh.namespace == "swimm/x"
 
 
+def test_hyperparams_come_inline_of_any_length_or_from_a_file(tmp_path: Path) -> None:
+    from learner_service.command import parse_hyperparams
+
+    block = "".join(f"key_{i}: {i}\n" for i in range(40))  # longer than a file name may be
+    assert len(block) > 255 and parse_hyperparams(block) == {f"key_{i}": i for i in range(40)}
+    (tmp_path / "h.yaml").write_text("gradient_steps: 32\n")
+    assert parse_hyperparams(str(tmp_path / "h.yaml")) == {"gradient_steps": 32}
+    with pytest.raises(ValueError, match="YAML mapping"):
+        parse_hyperparams(str(tmp_path / "missing.yaml"))  # neither a file nor a mapping: named
+
+
 def test_refusals_name_what_to_change(tmp_path: Path) -> None:
     check(LearnCommandSettings(envs=2))  # SAC's per-episode training runs on several envs (learner_service/episodic.py)
     with pytest.raises(ValueError, match="gradient_steps -1"):
