@@ -14,7 +14,7 @@ two terms to every actor update, each on a minibatch from the replay buffer, and
   cannot tame at a weight PPO's small loss survives; kept inside the bounds, the mean's steps are at most the
   action range. A squashed actor (SAC, TD3) never leaves the bounds but can saturate: its tanh's input grows until
   the slope, and with it every gradient the critic sends, is gone (a TD3 seed here held full surge into the
-  dolphin for 80k steps, its pre-squash surge 8 on average). For it the excess is that input's beyond
+  dolphin for 80k steps, its pre-squash surge about 8 on average). For it the excess is that input's beyond
   ``SATURATION``, where tanh reaches 0.99 of the range, so nothing inside 99% of the range is penalised.
 
 No term touches the reward or the critic. The learner's own ``train`` stays untouched: like the kept cloning
