@@ -94,11 +94,12 @@ def parse_hyperparams(text: str) -> dict[str, Any]:
     """``--hyperparams``: a YAML mapping given inline or as a file path."""
     if not text:
         return {}
+    path = Path(text)
     try:
-        path = Path(text) if Path(text).is_file() else None
+        is_file = path.is_file()
     except OSError:  # an inline mapping longer than a file name may be (a recipe's block of hyperparameters)
-        path = None
-    loaded = yaml.safe_load(path.read_text() if path else text)
+        is_file = False
+    loaded = yaml.safe_load(path.read_text() if is_file else text)
     if not isinstance(loaded, dict):
         raise ValueError(f"--hyperparams must be a YAML mapping (inline or a file), got {text!r}")
     return loaded

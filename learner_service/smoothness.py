@@ -67,7 +67,7 @@ def presquash_action(policy: Any, observations: torch.Tensor) -> torch.Tensor | 
     actor = getattr(policy, "actor", None)
     if actor is None:
         return None
-    if hasattr(actor, "get_action_dist_params"):  # SAC: the squashed Gaussian's mean
+    if hasattr(actor, "get_action_dist_params"):  # SAC: the squashed Gaussian's mean (gSDE clips it at 2 already)
         return actor.get_action_dist_params(observations)[0]
     head = getattr(actor, "mu", None)
     if isinstance(head, nn.Sequential) and isinstance(head[-1], nn.Tanh):  # TD3, DDPG: a network ending in tanh
