@@ -11,6 +11,7 @@ meaningful together with the architecture that reads it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -231,16 +232,48 @@ def check_psi_loss(name: str, called: str = "psi_loss") -> None:
         raise ValueError(f"{called} {name!r}: expected one of {', '.join(PSI_LOSSES)}")
 
 
-def state_loss(predicted: torch.Tensor, labels: torch.Tensor, psi_loss: str = "mse") -> torch.Tensor:
-    """Mean squared error of the normalised (d, theta, psi), psi wrapped; psi's absolute error with ``l1``."""
-    check_psi_loss(psi_loss)
-    errors = state_errors(predicted, labels)
-    psi_term = errors[:, 2].abs() if psi_loss == "l1" else errors[:, 2].pow(2)
-    return torch.cat([errors[:, :2].pow(2), psi_term[:, None]], dim=1).mean()
+@dataclass(frozen=True)
+class StateLoss:
+    """How the state decoders' errors are scored: psi's square (the SPEC's) or absolute error, and a weight per label.
+
+    The normalised labels' squares are small next to psi's absolute error, so with ``psi="l1"`` psi's pull on the
+    shared encoder dwarfs distance's; ``weights`` (d, theta, psi) let a training stage set that balance.
+    """
+
+    psi: str = "mse"
+    weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+    def __post_init__(self) -> None:
+        check_psi_loss(self.psi)
+        weights = tuple(self.weights)
+        if (
+            len(weights) != len(LABEL_NAMES)
+            or not all(math.isfinite(w) and w >= 0.0 for w in weights)
+            or not any(weights)
+        ):
+            raise ValueError(
+                f"state weights {list(weights)}: expected three finite weights >= 0 (d, theta, psi), not all 0"
+            )
+        object.__setattr__(self, "weights", tuple(float(w) for w in weights))
+
+    def __call__(self, predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        """The weighted mean over frames and labels of the squared normalised errors (psi's absolute with ``l1``)."""
+        errors = state_errors(predicted, labels)
+        psi_term = errors[:, 2].abs() if self.psi == "l1" else errors[:, 2].pow(2)
+        terms = torch.cat([errors[:, :2].pow(2), psi_term[:, None]], dim=1)
+        return (terms * terms.new_tensor(self.weights)).mean()
+
+
+#: The SPEC's state error: every label's square, equally weighted.
+SPEC_STATE_LOSS = StateLoss()
 
 
 def cmvae_loss(
-    outputs: CMVAEOutput, images: torch.Tensor, labels: torch.Tensor, beta: float, psi_loss: str = "mse"
+    outputs: CMVAEOutput,
+    images: torch.Tensor,
+    labels: torch.Tensor,
+    beta: float,
+    state_loss: StateLoss = SPEC_STATE_LOSS,
 ) -> LossParts:
     """Image MSE (pixels in [-1, 1]) + state MSE (normalised labels, psi wrapped) + beta * KL per image value.
 
@@ -252,14 +285,14 @@ def cmvae_loss(
     magnitude and the latent collapses onto the prior (every prediction at
     the label mean; measured: psi MAE 90 deg). See docs/encoder.md.
 
-    ``psi_loss="l1"`` takes psi's absolute error instead of its square. Where
+    ``StateLoss(psi="l1")`` takes psi's absolute error instead of its square. Where
     a view cannot tell a dolphin facing the camera from one facing away, the
     square is least halfway between the two (wrong by 90 deg either way); the
     absolute error is least at the likelier of the two, and its mean is the
     MAE that the encoder is judged by.
     """
     image = F.mse_loss(outputs.image, images)
-    state = state_loss(outputs.state, labels, psi_loss)
+    state = state_loss(outputs.state, labels)
     kl = (-0.5 * (1.0 + outputs.logvar - outputs.mu.pow(2) - outputs.logvar.exp()).sum(dim=1)).mean()
     kl_per_value = kl / images[0].numel()
     return LossParts(total=image + state + beta * kl_per_value, image=image, state=state, kl=kl)
@@ -283,7 +316,7 @@ def distillation_loss(
     teacher_logvar: torch.Tensor,
     labels: torch.Tensor,
     latent_weight: float,
-    psi_loss: str = "mse",
+    state_loss: StateLoss = SPEC_STATE_LOSS,
 ) -> DistillationParts:
     """Latent matching plus the state error: the student's posterior of a frame against the teacher's of its clean twin.
 
@@ -295,7 +328,7 @@ def distillation_loss(
     mu, logvar = student.encode(images)
     latent = F.mse_loss(mu, teacher_mu) + F.mse_loss(logvar, teacher_logvar)
     prediction = student.decode_state(mu)
-    state = state_loss(prediction, labels, psi_loss)
+    state = state_loss(prediction, labels)
     return DistillationParts(total=latent_weight * latent + state, latent=latent, state=state, prediction=prediction)
 
 

@@ -34,8 +34,10 @@ from encoder_service.data import (
 from encoder_service.model import (
     CMVAE,
     LABEL_NAMES,
+    SPEC_STATE_LOSS,
     DistillationParts,
     LossParts,
+    StateLoss,
     check_psi_loss,
     cmvae_loss,
     denormalise_labels,
@@ -72,10 +74,19 @@ class TrainEncoderSettings:
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
     teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
+    state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # of d, theta, psi in the state error
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
     tensorboard: bool = True
+
+    def state_loss(self) -> StateLoss:
+        """The state error these settings ask for; a bad setting's error names its flag."""
+        check_psi_loss(self.psi_loss, "--psi-loss")
+        try:
+            return StateLoss(self.psi_loss, tuple(self.state_weights))
+        except ValueError as error:
+            raise ValueError(f"--state-weights: {error}") from None
 
 
 @dataclass
@@ -175,11 +186,13 @@ def _loss(
     labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
     images = images_to_tensor(inputs, device)
     if teacher is None:
-        return cmvae_loss(model(images), images_to_tensor(targets, device), labels, settings.beta, settings.psi_loss)
+        return cmvae_loss(
+            model(images), images_to_tensor(targets, device), labels, settings.beta, settings.state_loss()
+        )
     with torch.no_grad():
         teacher_mu, teacher_logvar = teacher.encode(images_to_tensor(targets, device))
     return distillation_loss(
-        model, images, teacher_mu, teacher_logvar, labels, settings.latent_weight, settings.psi_loss
+        model, images, teacher_mu, teacher_logvar, labels, settings.latent_weight, settings.state_loss()
     )
 
 
@@ -267,7 +280,7 @@ def validate(
     batch_size: int,
     beta: float,
     device: torch.device,
-    psi_loss: str = "mse",
+    state_loss: StateLoss = SPEC_STATE_LOSS,
     feed_clean: bool = False,
     teacher: CMVAE | None = None,
     latent_weight: float = 1.0,
@@ -288,10 +301,10 @@ def validate(
         images, targets_t = images_to_tensor(inputs, device), images_to_tensor(targets, device)
         if teacher is None:
             outputs = model(images)
-            parts = cmvae_loss(outputs, targets_t, labels, beta, psi_loss)
+            parts = cmvae_loss(outputs, targets_t, labels, beta, state_loss)
             state = outputs.state
         else:
-            parts = distillation_loss(model, images, *teacher.encode(targets_t), labels, latent_weight, psi_loss)
+            parts = distillation_loss(model, images, *teacher.encode(targets_t), labels, latent_weight, state_loss)
             state = parts.prediction
         for key, value in parts.as_floats().items():
             totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
@@ -316,7 +329,7 @@ def validate_all(
 
     Early stopping and ``best.pt`` then favour a model good on both, not one that gave up clean frames for noisy.
     """
-    args = (model, dataset, indices, settings.batch_size, settings.beta, device, settings.psi_loss)
+    args = (model, dataset, indices, settings.batch_size, settings.beta, device, settings.state_loss())
     distill = {"teacher": teacher, "latent_weight": settings.latent_weight}
     metrics = validate(*args, **distill)
     if dataset.paired:
@@ -368,7 +381,7 @@ def _seed_everything(seed: int) -> None:
 def run(settings: TrainEncoderSettings) -> int:
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR [DIR ...] (folders written by `swimm dataset`)")
-    check_psi_loss(settings.psi_loss, "--psi-loss")  # before the dataset is read, not at the first batch
+    settings.state_loss()  # checked before the dataset is read, not at the first batch
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)

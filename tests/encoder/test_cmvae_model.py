@@ -10,6 +10,7 @@ from encoder_service.model import (
     CMVAE,
     LABEL_RANGES,
     CMVAEOutput,
+    StateLoss,
     cmvae_loss,
     denormalise_labels,
     images_to_tensor,
@@ -137,7 +138,7 @@ def _state_loss_at(psi_deg: float, labels: torch.Tensor, psi_loss: str) -> float
     predicted[:, 2] = psi_deg / 180.0
     zeros = torch.zeros(len(labels), 10)
     outputs = CMVAEOutput(mu=zeros, logvar=zeros, z=zeros, image=torch.zeros(len(labels), 3, 64, 64), state=predicted)
-    return cmvae_loss(outputs, outputs.image, labels, 8.0, psi_loss).state.item()
+    return cmvae_loss(outputs, outputs.image, labels, 8.0, StateLoss(psi_loss)).state.item()
 
 
 def test_l1_psi_loss_is_least_at_the_likelier_view_where_mse_is_least_between() -> None:
@@ -157,6 +158,23 @@ def test_l1_psi_loss_is_least_at_the_likelier_view_where_mse_is_least_between() 
     assert _state_loss_at(30.0, labels, "l1") == pytest.approx((7 * 30 + 3 * 150) / 180 / 10 / 3, rel=1e-5)
     with pytest.raises(ValueError, match="psi_loss"):
         _state_loss_at(0.0, labels, "huber")
+
+
+def test_state_weights_scale_each_labels_term_and_bad_weights_are_refused() -> None:
+    """Each label's term is its own error times its weight; equal weights of 1 are the plain mean."""
+    labels = torch.from_numpy(normalise_labels(np.array([[4.0, 10.0, 90.0], [8.0, -20.0, -30.0]])))
+    predicted = labels + torch.tensor([[0.1, -0.2, 0.3], [-0.3, 0.05, -0.1]], dtype=labels.dtype)
+    squares = (predicted - labels).pow(2).mean(dim=0)  # per label, over frames
+    plain = StateLoss()(predicted, labels)
+    assert plain.item() == pytest.approx(squares.mean().item(), rel=1e-6)
+    for index in range(3):
+        weights = [1.0, 1.0, 1.0]
+        weights[index] = 5.0
+        weighted = StateLoss(weights=tuple(weights))(predicted, labels)
+        assert weighted.item() == pytest.approx(plain.item() + 4.0 * squares[index].item() / 3.0, rel=1e-6)
+    for bad in ((1.0, 2.0), (1.0, -1.0, 1.0), (0.0, 0.0, 0.0), (1.0, float("nan"), 1.0)):
+        with pytest.raises(ValueError, match="state weights"):
+            StateLoss(weights=bad)
 
 
 def test_images_become_channels_last_floats_in_minus_one_one_and_back(frames: np.ndarray) -> None:

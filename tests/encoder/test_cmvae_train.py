@@ -17,7 +17,7 @@ import torch
 
 from encoder_service.data import Batch, CMVAEDataset, DatasetFormatError, split_indices
 from encoder_service.inference import DEFAULT_CHECKPOINT
-from encoder_service.model import CMVAE
+from encoder_service.model import CMVAE, StateLoss
 from encoder_service.train import (
     EarlyStopping,
     TrainEncoderSettings,
@@ -230,13 +230,16 @@ def test_psi_loss_l1_trains_and_validates_on_the_absolute_error(dataset_dir: Pat
     dataset = CMVAEDataset(str(dataset_dir))
     device = torch.device("cpu")
     state = {
-        loss: validate(model, dataset, val_rows, settings.batch_size, settings.beta, device, loss)["state"]
+        loss: validate(model, dataset, val_rows, settings.batch_size, settings.beta, device, StateLoss(loss))["state"]
         for loss in ("l1", "mse")
     }
     assert reported == pytest.approx(state["l1"], rel=1e-5)
     assert state["l1"] > state["mse"]  # |error| > error**2 for normalised psi errors under 1
     with pytest.raises(ValueError, match="--psi-loss"):
         run(_settings(dataset_dir, tmp_path / "bad", psi_loss="huber"))
+    with pytest.raises(ValueError, match="--state-weights"):
+        run(_settings(dataset_dir, tmp_path / "bad", state_weights=[1.0, -1.0, 1.0]))
+    assert not (tmp_path / "bad").exists()  # refused before anything was written
 
 
 @pytest.fixture(scope="module")
@@ -313,7 +316,7 @@ def _validate_args(dataset_dir: Path, out: Path) -> tuple:
 
 def _latent_match(model: CMVAE, teacher: CMVAE, dataset: CMVAEDataset, rows: np.ndarray) -> float:
     """Validation's latent term on ``rows`` read noisy: the distance to the teacher's latent of the clean twins."""
-    return validate(model, dataset, rows, 32, 8.0, torch.device("cpu"), "mse", teacher=teacher)["latent"]
+    return validate(model, dataset, rows, 32, 8.0, torch.device("cpu"), teacher=teacher)["latent"]
 
 
 def test_distillation_pulls_noisy_latents_to_the_teachers_clean_ones_and_keeps_its_decoders(
@@ -346,7 +349,7 @@ def test_a_teacher_on_its_own_clean_frames_matches_exactly(paired_dir: Path) -> 
     teacher, _ = load_model(DEFAULT_CHECKPOINT)
     dataset = CMVAEDataset(paired_dir)
     rows = np.arange(len(dataset))
-    clean = validate(teacher, dataset, rows, 32, 8.0, torch.device("cpu"), "mse", feed_clean=True, teacher=teacher)
+    clean = validate(teacher, dataset, rows, 32, 8.0, torch.device("cpu"), feed_clean=True, teacher=teacher)
     assert clean["latent"] == pytest.approx(0.0, abs=1e-10)
     assert _latent_match(teacher, teacher, dataset, rows) > 0.01  # the noisy twins' latents do differ
 
