@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
-from learner_service.up import group_size_for, sim_shares
+from learner_service.up import group_size_for, largest_whole_group, sim_shares
+from sim_service.responder import largest_low_latency_group, low_latency_group_problem
+from sim_service.settings import WorldSettings
 
 
-def default_layout(envs: int, sims: int = 0, group_size: int = -1) -> tuple[int, int]:
+def default_layout(envs: int, sims: int = 0, group_size: int = -1, low_latency: bool = False) -> tuple[int, int]:
     """(sims, group size) for ``envs`` envs, each as given or, from 4 envs on (an even number), two sims, one per
-    core, each stepping one group of half the envs; fewer envs: one sim, each env its own messages."""
+    core, each stepping one group of half the envs (``low_latency``: the largest whole part of that half whose
+    observations fit one message); fewer envs: one sim, each env its own messages."""
     if sims == 0:
         sims = 2 if envs >= 4 and envs % 2 == 0 else 1
     share = sim_shares(envs, sims)[0][1]
+    image_size = WorldSettings().image_size  # the benchmarks' sims render the default
+    largest_group = largest_low_latency_group(image_size) if low_latency else share
     if group_size < 0:
-        group_size = share if envs >= 4 else 0
+        group_size = largest_whole_group(share, largest_group) if envs >= 4 else 0
+    elif low_latency and (problem := low_latency_group_problem(group_size, image_size)):
+        raise ValueError(problem)
     return sims, group_size_for(envs, group_size, sims)

@@ -181,7 +181,7 @@ def run(
     for the cProfile of the distributed half's learner (see :func:`train`), empty for none."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
-    sims, group_size = default_layout(envs, sims, group_size)
+    sims, group_size = default_layout(envs, sims, group_size, low_latency)
     start = starting_policy(algo, policy)
     steps = steps or default_steps(envs, start)
     torch.set_num_threads(TORCH_THREADS)

@@ -45,12 +45,14 @@ from learner_service.progress import (
     progress_postfix,
     read_progress,
 )
+from services import settings as settings_mod
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
 from services.presence import Roster
 from services.procs import ProcessGroup, Service, low_latency_flags
 from services.session import open_session
 from services.settings import ZenohSettings, to_dict
+from sim_service.responder import SimSettings, largest_low_latency_group, low_latency_group_problem
 
 log = logging.getLogger(__name__)
 
@@ -82,11 +84,27 @@ def sim_shares(envs: int, sims: int) -> list[tuple[int, int]]:
     return [(index * share, share) for index in range(sims)]
 
 
-def group_size_for(envs: int, group_size: int, sims: int) -> int:
+def largest_whole_group(share: int, largest: int) -> int:
+    """The largest group of at most ``largest`` envs that a sim's ``share`` divides into whole groups."""
+    return max(size for size in range(1, min(share, largest) + 1) if share % size == 0)
+
+
+def group_size_for(envs: int, group_size: int, sims: int, largest_group: int = 0) -> int:
     """The learner's group size: as asked, or one group per sim when several sims serve the envs (a group is
-    stepped by one sim, so groups must not straddle two)."""
+    stepped by one sim, so groups must not straddle two). ``largest_group`` (0: no limit) is the most envs one
+    message may carry (a low-latency session's); one group per sim then becomes the largest group that divides
+    a sim's share and fits."""
     if sims == 1:
         return group_size
+    share = envs // sims
+    if group_size == 0:
+        return largest_whole_group(share, largest_group or share)
+    if share % group_size:
+        raise ValueError(
+            f"--group-size {group_size} does not divide the {share} envs of each of the {sims} sims: a group "
+            "is stepped by one sim, so each sim's share must be whole groups"
+        )
+    return group_size
     share = envs // sims
     if group_size == 0:
         return share
@@ -306,7 +324,14 @@ def run(settings: UpSettings) -> int:
     if settings.sim_config and not Path(settings.sim_config).is_file():
         raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
     sim_shares(learn.envs, settings.sims)  # refuses a split that leaves envs over
-    learn = dataclasses.replace(learn, group_size=group_size_for(learn.envs, learn.group_size, settings.sims))
+    largest_group = 0
+    if learn.zenoh.low_latency:  # its messages cannot fragment: groups must fit the sim's observations
+        image_size = settings_mod.load(SimSettings, None, settings.sim_config or None).world.image_size
+        largest_group = largest_low_latency_group(image_size)
+        if problem := low_latency_group_problem(learn.group_size, image_size):
+            raise ValueError(problem)
+    group_size = group_size_for(learn.envs, learn.group_size, settings.sims, largest_group)
+    learn = dataclasses.replace(learn, group_size=group_size)
     settings = dataclasses.replace(settings, learn=learn)
     checkpoint = encoder_checkpoint(learn)
     run_dir = Path(learn.run_dir) if learn.run_dir else default_run_dir(learn)

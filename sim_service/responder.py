@@ -75,9 +75,35 @@ class _Request:
     received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
 
 
+def observation_bytes(image_size: int) -> int:
+    """The most an observation of ``image_size`` px takes encoded: its RGB image and the room for the rest."""
+    return 3 * image_size**2 + OBSERVATION_OVERHEAD_BYTES
+
+
 def largest_low_latency_image_size() -> int:
     """The largest square RGB image whose observation a low-latency session can send."""
     return math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
+
+
+def largest_low_latency_group(image_size: int) -> int:
+    """The most observations of ``image_size`` px that one low-latency message (a group's reply) can carry."""
+    return LOW_LATENCY_MAX_MESSAGE_BYTES // observation_bytes(image_size)
+
+
+def low_latency_group_problem(group_size: int, image_size: int) -> str | None:
+    """Why a group of ``group_size`` observations cannot cross a low-latency session as one message, or None.
+
+    That transport cannot fragment: a larger message is lost without an error on either side.
+    """
+    largest = largest_low_latency_group(image_size)
+    if group_size <= largest:
+        return None
+    size = group_size * observation_bytes(image_size)
+    return (
+        f"a group of {group_size} observations of {image_size} px takes up to {size} bytes, more than the "
+        f"{LOW_LATENCY_MAX_MESSAGE_BYTES} that --low-latency sends in one message: use "
+        f"--group-size {largest} or less, or leave --low-latency off"
+    )
 
 
 def check_fits_low_latency(settings: SimSettings) -> None:
@@ -88,7 +114,7 @@ def check_fits_low_latency(settings: SimSettings) -> None:
     if world.image_size > largest_low_latency_image_size():
         raise ValueError(
             f"--low-latency sends messages of at most {LOW_LATENCY_MAX_MESSAGE_BYTES} bytes, and "
-            f"{world.image_size} px observations take up to {3 * world.image_size**2 + OBSERVATION_OVERHEAD_BYTES}: "
+            f"{world.image_size} px observations take up to {observation_bytes(world.image_size)}: "
             f"use --image-size {largest_low_latency_image_size()} or less, or leave --low-latency off"
         )
 
@@ -281,6 +307,8 @@ class SimResponder:
                     raise Refusal(f"env {channel}/{item.env} is not served by sim {self.ident}")
                 if self.settings.realtime:
                     raise Refusal("a real-time sim takes actions one env at a time, not in groups")
+                if problem := self._group_problem(len(batch.items)):
+                    raise Refusal(problem)  # refused before stepping, so a smaller group can take the step
                 outcome = env.act(msg)
             except (BadMessage, Refusal) as exc:
                 self.metrics.count("errors_refused")
@@ -294,6 +322,13 @@ class SimResponder:
         self._publisher(self.keys.group_obs(channel, group, route)).put(reply.encode())
         self.metrics.count("groups")
         self.metrics.observe_ms("step", (time.perf_counter() - request.received_at) * 1e3 / len(batch.items))
+
+    def _group_problem(self, group_size: int) -> str | None:
+        """Why this sim cannot answer a group of ``group_size`` envs in one message, or None."""
+        world = self.settings.world
+        if not self.settings.zenoh.low_latency or not world.render:
+            return None
+        return low_latency_group_problem(group_size, world.image_size)
 
     def _tick_realtime(self) -> None:
         for env in self._envs:

@@ -29,6 +29,8 @@ from learner_service.link import StepRefused
 from learner_service.proxy_env import ProxySettings, ProxyVecEnv
 from learner_service.task import TaskSettings
 from services.messages import BatchMsg
+from sim_service.responder import largest_low_latency_group
+from sim_service.settings import WorldSettings
 from tests.integration.conftest import start_sim
 
 pytestmark = pytest.mark.slow
@@ -161,3 +163,34 @@ def test_a_group_step_the_sim_cannot_take_is_refused_naming_the_env(group, conne
     with pytest.raises(StepRefused, match="train/7.*not served"):
         group_link.wait()
     group_link.close()
+
+
+def test_a_low_latency_sim_answers_the_largest_group_one_message_holds_and_refuses_a_larger_one(
+    group, connect_client, namespace
+) -> None:
+    """That transport cannot fragment: a larger group's reply would be lost, so the sim says why, without stepping."""
+    endpoint = group.start_router(flags=("--low-latency",))
+    largest = largest_low_latency_group(WorldSettings().image_size)
+    start_sim(group, endpoint, namespace, "--low-latency", "--train-envs", str(largest + 1), "--eval-envs", "0")
+    client = connect_client(endpoint, low_latency=True)
+    client.roster("sim").wait_for(1, timeout_s=60)
+    links = [client.link(env=str(env), step_timeout_s=1.0, max_retries=2) for env in range(largest + 1)]
+    for env, link in enumerate(links):
+        link.claim(timeout_s=30)
+        link.send_reset(1, seed=5 + env)
+        link.wait()
+    fits = GroupLink(client.session, client.keys, "fits", links[:largest])
+    fits.send([(0.0, 0.0, 0.5, 0.0)] * largest)
+    replies = fits.wait()
+    assert [reply.seq for reply in replies] == [1] * largest
+    assert all(reply.image.shape == (WorldSettings().image_size,) * 2 + (3,) for reply in replies)
+    fits.close()
+    too_large = GroupLink(client.session, client.keys, "too-large", links)
+    too_large.send([(0.0, 0.0, 0.5, 0.0)] * len(links))
+    with pytest.raises(StepRefused, match=f"--group-size {largest} or less"):
+        too_large.wait()
+    too_large.close()
+    last = links[-1]  # refused before stepping: its env is still at seq 0, so its link's next step is out of order
+    last.send_action((0.0, 0.0, 0.5, 0.0))
+    with pytest.raises(StepRefused, match="seq 2 out of order"):
+        last.wait()
