@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from learner_service.up import group_size_for, largest_whole_group, sim_shares
-from sim_service.responder import largest_low_latency_group, low_latency_group_problem
+from sim_service.responder import check_low_latency_group
 from sim_service.settings import WorldSettings
 
 
@@ -14,10 +14,9 @@ def default_layout(envs: int, sims: int = 0, group_size: int = -1, low_latency: 
     if sims == 0:
         sims = 2 if envs >= 4 and envs % 2 == 0 else 1
     share = sim_shares(envs, sims)[0][1]
-    image_size = WorldSettings().image_size  # the benchmarks' sims render the default
-    largest_group = largest_low_latency_group(image_size) if low_latency else share
+    largest_group = share
+    if low_latency:  # the benchmarks' sims render the default image size
+        largest_group = check_low_latency_group(max(group_size, 0), WorldSettings().image_size)
     if group_size < 0:
         group_size = largest_whole_group(share, largest_group) if envs >= 4 else 0
-    elif low_latency and (problem := low_latency_group_problem(group_size, image_size)):
-        raise ValueError(problem)
     return sims, group_size_for(envs, group_size, sims)

@@ -52,7 +52,7 @@ from services.presence import Roster
 from services.procs import ProcessGroup, Service, low_latency_flags
 from services.session import open_session
 from services.settings import ZenohSettings, to_dict
-from sim_service.responder import SimSettings, largest_low_latency_group, low_latency_group_problem
+from sim_service.responder import SimSettings, check_low_latency_group
 
 log = logging.getLogger(__name__)
 
@@ -99,15 +99,6 @@ def group_size_for(envs: int, group_size: int, sims: int, largest_group: int = 0
     share = envs // sims
     if group_size == 0:
         return largest_whole_group(share, largest_group or share)
-    if share % group_size:
-        raise ValueError(
-            f"--group-size {group_size} does not divide the {share} envs of each of the {sims} sims: a group "
-            "is stepped by one sim, so each sim's share must be whole groups"
-        )
-    return group_size
-    share = envs // sims
-    if group_size == 0:
-        return share
     if share % group_size:
         raise ValueError(
             f"--group-size {group_size} does not divide the {share} envs of each of the {sims} sims: a group "
@@ -327,9 +318,7 @@ def run(settings: UpSettings) -> int:
     largest_group = 0
     if learn.zenoh.low_latency:  # its messages cannot fragment: groups must fit the sim's observations
         image_size = settings_mod.load(SimSettings, None, settings.sim_config or None).world.image_size
-        largest_group = largest_low_latency_group(image_size)
-        if problem := low_latency_group_problem(learn.group_size, image_size):
-            raise ValueError(problem)
+        largest_group = check_low_latency_group(learn.group_size, image_size)
     group_size = group_size_for(learn.envs, learn.group_size, settings.sims, largest_group)
     learn = dataclasses.replace(learn, group_size=group_size)
     settings = dataclasses.replace(settings, learn=learn)

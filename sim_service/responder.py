@@ -106,6 +106,13 @@ def low_latency_group_problem(group_size: int, image_size: int) -> str | None:
     )
 
 
+def check_low_latency_group(group_size: int, image_size: int) -> int:
+    """Refuse a ``group_size`` too large for one low-latency message; the largest group that fits."""
+    if problem := low_latency_group_problem(group_size, image_size):
+        raise ValueError(problem)
+    return largest_low_latency_group(image_size)
+
+
 def check_fits_low_latency(settings: SimSettings) -> None:
     """Refuse, before any world is built, observations too large for a low-latency session to send."""
     world = settings.world
@@ -298,6 +305,7 @@ class SimResponder:
         if not any((channel, item.env) in self._by_name for item in batch.items):
             return  # another sim's group: sims serving one run side by side all hear every group
         items, route = [], DIRECT_ROUTE
+        too_large = self._group_problem(len(batch.items))
         for item in batch.items:
             env = self._by_name.get((channel, item.env))
             try:
@@ -307,8 +315,8 @@ class SimResponder:
                     raise Refusal(f"env {channel}/{item.env} is not served by sim {self.ident}")
                 if self.settings.realtime:
                     raise Refusal("a real-time sim takes actions one env at a time, not in groups")
-                if problem := self._group_problem(len(batch.items)):
-                    raise Refusal(problem)  # refused before stepping, so a smaller group can take the step
+                if too_large:
+                    raise Refusal(too_large)  # refused before stepping, so a smaller group can take the step
                 outcome = env.act(msg)
             except (BadMessage, Refusal) as exc:
                 self.metrics.count("errors_refused")
