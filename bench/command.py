@@ -37,6 +37,7 @@ class BenchSettings:
     engine: str = "torch"  # train: the encoders' CMVAE inference, torch | onnx (onnxruntime), in both halves
     policy: str = "auto"  # train: auto (sac: the shipped policy, steady state; else scratch) | scratch | a model zip
     sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one; learn: 1
+    encoders: int = 1  # train: encoder processes, the learner's groups spread evenly over them
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
     profile: str = ""  # train: write a cProfile of the distributed half's learner (CPU time) to this file
@@ -72,6 +73,7 @@ def run(settings: BenchSettings) -> int:
         kwargs["low_latency"] = settings.low_latency
         kwargs["group_size"] = settings.group_size
         kwargs["sims"] = settings.sims
+        kwargs["encoders"] = settings.encoders
         kwargs["policy"] = settings.policy
         kwargs["engine"] = settings.engine
         kwargs["profile"] = settings.profile

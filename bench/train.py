@@ -172,6 +172,7 @@ def run(
     envs: int = 1,
     group_size: int = -1,
     sims: int = 0,
+    encoders: int = 1,
     policy: str = "auto",
     engine: str = "torch",
     profile: str = "",
@@ -181,6 +182,8 @@ def run(
     for the cProfile of the distributed half's learner (see :func:`train`), empty for none."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
+    if encoders < 1:
+        raise ValueError(f"--encoders must be at least 1, got {encoders}")
     sims, group_size = default_layout(envs, sims, group_size, low_latency)
     start = starting_policy(algo, policy)
     steps = steps or default_steps(envs, start)
@@ -194,8 +197,9 @@ def run(
         for index, (first, count) in enumerate(sim_shares(envs, sims)):
             group.start(f"sim-{index}", "sim", *common, "--train-envs", str(count), "--first-train-env", str(first),
                         "--eval-envs", "0", "--ident", f"sim-{index}")  # fmt: skip
-        group.start("encoder", "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS),
-                    "--engine", engine)  # fmt: skip
+        for index in range(encoders):
+            group.start(f"encoder-{index}", "encoder", *common, "--checkpoint", str(checkpoint),
+                        "--threads", str(TORCH_THREADS), "--engine", engine, "--ident", f"encoder-{index}")  # fmt: skip
         zenoh = ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency)
         proxy = ProxySettings(zenoh=zenoh, group_size=group_size)
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
@@ -218,6 +222,7 @@ def run(
         "engine": engine,
         "start": "scratch" if start is None else str(start),
         "sims": sims,
+        "encoders": encoders,
         "group_size": group_size,
         "topology": mode,
         "transport": "low-latency" if low_latency else "standard",

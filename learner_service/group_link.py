@@ -38,6 +38,9 @@ class GroupLink:
         self.channel, self.group, self.links = first.channel, group, links
         self.holder, self.encoded, self.encoders = first.holder, first.encoded, first.encoders
         self.step_timeout_s, self.max_retries = first.step_timeout_s, first.max_retries
+        # The names of every group its learner steps (this one's included), over which encoders are shared evenly
+        # (services.presence.balanced_choice); empty: this group's own rendezvous choice.
+        self.siblings: tuple[str, ...] = ()
         self.retries = 0
         self.duplicates_dropped = 0
         self._replies: Inbox[BatchMsg | None] = Inbox(prepare_to_poll(poll_ms))
@@ -70,7 +73,8 @@ class GroupLink:
         self._send()
 
     def _send(self) -> None:
-        route = choose_route(self.encoders if self.encoded else None, self.name, self.step_timeout_s * self.max_retries)
+        encoders = self.encoders if self.encoded else None
+        route = choose_route(encoders, self.name, self.step_timeout_s * self.max_retries, self.siblings)
         items = tuple(
             BatchItem(link.env, link.ep, link.seq, link.action_message(route).encode()) for link in self.links
         )

@@ -332,11 +332,14 @@ class ProxyVecEnv(VecEnv):
         """Consecutive envs, ``group_size`` to a group (the last may be smaller), named after this learner."""
         size = proxy.group_size
         holder = self.envs[0].holder
-        return [
+        groups = [
             GroupLink(self.session, self.envs[0].keys, f"{holder}.{start // size}",
                       [env.link for env in self.envs[start : start + size]], proxy.poll_ms)
             for start in range(0, len(self.envs), size)
         ]  # fmt: skip
+        for group in groups:  # a vector step's groups spread over the encoders, not queued at one
+            group.siblings = tuple(g.name for g in groups)
+        return groups
 
     def reset(self) -> VecEnvObs:
         observations = []

@@ -11,7 +11,7 @@ import hashlib
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import zenoh
 
@@ -103,15 +103,45 @@ class Roster:
         self._subscriber.undeclare()
 
 
+def _score(key: str, member: str) -> bytes:
+    return hashlib.blake2b(f"{key}|{member}".encode(), digest_size=8).digest()
+
+
 def rendezvous_choice(env_key: str, members: set[str]) -> str:
     """The member with the highest hash for this env: stable, and only the dead member's envs move."""
-    return max(members, key=lambda m: hashlib.blake2b(f"{env_key}|{m}".encode(), digest_size=8).digest())
+    return max(members, key=lambda m: _score(env_key, m))
 
 
-def choose_route(encoders: Roster | None, key: str, wait_s: float) -> str:
+def balanced_choice(key: str, siblings: Sequence[str], members: set[str]) -> str:
+    """Rendezvous hashing with bounded load over one sender's ``siblings`` (``key`` among them): in sorted order,
+    each takes its highest-hashing member that holds fewer than the even share (siblings over members, rounded
+    down), then the rest take theirs among the members holding no more than that, so loads differ by one at most.
+
+    Plain rendezvous hashing puts two groups on one of two encoders half the time, and the groups of a vector step
+    then queue at one encoder while the other idles; this spreads one learner's groups evenly, as stably.
+    """
+    if key not in siblings:
+        raise ValueError(f"{key!r} is not among its siblings {sorted(siblings)}")
+    even_share = len(siblings) // len(members)
+    load = dict.fromkeys(members, 0)
+    chosen: dict[str, str] = {}
+    for cap in (even_share, even_share + 1):
+        for sibling in sorted(set(siblings) - chosen.keys()):
+            ranked = sorted(members, key=lambda m: _score(sibling, m), reverse=True)
+            room = [member for member in ranked if load[member] < cap]
+            if room:
+                chosen[sibling] = room[0]
+                load[room[0]] += 1
+    return chosen[key]
+
+
+def choose_route(encoders: Roster | None, key: str, wait_s: float, siblings: Sequence[str] = ()) -> str:
     """Where a step's observation goes: ``direct`` without encoders, else the live encoder rendezvous hashing
-    picks for ``key`` (waiting up to ``wait_s`` for one to come back if none is live)."""
+    picks for ``key`` (waiting up to ``wait_s`` for one to come back if none is live), balanced over
+    ``siblings`` when given (:func:`balanced_choice`)."""
     if encoders is None:
         return DIRECT_ROUTE
     members = encoders.members() or encoders.wait_for(1, timeout_s=wait_s)
+    if siblings:
+        return balanced_choice(key, siblings, members)
     return rendezvous_choice(key, members)

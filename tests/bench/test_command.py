@@ -37,3 +37,8 @@ def test_repeat_below_one_is_refused_before_anything_runs() -> None:
 def test_a_profile_the_run_could_not_write_is_refused_before_anything_runs(settings, message) -> None:
     with pytest.raises(ValueError, match=message):
         run(settings)
+
+
+def test_fewer_than_one_encoder_is_refused_before_anything_runs() -> None:
+    with pytest.raises(ValueError, match="--encoders must be at least 1, got 0"):
+        run(BenchSettings(target="train", envs=8, encoders=0))

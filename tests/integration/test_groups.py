@@ -146,6 +146,10 @@ def test_killing_the_groups_encoder_mid_run_loses_or_repeats_no_step(
     tap.undeclare()
     assert_same(remote, in_process(TASK, checkpoint), atol=LATENT_ATOL)
     assert sum(g.retries for g in groups) >= 1, "the kill should have caught a group in flight"
+    before_kill = served_by[: killed["replies_before"]]
+    assert set(before_kill) == set(encoders), "the learner's three groups should spread over both encoders"
+    fewer, more = sorted(map(before_kill.count, encoders))  # one group's replies and two groups' (retries add some)
+    assert fewer >= STEPS // 2 and more >= 2 * (STEPS // 2)
     assert killed["victim"] not in served_by[killed["replies_before"] + 3 :]
 
 
