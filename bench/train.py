@@ -197,9 +197,10 @@ def run(
         for index, (first, count) in enumerate(sim_shares(envs, sims)):
             group.start(f"sim-{index}", "sim", *common, "--train-envs", str(count), "--first-train-env", str(first),
                         "--eval-envs", "0", "--ident", f"sim-{index}")  # fmt: skip
-        for index in range(encoders):
-            group.start(f"encoder-{index}", "encoder", *common, "--checkpoint", str(checkpoint),
-                        "--threads", str(TORCH_THREADS), "--engine", engine, "--ident", f"encoder-{index}")  # fmt: skip
+        for index in range(encoders):  # named as `swimm up` names them: "encoder" when there is one
+            name = "encoder" if encoders == 1 else f"encoder-{index}"
+            group.start(name, "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS),
+                        "--engine", engine, "--ident", name)  # fmt: skip
         zenoh = ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency)
         proxy = ProxySettings(zenoh=zenoh, group_size=group_size)
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
