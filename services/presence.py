@@ -7,11 +7,13 @@ how encoder load moves away from a dead encoder.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
+from types import MappingProxyType
 
 import zenoh
 
@@ -122,17 +124,23 @@ def balanced_choice(key: str, siblings: Sequence[str], members: set[str]) -> str
     """
     if key not in siblings:
         raise ValueError(f"{key!r} is not among its siblings {sorted(siblings)}")
+    return _balanced_routes(frozenset(siblings), frozenset(members))[key]
+
+
+@functools.lru_cache(maxsize=64)
+def _balanced_routes(siblings: frozenset[str], members: frozenset[str]) -> MappingProxyType[str, str]:
+    """Every sibling's member, worked out once per membership: each group's send asks again every step."""
     even_share = len(siblings) // len(members)
     load = dict.fromkeys(members, 0)
     chosen: dict[str, str] = {}
     for cap in (even_share, even_share + 1):
-        for sibling in sorted(set(siblings) - chosen.keys()):
+        for sibling in sorted(siblings - chosen.keys()):
             ranked = sorted(members, key=lambda m: _score(sibling, m), reverse=True)
             room = [member for member in ranked if load[member] < cap]
             if room:
                 chosen[sibling] = room[0]
                 load[room[0]] += 1
-    return chosen[key]
+    return MappingProxyType(chosen)
 
 
 def choose_route(encoders: Roster | None, key: str, wait_s: float, siblings: Sequence[str] = ()) -> str:
