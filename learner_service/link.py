@@ -124,6 +124,7 @@ class RemoteEnvLink:
         self.max_retries = max_retries
         self._poll_s = prepare_to_poll(poll_ms)  # services/polling.py: when polling pays
         self.claimed = False  # set by a granted claim; only then does close() release
+        self.siblings: tuple[str, ...] = ()  # set by a vector env: its envs' frames spread evenly over the encoders
         self.ep = 0
         self.seq = 0
         self.duplicates_dropped = 0
@@ -175,7 +176,8 @@ class RemoteEnvLink:
             log.warning("%s: release failed: %s", self.name, exc)
 
     def _route(self) -> str:
-        return choose_route(self.encoders if self.encoded else None, self.name, self.step_timeout_s * self.max_retries)
+        encoders = self.encoders if self.encoded else None
+        return choose_route(encoders, self.name, self.step_timeout_s * self.max_retries, self.siblings)
 
     # --- stepping ----------------------------------------------------------------------------------
     def send_reset(self, ep: int, seed: int, noise: bool | dict | None = None, latency: dict | None = None) -> None:

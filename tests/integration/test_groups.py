@@ -28,7 +28,7 @@ from learner_service.inprocess_env import TrackingEnv
 from learner_service.link import StepRefused
 from learner_service.proxy_env import ProxySettings, ProxyVecEnv
 from learner_service.task import TaskSettings
-from services.messages import BatchMsg
+from services.messages import BatchMsg, LatentMsg
 from sim_service.responder import largest_low_latency_group
 from sim_service.settings import WorldSettings
 from tests.integration.conftest import start_sim
@@ -151,6 +151,33 @@ def test_killing_the_groups_encoder_mid_run_loses_or_repeats_no_step(
     fewer, more = sorted(map(before_kill.count, encoders))  # one group's replies and two groups' (retries add some)
     assert fewer >= STEPS // 2 and more >= 2 * (STEPS // 2)
     assert killed["victim"] not in served_by[killed["replies_before"] + 3 :]
+
+
+def test_ungrouped_envs_spread_evenly_over_the_encoders_and_play_the_in_process_episodes(
+    group, namespace, zenoh_settings, checkpoint
+) -> None:
+    """Without groups each env's frames go to one encoder, chosen over the learner's envs with bounded load.
+
+    Named so that plain rendezvous hashing would send four of the five envs to enc-a (and one to enc-e)."""
+    endpoint, encoders = start_pipeline(group, namespace, checkpoint, ["enc-a", "enc-e"])
+    proxy = ProxySettings(zenoh=zenoh_settings(endpoint), envs=tuple(map(str, range(ENVS))), group_size=0)
+    remote_env = ProxyVecEnv(TASK, proxy, base_seed=BASE_SEED)
+    assert not remote_env.groups
+    remote_env.envs[0].link.encoders.wait_for(2, timeout_s=30)
+    encoder_of: dict[str, set[str]] = {}  # env -> the encoders that sent its latents
+
+    def tap_latent(sample) -> None:
+        latent = LatentMsg.decode(sample.payload.to_bytes())
+        encoder_of.setdefault(latent.env, set()).add(latent.encoder)
+
+    tap = remote_env.session.declare_subscriber(f"{namespace}/train/*/latent", tap_latent)
+    remote = record(remote_env)
+    tap.undeclare()
+    assert_same(remote, in_process(TASK, checkpoint), atol=LATENT_ATOL)
+    assert sorted(encoder_of) == sorted(map(str, range(ENVS)))
+    assert all(len(served) == 1 for served in encoder_of.values()), encoder_of  # no encoder left, none moved
+    loads = [sum(served == {ident} for served in encoder_of.values()) for ident in encoders]
+    assert sorted(loads) == [ENVS // 2, ENVS - ENVS // 2], encoder_of
 
 
 def test_a_group_step_the_sim_cannot_take_is_refused_naming_the_env(group, connect_client, namespace) -> None:
