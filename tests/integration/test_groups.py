@@ -163,7 +163,8 @@ def test_ungrouped_envs_spread_evenly_over_the_encoders_and_play_the_in_process_
     proxy = ProxySettings(zenoh=zenoh_settings(endpoint), envs=tuple(map(str, range(ENVS))), group_size=0)
     remote_env = ProxyVecEnv(TASK, proxy, base_seed=BASE_SEED)
     assert not remote_env.groups
-    remote_env.envs[0].link.encoders.wait_for(2, timeout_s=30)
+    for env in remote_env.envs:  # each env's roster sees both, or its first frames would go to the one it saw
+        env.link.encoders.wait_for(2, timeout_s=30)
     encoder_of: dict[str, set[str]] = {}  # env -> the encoders that sent its latents
 
     def tap_latent(sample) -> None:
