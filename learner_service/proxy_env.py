@@ -325,8 +325,9 @@ class ProxyVecEnv(VecEnv):
                 self.session.close()
             raise
         self.envs = claimed
+        siblings = tuple(env.link.name for env in claimed)
         for env in claimed:  # one step's frames spread over the encoders, not queued at one (grouped: resets)
-            env.link.siblings = tuple(e.link.name for e in claimed)
+            env.link.siblings = siblings
         self.groups = self._make_groups(proxy) if proxy.group_size else []
         super().__init__(len(claimed), claimed[0].observation_space, claimed[0].action_space)
 
