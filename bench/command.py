@@ -41,6 +41,7 @@ class BenchSettings:
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
     profile: str = ""  # train: write a cProfile of the distributed half's learner (CPU time) to this file
+    ceiling: bool = False  # train: also run the in-process half twice at once (what two cores give it)
     repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
     learn: LearnBenchSettings = field(default_factory=LearnBenchSettings, metadata={"flatten": True})  # learn only
 
@@ -53,6 +54,8 @@ def run(settings: BenchSettings) -> int:
     check_engine(settings.engine, "--engine")
     if settings.repeat < 1:
         raise ValueError(f"--repeat must be at least 1, got {settings.repeat}")
+    if settings.ceiling and settings.target != "train":
+        raise ValueError("--ceiling is for `swimm bench train`")
     if settings.profile:
         folder = Path(settings.profile).parent
         if settings.target != "train" or settings.repeat != 1:
@@ -77,6 +80,7 @@ def run(settings: BenchSettings) -> int:
         kwargs["policy"] = settings.policy
         kwargs["engine"] = settings.engine
         kwargs["profile"] = settings.profile
+        kwargs["ceiling"] = settings.ceiling
     if settings.envs and settings.target in ("encoder", "train", "sim"):
         kwargs["envs"] = settings.envs
     runs = []

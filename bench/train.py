@@ -26,9 +26,11 @@ from __future__ import annotations
 import contextlib
 import cProfile
 import logging
+import multiprocessing
 import os
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -164,6 +166,33 @@ def train(
     return TrainingRun(model.num_timesteps, elapsed, clock.rollout_s, episodes, cpu_ms)
 
 
+def inprocess_run(algo: str, steps: int, start: Path | None, checkpoint: Path, engine: str) -> TrainingRun:
+    """The in-process half: one TrackingEnv with its own CMVAE, the serial loop a user would otherwise write."""
+    task = TaskSettings(obs="cmvae")
+    env = make_vec_env("inprocess", task, base_seed=SEED, encoder=LatentEncoder(checkpoint, engine=engine))
+    try:
+        return train(algo, env, steps, services={}, policy=start)
+    finally:
+        env.close()
+
+
+def _inprocess_rollout_rate(algo: str, steps: int, start: Path | None, checkpoint: Path, engine: str) -> float:
+    """:func:`inprocess_run` in a worker process of its own: its rollout rate."""
+    torch.set_num_threads(TORCH_THREADS)
+    return inprocess_run(algo, steps, start, checkpoint, engine).rollout_steps_per_s
+
+
+def two_inprocess_at_once(algo: str, steps: int, start: Path | None, checkpoint: Path, engine: str) -> float:
+    """The in-process half in two processes at the same time: their rollout rates summed.
+
+    Nothing passes between the two, so this is what two cores give the serial loop: the ceiling of a rollout
+    ratio on this machine, against which the pipeline's hops and idle time show as the gap.
+    """
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        runs = [pool.submit(_inprocess_rollout_rate, algo, steps, start, checkpoint, engine) for _ in range(2)]
+        return sum(run.result() for run in runs)
+
+
 def run(
     steps: int = 0,
     algo: str = "sac",
@@ -176,10 +205,12 @@ def run(
     policy: str = "auto",
     engine: str = "torch",
     profile: str = "",
+    ceiling: bool = False,
 ) -> dict:
     """``steps`` 0: :func:`default_steps`; ``sims`` 0 and ``group_size`` -1: :func:`default_layout`; ``policy``: see
     :func:`starting_policy`; ``engine``: the CMVAE's inference engine, the same in both halves; ``profile``: a file
-    for the cProfile of the distributed half's learner (see :func:`train`), empty for none."""
+    for the cProfile of the distributed half's learner (see :func:`train`), empty for none; ``ceiling``: also time
+    :func:`two_inprocess_at_once` (the ``ceiling_*`` keys)."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
     if encoders < 1:
@@ -206,12 +237,8 @@ def run(
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
         distributed_env = make_vec_env("zenoh", task, proxy, n_envs=envs, base_seed=SEED)
         try:
-            encoder = LatentEncoder(checkpoint, engine=engine)
-            inprocess_env = make_vec_env("inprocess", task, base_seed=SEED, encoder=encoder)
-            try:
-                inprocess = train(algo, inprocess_env, steps, services={}, policy=start)
-            finally:
-                inprocess_env.close()
+            inprocess = inprocess_run(algo, steps, start, checkpoint, engine)
+            pair = two_inprocess_at_once(algo, steps, start, checkpoint, engine) if ceiling else None
             pids = {s.name: s.process.pid for s in group.services}
             distributed = train(algo, distributed_env, steps, pids, policy=start, profile=profile)
         finally:
@@ -235,6 +262,7 @@ def run(
         "distributed_rollout_steps_per_s": round(distributed.rollout_steps_per_s, 1),
         "rollout_ratio": round(distributed.rollout_steps_per_s / inprocess.rollout_steps_per_s, 3),
         "training_share": round(1 - distributed.rollout_seconds / distributed.seconds, 3),  # of the distributed run
+        **(ceiling_keys(pair, inprocess, distributed) if pair is not None else {}),
         # CPU milliseconds per env step of each process over the whole run (the learner's includes its training).
         "inprocess_cpu_ms_per_step": inprocess.cpu_ms_per_step["learner"],
         "distributed_cpu_ms_per_step": distributed.cpu_ms_per_step,
@@ -242,4 +270,16 @@ def run(
         "episodes": len(distributed.episodes),
         # The same seed gave the same training run (one env only: several envs play other episodes).
         **({"same_episodes": distributed.episodes == inprocess.episodes} if envs == 1 else {}),
+    }
+
+
+def ceiling_keys(pair_rollout_steps_per_s: float, inprocess: TrainingRun, distributed: TrainingRun) -> dict:
+    """Two in-process loops at once against one (``ceiling_ratio``: the most a rollout ratio could be here), and
+    the share of it the pipeline reached."""
+    ceiling = pair_rollout_steps_per_s / inprocess.rollout_steps_per_s
+    rollout_ratio = distributed.rollout_steps_per_s / inprocess.rollout_steps_per_s
+    return {
+        "ceiling_rollout_steps_per_s": round(pair_rollout_steps_per_s, 1),
+        "ceiling_ratio": round(ceiling, 3),
+        "share_of_ceiling": round(rollout_ratio / ceiling, 3),
     }

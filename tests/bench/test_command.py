@@ -42,3 +42,8 @@ def test_a_profile_the_run_could_not_write_is_refused_before_anything_runs(setti
 def test_fewer_than_one_encoder_is_refused_before_anything_runs() -> None:
     with pytest.raises(ValueError, match="--encoders must be at least 1, got 0"):
         run(BenchSettings(target="train", envs=8, encoders=0))
+
+
+def test_a_ceiling_asked_of_another_benchmark_is_refused_before_anything_runs() -> None:
+    with pytest.raises(ValueError, match="--ceiling is for `swimm bench train`"):
+        run(BenchSettings(target="sim", ceiling=True))

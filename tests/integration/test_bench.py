@@ -75,9 +75,10 @@ def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services(
 
 def test_bench_train_on_several_envs_splits_them_between_two_sims_in_groups(tmp_path) -> None:
     """From the shipped policy (the steady state's default), 4 envs: two sims, one group of 2 envs each; the
-    learner's profile shows where its time went, down to the vector env's steps."""
+    learner's profile shows where its time went, down to the vector env's steps; the ceiling, two in-process
+    loops at once, is set against the one in-process loop and the pipeline."""
     profile = tmp_path / "learner.prof"
-    result = bench("train", "--algo", "sac", "--envs", "4", "--steps", "400", "--profile", str(profile))
+    result = bench("train", "--algo", "sac", "--envs", "4", "--steps", "400", "--profile", str(profile), "--ceiling")
     calls = {name: stats[1] for (_, _, name), stats in pstats.Stats(str(profile)).stats.items()}
     assert calls["step_wait"] >= 400 // 4 and calls["learn"] == 1  # the distributed half's learn(), profiled whole
     assert result["start"].endswith("sac_cmvae.zip")
@@ -87,6 +88,10 @@ def test_bench_train_on_several_envs_splits_them_between_two_sims_in_groups(tmp_
         result["distributed_rollout_steps_per_s"] / result["inprocess_rollout_steps_per_s"], 1e-2
     )
     assert set(result["distributed_cpu_ms_per_step"]) == {"learner", "router", "sim-0", "sim-1", "encoder"}
+    assert_rates(result, "ceiling_rollout_steps_per_s", "ceiling_ratio", "share_of_ceiling")
+    inprocess = result["inprocess_rollout_steps_per_s"]
+    assert result["ceiling_ratio"] == pytest.approx(result["ceiling_rollout_steps_per_s"] / inprocess, 1e-2)
+    assert result["share_of_ceiling"] == pytest.approx(result["rollout_ratio"] / result["ceiling_ratio"], 1e-2)
     assert "same_episodes" not in result  # four envs play other episodes than the one in-process env
 
 
