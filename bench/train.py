@@ -244,6 +244,7 @@ def run(
         finally:
             distributed_env.close()
         group.check_alive()
+    rollout_ratio = distributed.rollout_steps_per_s / inprocess.rollout_steps_per_s
     return {
         "algo": algo,
         "envs": envs,
@@ -260,9 +261,9 @@ def run(
         # The same rates over the rollouts alone (env steps and actions, without the gradient steps between them).
         "inprocess_rollout_steps_per_s": round(inprocess.rollout_steps_per_s, 1),
         "distributed_rollout_steps_per_s": round(distributed.rollout_steps_per_s, 1),
-        "rollout_ratio": round(distributed.rollout_steps_per_s / inprocess.rollout_steps_per_s, 3),
+        "rollout_ratio": round(rollout_ratio, 3),
         "training_share": round(1 - distributed.rollout_seconds / distributed.seconds, 3),  # of the distributed run
-        **(ceiling_keys(pair, inprocess, distributed) if pair is not None else {}),
+        **(ceiling_keys(pair, inprocess.rollout_steps_per_s, rollout_ratio) if pair is not None else {}),
         # CPU milliseconds per env step of each process over the whole run (the learner's includes its training).
         "inprocess_cpu_ms_per_step": inprocess.cpu_ms_per_step["learner"],
         "distributed_cpu_ms_per_step": distributed.cpu_ms_per_step,
@@ -273,11 +274,10 @@ def run(
     }
 
 
-def ceiling_keys(pair_rollout_steps_per_s: float, inprocess: TrainingRun, distributed: TrainingRun) -> dict:
+def ceiling_keys(pair_rollout_steps_per_s: float, inprocess_rollout_steps_per_s: float, rollout_ratio: float) -> dict:
     """Two in-process loops at once against one (``ceiling_ratio``: the most a rollout ratio could be here), and
-    the share of it the pipeline reached."""
-    ceiling = pair_rollout_steps_per_s / inprocess.rollout_steps_per_s
-    rollout_ratio = distributed.rollout_steps_per_s / inprocess.rollout_steps_per_s
+    the share of it the pipeline's ``rollout_ratio`` reached."""
+    ceiling = pair_rollout_steps_per_s / inprocess_rollout_steps_per_s
     return {
         "ceiling_rollout_steps_per_s": round(pair_rollout_steps_per_s, 1),
         "ceiling_ratio": round(ceiling, 3),
