@@ -46,7 +46,7 @@ from learner_service.up import sim_shares
 from services.keys import Keys
 from services.polling import POLLING_SWITCH_INTERVAL_S
 from services.presence import Roster, announce
-from services.procs import ProcessGroup, Service, low_latency_flags
+from services.procs import ProcessGroup, Service, zenoh_flags
 from services.session import open_session
 from services.settings import ZenohSettings
 from sim_service.world import World
@@ -84,7 +84,7 @@ class Way:
     def flags(self, endpoint: str) -> list[str]:
         """The command-line flags that give a swimm process this way's Zenoh settings and poll time."""
         flags = ["--mode", self.mode, "--connect", endpoint, "--namespace", self.namespace]
-        return [*flags, *low_latency_flags(self.low_latency), "--poll-ms", str(self.poll_ms)]
+        return [*flags, *zenoh_flags(self.low_latency), "--poll-ms", str(self.poll_ms)]
 
 
 #: The headline way first, as in the result.

@@ -47,7 +47,7 @@ from learner_service.proxy_env import ProxySettings
 from learner_service.registry import make_model, training_callbacks
 from learner_service.task import TaskSettings
 from learner_service.up import sim_shares
-from services.procs import ProcessGroup, low_latency_flags
+from services.procs import ProcessGroup, zenoh_flags
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -198,6 +198,7 @@ def run(
     algo: str = "sac",
     mode: str = "peer",
     low_latency: bool = False,
+    zenoh_threads: int = 1,
     envs: int = 1,
     group_size: int = -1,
     sims: int = 0,
@@ -207,7 +208,8 @@ def run(
     profile: str = "",
     ceiling: bool = False,
 ) -> dict:
-    """``steps`` 0: :func:`default_steps`; ``sims`` 0 and ``group_size`` -1: :func:`default_layout`; ``policy``: see
+    """``steps`` 0: :func:`default_steps`; ``zenoh_threads``: each distributed process's (the learner's unless its
+    first Zenoh session is already open); ``sims`` 0 and ``group_size`` -1: :func:`default_layout`; ``policy``: see
     :func:`starting_policy`; ``engine``: the CMVAE's inference engine, the same in both halves; ``profile``: a file
     for the cProfile of the distributed half's learner (see :func:`train`), empty for none; ``ceiling``: also time
     :func:`two_inprocess_at_once` (the ``ceiling_*`` keys)."""
@@ -215,6 +217,8 @@ def run(
         raise ValueError(f"--envs must be at least 1, got {envs}")
     if encoders < 1:
         raise ValueError(f"--encoders must be at least 1, got {encoders}")
+    if zenoh_threads < 0:
+        raise ValueError(f"--zenoh-threads must be at least 0 (0: Zenoh's pool per runtime), got {zenoh_threads}")
     sims, group_size = default_layout(envs, sims, group_size, low_latency)
     start = starting_policy(algo, policy)
     steps = steps or default_steps(envs, start)
@@ -222,7 +226,7 @@ def run(
     task = TaskSettings(obs="cmvae")
     with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
         checkpoint = encoder_checkpoint(Path(tmp))
-        flags = low_latency_flags(low_latency)
+        flags = zenoh_flags(low_latency, zenoh_threads)
         endpoint = group.start_router(flags=flags)
         common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE, *flags)
         for index, (first, count) in enumerate(sim_shares(envs, sims)):
@@ -232,7 +236,9 @@ def run(
             name = "encoder" if encoders == 1 else f"encoder-{index}"
             group.start(name, "encoder", *common, "--checkpoint", str(checkpoint), "--threads", str(TORCH_THREADS),
                         "--engine", engine, "--ident", name)  # fmt: skip
-        zenoh = ZenohSettings(mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency)
+        zenoh = ZenohSettings(
+            mode=mode, connect=[endpoint], namespace=NAMESPACE, low_latency=low_latency, zenoh_threads=zenoh_threads
+        )
         proxy = ProxySettings(zenoh=zenoh, group_size=group_size)
         # Built first: it waits (bounded) for the sim and the encoder, so they are idle while the in-process half runs.
         distributed_env = make_vec_env("zenoh", task, proxy, n_envs=envs, base_seed=SEED)
@@ -255,6 +261,7 @@ def run(
         "group_size": group_size,
         "topology": mode,
         "transport": "low-latency" if low_latency else "standard",
+        "zenoh_threads": zenoh_threads,
         "inprocess_steps_per_s": round(inprocess.steps_per_s, 1),
         "distributed_steps_per_s": round(distributed.steps_per_s, 1),
         "ratio": round(distributed.steps_per_s / inprocess.steps_per_s, 3),

@@ -49,7 +49,7 @@ from services import settings as settings_mod
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
 from services.presence import Roster
-from services.procs import ProcessGroup, Service, low_latency_flags
+from services.procs import ProcessGroup, Service, zenoh_flags
 from services.session import open_session
 from services.settings import ZenohSettings, to_dict
 from sim_service.responder import SimSettings, check_low_latency_group
@@ -158,10 +158,10 @@ class LocalSystem:
         """Router, sim and encoders, each waited for; returns the router's endpoint."""
         if self.settings.port:
             check_port_free(self.settings.port)
-        low_latency = low_latency_flags(self.learn.zenoh.low_latency)
-        endpoint = self.group.start_router(self.settings.port or None, flags=low_latency)
+        tuning = zenoh_flags(self.learn.zenoh.low_latency, self.learn.zenoh.zenoh_threads)
+        endpoint = self.group.start_router(self.settings.port or None, flags=tuning)
         common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
-        common += low_latency
+        common += tuning
         config = ["--config", self.settings.sim_config] if self.settings.sim_config else []
         shares = sim_shares(self.learn.envs, self.settings.sims)
         for index, (first, count) in enumerate(shares):

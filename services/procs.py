@@ -24,13 +24,14 @@ from services.lifecycle import LAUNCHER_PID_ENV
 log = logging.getLogger(__name__)
 
 
-def low_latency_flags(low_latency: bool) -> tuple[str, ...]:
-    """The flag that gives a started swimm process Zenoh's low-latency setting (``ZenohSettings.low_latency``).
+def zenoh_flags(low_latency: bool, zenoh_threads: int = 1) -> tuple[str, ...]:
+    """The flags that give a started swimm process Zenoh's low-latency setting (``ZenohSettings.low_latency``)
+    and its number of Zenoh threads (``ZenohSettings.zenoh_threads``).
 
     A link uses the low-latency transport only when both its ends ask for it, so whoever starts a set of
-    processes passes the same flag to each of them, the router included.
+    processes passes the same flags to each of them, the router included.
     """
-    return ("--low-latency",) if low_latency else ()
+    return (*(("--low-latency",) if low_latency else ()), "--zenoh-threads", str(zenoh_threads))
 
 
 def free_tcp_port() -> int:

@@ -22,6 +22,7 @@ class RouterSettings:
     connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
     zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
     low_latency: bool = False  # lock-step Zenoh, as ZenohSettings.low_latency: with the clients and peers that ask too
+    zenoh_threads: int = 1  # as ZenohSettings.zenoh_threads; a router forwarding for many clients may want 0 or more
 
 
 class Router:
@@ -37,6 +38,7 @@ class Router:
             zenoh_config=self.settings.zenoh_config,
             startup_timeout_s=10.0,
             low_latency=self.settings.low_latency,
+            zenoh_threads=self.settings.zenoh_threads,
         )
         self.session = open_session(zenoh_settings, role="router")
         log.info("router %s up", self.session.zid())

@@ -33,10 +33,15 @@ PEER_LISTEN = "tcp/127.0.0.1:0"  # a peer's own listener when none is given: any
 LOW_LATENCY_MAX_MESSAGE_BYTES = 48_000
 #: Zenoh reads its runtimes' thread pools from this environment variable when a process opens its first session.
 ZENOH_RUNTIME_VARIABLE = "ZENOH_RUNTIME"
-#: Zenoh's five runtimes (application, acceptor, tx, rx, network) handed over to one pool of one worker thread.
-ONE_ZENOH_THREAD = (
-    "(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), net: (handover: app))"
-)
+
+
+def zenoh_runtime(threads: int) -> str:
+    """The ``ZENOH_RUNTIME`` that hands Zenoh's five runtimes (application, acceptor, tx, rx, network) over to one
+    pool of ``threads`` worker threads."""
+    return (
+        f"(app: (worker_threads: {threads}), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
+        "net: (handover: app))"
+    )
 
 
 class StartupTimeout(RuntimeError):
@@ -93,23 +98,24 @@ def use_low_latency_transport(config: zenoh.Config) -> None:
 
 
 @contextmanager
-def zenoh_threads(settings: ZenohSettings) -> Iterator[None]:
-    """Open a low-latency session's process with one Zenoh worker thread instead of a pool per runtime.
+def zenoh_threads(threads: int) -> Iterator[None]:
+    """Open a process's first session with Zenoh's runtimes on one pool of ``threads`` worker threads (0: Zenoh's
+    own pools, one per runtime).
 
     By default each of Zenoh's runtimes has its own pool, and one received message wakes two or three of
     their threads (the one that reads the socket, and others the scheduler wakes to share the work). On two
-    cores those threads preempt the lock-step worker that is stepping the World: the sim's worker was
-    switched out 2.2 times a step, and 0.6 to 0.95 times with one thread, where a message wakes one thread.
-    Over eight pairs of runs the round trip's median was shorter with one thread in six, 0.687 against
-    0.711 ms (docs/benchmarks.md). Zenoh reads the setting once, when the process opens its first
-    session, so a later session shares whatever the first one chose; a ``ZENOH_RUNTIME`` already in the
-    environment is left alone. It is set only while the session opens, so the processes this one starts do
-    not inherit it.
+    cores those threads preempt the lock-step worker that is stepping the World, and each wake-up costs CPU
+    the pipeline needs (docs/benchmarks.md, one Zenoh thread). Zenoh
+    reads the setting once, when the process opens its first session, so a later session shares whatever the
+    first one chose; a ``ZENOH_RUNTIME`` already in the environment is left alone. It is set only while the
+    session opens, so the processes this one starts do not inherit it.
     """
-    if not settings.low_latency or ZENOH_RUNTIME_VARIABLE in os.environ:
+    if threads < 0:
+        raise ValueError(f"zenoh_threads must be >= 0 (0: Zenoh's own pools), got {threads}")
+    if threads == 0 or ZENOH_RUNTIME_VARIABLE in os.environ:
         yield
         return
-    os.environ[ZENOH_RUNTIME_VARIABLE] = ONE_ZENOH_THREAD
+    os.environ[ZENOH_RUNTIME_VARIABLE] = zenoh_runtime(threads)
     try:
         yield
     finally:
@@ -141,7 +147,7 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
     while True:
         attempt += 1
         try:
-            with zenoh_threads(settings):
+            with zenoh_threads(settings.zenoh_threads):
                 session = zenoh.open(config)
             log.info(
                 "%s joined Zenoh as %s (connect=%s listen=%s%s)",

@@ -56,7 +56,8 @@ class ZenohSettings:
     zenoh_config: str | None = None  # a Zenoh JSON5 config file; endpoints given as flags override its own
     namespace: str = "swimm/default"
     startup_timeout_s: float = 60.0  # how long to wait for the router or peers at start
-    low_latency: bool = False  # lock-step Zenoh: low-latency transport (messages < 48 KB), one thread, no shared memory
+    low_latency: bool = False  # lock-step Zenoh: low-latency transport (messages < 48 KB), no shared memory
+    zenoh_threads: int = 1  # Zenoh's worker threads in this process, one pool for all; 0: Zenoh's pool per runtime
 
 
 @dataclasses.dataclass(frozen=True)

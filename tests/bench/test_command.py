@@ -39,9 +39,16 @@ def test_a_profile_the_run_could_not_write_is_refused_before_anything_runs(setti
         run(settings)
 
 
-def test_fewer_than_one_encoder_is_refused_before_anything_runs() -> None:
-    with pytest.raises(ValueError, match="--encoders must be at least 1, got 0"):
-        run(BenchSettings(target="train", envs=8, encoders=0))
+@pytest.mark.parametrize(
+    ("settings", "message"),
+    [
+        (BenchSettings(target="train", envs=8, encoders=0), "--encoders must be at least 1, got 0"),
+        (BenchSettings(target="train", envs=8, zenoh_threads=-1), "--zenoh-threads must be at least 0"),
+    ],
+)
+def test_a_layout_that_cannot_run_is_refused_before_anything_runs(settings, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        run(settings)
 
 
 def test_a_ceiling_asked_of_another_benchmark_is_refused_before_anything_runs() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -87,9 +88,9 @@ import glob, json, os, re, sys, time
 from services.session import open_session
 from services.settings import ZenohSettings
 
-endpoint, low_latency = sys.argv[1], sys.argv[2] == "low-latency"
-listener = open_session(ZenohSettings(mode="peer", listen=[endpoint], low_latency=low_latency))
-dialler = open_session(ZenohSettings(mode="peer", connect=[endpoint], low_latency=low_latency))
+endpoint, threads = sys.argv[1], int(sys.argv[2])
+listener = open_session(ZenohSettings(mode="peer", listen=[endpoint], zenoh_threads=threads))
+dialler = open_session(ZenohSettings(mode="peer", connect=[endpoint], zenoh_threads=threads))
 received = []
 subscriber = listener.declare_subscriber("swimm/test-threads", lambda sample: received.append(1))
 deadline = time.monotonic() + 10
@@ -105,23 +106,28 @@ listener.close()
 """
 
 
-@pytest.mark.parametrize("low_latency", [True, False])
-def test_a_low_latency_process_runs_zenoh_on_one_pool_and_does_not_pass_it_on(free_port, low_latency):
-    """Zenoh's threads, by name: one pool ('app') under low latency, a pool per runtime otherwise; and the
-    environment variable that chose it is gone again, so the processes this one starts choose for themselves."""
+@pytest.mark.parametrize("threads", [1, 0])
+def test_zenoh_runs_on_the_threads_asked_for_and_does_not_pass_them_on(free_port, threads):
+    """Zenoh's threads, by name: one pool ('app') for every runtime, or with 0 a pool per runtime; and
+    the environment variable that chose it is gone again, so the processes this one starts choose for themselves."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    transport = "low-latency" if low_latency else "standard"
+    environment = {key: value for key, value in os.environ.items() if key != "ZENOH_RUNTIME"}
     done = subprocess.run(
-        [sys.executable, "-c", ZENOH_THREADS_OF_A_PROCESS, endpoint, transport],
-        capture_output=True, text=True, timeout=60,
+        [sys.executable, "-c", ZENOH_THREADS_OF_A_PROCESS, endpoint, str(threads)],
+        capture_output=True, text=True, timeout=60, env=environment,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     report = json.loads(done.stdout.strip().splitlines()[-1])
     assert report["received"] and not report["passed_on"]
-    if low_latency:
+    if threads:
         assert report["pools"] == ["app"]
     else:
         assert len(report["pools"]) > 1 and "rx" in report["pools"]
+
+
+def test_a_negative_thread_count_is_refused_by_name():
+    with pytest.raises(ValueError, match="zenoh_threads must be >= 0"):
+        open_session(ZenohSettings(mode="peer", zenoh_threads=-1))
 
 
 def test_router_config_listens_and_connects_nowhere():

@@ -73,7 +73,7 @@ def test_nested_fields_are_prefixed_and_flattened_fields_keep_their_names():
     flags = set(re.findall(r"--[a-z][a-z0-9-]*", parser.format_help()))
     assert {"--noise-fog", "--noise-blur", "--no-noise-blur", "--steps", "--image-shape"} <= flags
     assert {"--connect", "--listen", "--namespace", "--startup-timeout-s", "--zenoh-config"} <= flags
-    assert {flag for flag in flags if flag.startswith("--zenoh-")} == {"--zenoh-config"}
+    assert {flag for flag in flags if flag.startswith("--zenoh-")} == {"--zenoh-config", "--zenoh-threads"}
 
     loaded = _load(environ={"SWIMM_NOISE_BLUR": "true", "SWIMM_NAMESPACE": "swimm/lab", "SWIMM_MODE": "peer"})
     assert loaded.noise.blur is True
