@@ -61,12 +61,17 @@ def test_bench_sim_with_several_envs_steps_them_in_groups_on_two_sims() -> None:
     )
 
 
-@pytest.mark.parametrize("transport", ["standard", "low-latency"])
-def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services(transport: str) -> None:
+@pytest.mark.parametrize(("transport", "zenoh_threads"), [("standard", 1), ("low-latency", 0)])
+def test_bench_train_runs_the_same_episodes_in_process_and_through_the_services(
+    transport: str, zenoh_threads: int
+) -> None:
+    """Either transport, and Zenoh on one thread (the default) or on its own pools, in every process."""
     flags = ("--low-latency",) if transport == "low-latency" else ()
-    result = bench("train", "--algo", "sac", "--steps", "300", "--policy", "scratch", *flags)
+    result = bench("train", "--algo", "sac", "--steps", "300", "--policy", "scratch", "--zenoh-threads",
+                   str(zenoh_threads), *flags)  # fmt: skip
     assert_rates(result, "inprocess_steps_per_s", "distributed_steps_per_s")
     assert (result["algo"], result["topology"], result["transport"]) == ("sac", "peer", transport)
+    assert result["zenoh_threads"] == zenoh_threads
     assert (result["start"], result["envs"], result["sims"], result["group_size"]) == ("scratch", 1, 1, 0)
     assert result["steps"] >= 300 and result["episodes"] >= 1
     assert result["same_episodes"] is True  # the ratio compares the same training, step for step
