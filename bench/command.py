@@ -40,7 +40,7 @@ class BenchSettings:
     encoders: int = 1  # train: encoder processes, the learner's groups spread evenly over them
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
-    zenoh_threads: int = 1  # train: Zenoh worker threads in each distributed process; 0: Zenoh's pool per runtime
+    zenoh_threads: int = 1  # train: Zenoh worker threads of the sims, encoders, learner; 0: Zenoh's pool per runtime
     profile: str = ""  # train: write a cProfile of the distributed half's learner (CPU time) to this file
     ceiling: bool = False  # train: also run the in-process half twice at once (what two cores give it)
     repeat: int = 1  # run it this many times and report each number's median (every run under "runs")

@@ -208,11 +208,12 @@ def run(
     profile: str = "",
     ceiling: bool = False,
 ) -> dict:
-    """``steps`` 0: :func:`default_steps`; ``zenoh_threads``: each distributed process's (the learner's unless its
-    first Zenoh session is already open); ``sims`` 0 and ``group_size`` -1: :func:`default_layout`; ``policy``: see
-    :func:`starting_policy`; ``engine``: the CMVAE's inference engine, the same in both halves; ``profile``: a file
-    for the cProfile of the distributed half's learner (see :func:`train`), empty for none; ``ceiling``: also time
-    :func:`two_inprocess_at_once` (the ``ceiling_*`` keys)."""
+    """``steps`` 0: :func:`default_steps`; ``zenoh_threads``: the sims', encoders' and learner's (the learner's
+    unless its first Zenoh session is already open; the router keeps its own); ``sims`` 0 and ``group_size`` -1:
+    :func:`default_layout`; ``policy``: see :func:`starting_policy`; ``engine``: the CMVAE's inference engine, the
+    same in both halves; ``profile``: a file for the cProfile of the distributed half's learner (see
+    :func:`train`), empty for none; ``ceiling``: also time :func:`two_inprocess_at_once` (the ``ceiling_*``
+    keys)."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
     if encoders < 1:
@@ -226,9 +227,9 @@ def run(
     task = TaskSettings(obs="cmvae")
     with tempfile.TemporaryDirectory(prefix="swimm-bench-train-") as tmp, ProcessGroup(Path(tmp) / "logs") as group:
         checkpoint = encoder_checkpoint(Path(tmp))
-        flags = zenoh_flags(low_latency, zenoh_threads)
-        endpoint = group.start_router(flags=flags)
-        common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE, *flags)
+        endpoint = group.start_router(flags=zenoh_flags(low_latency))
+        common = ("--mode", mode, "--connect", endpoint, "--namespace", NAMESPACE,
+                  *zenoh_flags(low_latency, zenoh_threads))  # fmt: skip
         for index, (first, count) in enumerate(sim_shares(envs, sims)):
             group.start(f"sim-{index}", "sim", *common, "--train-envs", str(count), "--first-train-env", str(first),
                         "--eval-envs", "0", "--ident", f"sim-{index}")  # fmt: skip

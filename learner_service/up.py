@@ -158,10 +158,10 @@ class LocalSystem:
         """Router, sim and encoders, each waited for; returns the router's endpoint."""
         if self.settings.port:
             check_port_free(self.settings.port)
-        tuning = zenoh_flags(self.learn.zenoh.low_latency, self.learn.zenoh.zenoh_threads)
-        endpoint = self.group.start_router(self.settings.port or None, flags=tuning)
+        zenoh = self.learn.zenoh
+        endpoint = self.group.start_router(self.settings.port or None, flags=zenoh_flags(zenoh.low_latency))
         common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
-        common += tuning
+        common += zenoh_flags(zenoh.low_latency, zenoh.zenoh_threads)
         config = ["--config", self.settings.sim_config] if self.settings.sim_config else []
         shares = sim_shares(self.learn.envs, self.settings.sims)
         for index, (first, count) in enumerate(shares):

@@ -24,14 +24,16 @@ from services.lifecycle import LAUNCHER_PID_ENV
 log = logging.getLogger(__name__)
 
 
-def zenoh_flags(low_latency: bool, zenoh_threads: int = 1) -> tuple[str, ...]:
+def zenoh_flags(low_latency: bool, zenoh_threads: int | None = None) -> tuple[str, ...]:
     """The flags that give a started swimm process Zenoh's low-latency setting (``ZenohSettings.low_latency``)
-    and its number of Zenoh threads (``ZenohSettings.zenoh_threads``).
+    and, unless None, its number of Zenoh threads (``ZenohSettings.zenoh_threads``).
 
     A link uses the low-latency transport only when both its ends ask for it, so whoever starts a set of
-    processes passes the same flags to each of them, the router included.
+    processes passes the same setting to each of them, the router included; the router keeps its own thread
+    count (see ``services.router.RouterSettings``).
     """
-    return (*(("--low-latency",) if low_latency else ()), "--zenoh-threads", str(zenoh_threads))
+    threads = () if zenoh_threads is None else ("--zenoh-threads", str(zenoh_threads))
+    return (*(("--low-latency",) if low_latency else ()), *threads)
 
 
 def free_tcp_port() -> int:

@@ -22,7 +22,7 @@ class RouterSettings:
     connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
     zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
     low_latency: bool = False  # lock-step Zenoh, as ZenohSettings.low_latency: with the clients and peers that ask too
-    zenoh_threads: int = 1  # as ZenohSettings.zenoh_threads; a router forwarding for many clients may want 0 or more
+    zenoh_threads: int = 0  # Zenoh's worker threads; 0: Zenoh's pools (on one thread, cut links were seen late)
 
 
 class Router:

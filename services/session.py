@@ -111,7 +111,7 @@ def zenoh_threads(threads: int) -> Iterator[None]:
     session opens, so the processes this one starts do not inherit it.
     """
     if threads < 0:
-        raise ValueError(f"zenoh_threads must be >= 0 (0: Zenoh's own pools), got {threads}")
+        raise ValueError(f"--zenoh-threads must be >= 0 (0: Zenoh's pool per runtime), got {threads}")
     if threads == 0 or ZENOH_RUNTIME_VARIABLE in os.environ:
         yield
         return

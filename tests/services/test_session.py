@@ -126,7 +126,7 @@ def test_zenoh_runs_on_the_threads_asked_for_and_does_not_pass_them_on(free_port
 
 
 def test_a_negative_thread_count_is_refused_by_name():
-    with pytest.raises(ValueError, match="zenoh_threads must be >= 0"):
+    with pytest.raises(ValueError, match=r"--zenoh-threads must be >= 0"):
         open_session(ZenohSettings(mode="peer", zenoh_threads=-1))
 
 
