@@ -105,10 +105,10 @@ def zenoh_threads(threads: int) -> Iterator[None]:
     By default each of Zenoh's runtimes has its own pool, and one received message wakes two or three of
     their threads (the one that reads the socket, and others the scheduler wakes to share the work). On two
     cores those threads preempt the lock-step worker that is stepping the World, and each wake-up costs CPU
-    the pipeline needs (docs/benchmarks.md, one Zenoh thread). Zenoh
-    reads the setting once, when the process opens its first session, so a later session shares whatever the
-    first one chose; a ``ZENOH_RUNTIME`` already in the environment is left alone. It is set only while the
-    session opens, so the processes this one starts do not inherit it.
+    the pipeline needs (docs/benchmarks.md, one Zenoh thread). Zenoh reads the setting once, when the process
+    opens its first session, so a later session shares whatever the first one chose; a ``ZENOH_RUNTIME``
+    already in the environment is left alone. It is set only while the session opens, so the processes this
+    one starts do not inherit it.
     """
     if threads < 0:
         raise ValueError(f"--zenoh-threads must be >= 0 (0: Zenoh's pool per runtime), got {threads}")
