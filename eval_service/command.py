@@ -10,7 +10,8 @@ plays every contender on it in turn, from the same seed, so all of them meet the
 default) unless it names a choice: ``off``, ``on`` (the sim's configured noise, else the murky preset) or a preset
 (murky, harsh); in-process, ``keep`` is clean frames. ``--latency-*`` likewise sets the camera and control delays
 (sim_service.latency), left as the sim has them when not given. ``--sweep`` plays every contender across noise
-severities, or with ``--sweep-kind latency`` across delays and control rates, instead (eval_service.sweep).
+severities, or with ``--sweep-kind latency`` across delays and control rates, instead (eval_service.sweep);
+``--suite`` plays them in the held-out splits and has the CMVAE read each split's frames (eval_service.suite).
 ``--watch RUN_DIR`` re-evaluates each new best model a training run saves (eval_service.watch); ``--live-port P``
 serves the live view (eval_service.live) while episodes run, and ``--live-env train/0`` adds envs that others
 drive to it (eval_service.live_tap).
@@ -95,6 +96,9 @@ class EvalCommandSettings:
     sweep_kind: Literal["noise", "latency"] = "noise"  # noise: effects x severities; latency: delays, control rates
     sweep_delays_ms: list[float] = field(default_factory=lambda: [0.0, 40.0, 80.0, 120.0, 160.0, 200.0, 300.0])
     sweep_rates_hz: list[float] = field(default_factory=lambda: [50.0, 25.0, 10.0])  # latency sweep: control rates
+    suite: bool = False  # play every contender in the held-out splits (eval_service.suite) instead
+    suite_splits: list[str] = field(default_factory=lambda: ["all"])  # which splits (sim_service.splits), or all
+    suite_frames: int = 200  # reset frames per condition the CMVAE reads for its d/theta/psi errors (0: none)
 
 
 def check(settings: EvalCommandSettings) -> None:
@@ -112,6 +116,10 @@ def check(settings: EvalCommandSettings) -> None:
         from eval_service.sweep import check_sweep
 
         check_sweep(settings)
+    if settings.suite:
+        from eval_service.suite import check_suite
+
+        check_suite(settings)
     if settings.episodes < 1 or settings.steps < 1:
         raise ValueError("episodes and steps must be >= 1")
     settings.latency.check()
@@ -309,6 +317,11 @@ def run(settings: EvalCommandSettings) -> int:
             from eval_service.sweep import sweep
 
             sweep(settings, out)
+            return 0
+        if settings.suite:
+            from eval_service.suite import run_suite
+
+            run_suite(settings, out)
             return 0
         if settings.watch:
             from eval_service.watch import watch

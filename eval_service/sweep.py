@@ -46,6 +46,8 @@ from sim_service.settings import WorldSettings
 
 if TYPE_CHECKING:
     from eval_service.command import EvalCommandSettings
+    from learner_service.evaluation import Contender
+    from learner_service.registry import Policy
 
 log = logging.getLogger(__name__)
 
@@ -93,12 +95,6 @@ def latency_steps(settings: EvalCommandSettings) -> list[tuple[str, float, dict[
     return played
 
 
-def condition_name(group: str, severity: float) -> str:
-    """A condition as a reader says it: ``delay 80 ms``, ``rate 25 Hz``, ``fog x1.50``."""
-    units = {DELAY: "ms", RATE: "Hz"}
-    return f"{group} {severity:g} {units[group]}" if group in units else f"{group} x{severity:.2f}"
-
-
 def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str, Any]]]:
     """(group, severity, reset options) in play order. Noise: severity 0 once, as ``none``; latency: each
     condition alone (the others at none)."""
@@ -117,38 +113,56 @@ def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str
     return played
 
 
-def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
-    """Play every contender in every condition; write the run folder; returns the per-condition table."""
-    from eval_service.command import contenders, evaluation_env, load_policies  # command imports this module lazily
+def play_plan(
+    settings: EvalCommandSettings,
+    entries: list[Contender],
+    policies: dict[str, Policy],
+    plan: list[tuple[dict[str, Any], dict[str, Any]]],
+    desc: str,
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], float]:
+    """Every contender's episodes in every condition of ``plan`` ((columns naming it, reset options)), on one env.
 
-    entries = contenders(settings)
-    policies = load_policies(settings, entries)
-    plan = conditions(settings)
+    Returns one row per contender and condition (its columns, Table 12, the share of episodes with a violation),
+    one row per episode, and the wall time. The sweep and the suite (eval_service.suite) share it.
+    """
+    from eval_service.command import evaluation_env  # command imports this module lazily
+
     rows: list[dict[str, Any]] = []
     episodes: list[dict[str, Any]] = []
     started = time.perf_counter()
     total = len(plan) * len(entries) * settings.episodes * settings.steps
-    with evaluation_env(settings) as env, tqdm(total=total, desc="sweep", unit="step", unit_scale=True,
+    with evaluation_env(settings) as env, tqdm(total=total, desc=desc, unit="step", unit_scale=True,
                                                disable=not settings.progress_bar, file=sys.stderr,
                                                mininterval=1.0) as bar:  # fmt: skip
-        for group, severity, options in plan:
+        for columns, options in plan:
             for entry in entries:
-                bar.set_postfix(effects=group, severity=severity, label=entry.label)
+                bar.set_postfix(**columns, label=entry.label)
                 played = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed,
                                        options, on_step=lambda *_: bar.update(1))  # fmt: skip
                 summary = summarise(played)
                 violations = sum(bool(r["left_view"] or r["distance_exceeded"] or r["collided"]) for r in played)
-                rows.append({"label": entry.label, "effects": group, "severity": severity, **summary,
-                             "violations": violations / len(played)})  # fmt: skip
-                episodes += [{"label": entry.label, "effects": group, "severity": severity, **r} for r in played]
+                rows.append({"label": entry.label, **columns, **summary, "violations": violations / len(played)})
+                episodes += [{"label": entry.label, **columns, **r} for r in played]
                 log.info("%s, %s: return %.0f, violations in %d of %d episodes", entry.label,
-                         condition_name(group, severity), summary["mean_return"], violations, len(played))  # fmt: skip
+                         " ".join(str(value) for value in columns.values()), summary["mean_return"], violations,
+                         len(played))  # fmt: skip
+    return rows, episodes, time.perf_counter() - started
+
+
+def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
+    """Play every contender in every condition; write the run folder; returns the per-condition table."""
+    from eval_service.command import contenders, load_policies  # command imports this module lazily
+
+    entries = contenders(settings)
+    policies = load_policies(settings, entries)
+    plan = [({"effects": group, "severity": severity}, options) for group, severity, options in conditions(settings)]
+    rows, episodes, wall_s = play_plan(settings, entries, policies, plan, desc="sweep")
     table = pd.DataFrame(rows, columns=list(SWEEP_COLUMNS))
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "sweep.csv", index=False)
     pd.DataFrame(episodes).to_csv(out / "episodes.csv", index=False)
     record = {"rows": rows, "preset": dataclasses.asdict(PRESETS[settings.sweep_preset]),
-              "contenders": [vars(entry) for entry in entries], "wall_s": time.perf_counter() - started,
+              "contenders": [vars(entry) for entry in entries], "wall_s": wall_s,
               "settings": to_dict(settings), "argv": sys.argv}  # fmt: skip
     (out / "sweep.json").write_text(json.dumps(record, indent=2))
     if settings.figures:
