@@ -43,10 +43,12 @@ from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
 from learner_service.envs import BACKENDS, IMAGE_MODES
 from learner_service.evaluation import Contender, play_episodes
 from learner_service.export import SHIPPED_POLICY
+from learner_service.identity import encoder_for
 from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TrackerGains
 from learner_service.metrics import summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
+from services.results import file_sha256
 from services.settings import ZenohSettings, to_dict
 from sim_service.latency import LatencySettings
 from sim_service.noise import EFFECTS, PRESETS
@@ -162,6 +164,31 @@ def contenders(settings: EvalCommandSettings) -> list[Contender]:
     if len(labels) != len(pairs) or len(set(labels)) != len(labels):
         raise ValueError(f"--label needs {len(pairs)} distinct names (one per contender), got {labels}")
     return [Contender(label, algo, checkpoint) for label, (algo, checkpoint) in zip(labels, pairs, strict=True)]
+
+
+def with_policy_encoder(settings: EvalCommandSettings) -> EvalCommandSettings:
+    """``settings`` with the encoder the policies record (learner_service.identity) as ``--encoder-checkpoint``.
+
+    A given encoder that is not the one a policy records is refused naming both; so are contenders trained on
+    different encoders, since one run reads one encoder's latents.
+    """
+    if settings.obs != "cmvae" or settings.recording:
+        return settings
+    recorded: dict[str, Path] = {}
+    for entry in contenders(settings):
+        if entry.checkpoint is not None and entry.algo not in SCRIPTED_NAMES:
+            encoder = encoder_for(entry.checkpoint, settings.encoder_checkpoint or None)
+            if encoder is not None:
+                recorded[entry.checkpoint] = encoder
+    by_content = {file_sha256(path): (checkpoint, path) for checkpoint, path in recorded.items()}
+    if len(by_content) > 1:
+        pairs = "; ".join(f"{checkpoint} on {path}" for checkpoint, path in by_content.values())
+        raise ValueError(f"the policies were trained on different encoders ({pairs}): evaluate them in separate runs")
+    if recorded and not settings.encoder_checkpoint:
+        encoder = next(iter(recorded.values()))
+        log.info("the policies' encoder: %s (a live sim's encoder must run it too)", encoder)
+        return dataclasses.replace(settings, encoder_checkpoint=str(encoder))
+    return settings
 
 
 def load_policies(settings: EvalCommandSettings, entries: list[Contender]) -> dict[str, Policy]:
@@ -302,6 +329,7 @@ def default_out(prefix: str = "eval") -> Path:
 def run(settings: EvalCommandSettings) -> int:
     """The CLI entry: one evaluation, or the watch loop; prints the summary table."""
     check(settings)
+    settings = with_policy_encoder(settings)
     out = Path(settings.out) if settings.out else default_out("eval-watch" if settings.watch else "eval")
     with ExitStack() as stack:
         feed = LiveFeed() if settings.live_port >= 0 else None

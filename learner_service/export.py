@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learner_service.identity import encoder_for
 from learner_service.progress import file_sha256
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
@@ -44,7 +45,7 @@ OPSET = 17
 class ExportSettings:
     algo: str = "sac"  # the algorithm that saved the checkpoint
     checkpoint: str = ""  # a saved cmvae-observation model (.zip); default: the shipped policy
-    encoder_checkpoint: str = ""  # the CMVAE the policy was trained on; default: the shipped one
+    encoder_checkpoint: str = ""  # the CMVAE the policy was trained on; default: the one the policy records
     out: str = "runs/export/policy.onnx"
     check_frames: int = 1000  # frames of a real in-process episode both paths must agree on
     check_seed: int = 9001  # the episode's seed
@@ -166,10 +167,10 @@ def run(settings: ExportSettings) -> int:
     if settings.threads > 0:
         torch.set_num_threads(settings.threads)
     policy_path = Path(settings.checkpoint) if settings.checkpoint else SHIPPED_POLICY
-    encoder_path = Path(settings.encoder_checkpoint) if settings.encoder_checkpoint else DEFAULT_CHECKPOINT
-    for what, path in (("policy checkpoint", policy_path), ("CMVAE checkpoint", encoder_path)):
-        if not path.is_file():
-            raise FileNotFoundError(f"{what} {path} does not exist")
+    # the encoder the policy records, refusing another one by name; the shipped CMVAE for a policy recording none
+    encoder_path = encoder_for(policy_path, settings.encoder_checkpoint or None) or DEFAULT_CHECKPOINT
+    if not encoder_path.is_file():
+        raise FileNotFoundError(f"CMVAE checkpoint {encoder_path} does not exist")
     cls, _ = resolve_algorithm(settings.algo)
     model = cls.load(policy_path, device="cpu")
     task = TrackingTask(TaskSettings(obs="cmvae"))

@@ -36,6 +36,7 @@ from stable_baselines3.common.noise import (
 from stable_baselines3.common.utils import LinearSchedule
 
 from learner_service.episodic import episodic_callbacks, vectorised_kwargs
+from learner_service.identity import read_identity
 from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
 
@@ -273,5 +274,6 @@ def load_policy(
     path = Path(checkpoint)
     if not path.is_file() and not path.with_name(path.name + ".zip").is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist (train one with `swimm learn`)")
+    read_identity(path if path.is_file() else path.with_name(path.name + ".zip"))  # refuses a file that is no model
     log.info("loading %s checkpoint %s", algo, path)
     return SB3Policy(cls.load(path, env=env, device=device))
