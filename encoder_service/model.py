@@ -94,11 +94,39 @@ class ResidualBlock(nn.Module):
         return self.branch(x) + self.shortcut(x)
 
 
+#: How the encoder normalises its input: ``none`` reads the frame as it is (every model before input norms);
+#: ``channel`` standardises each frame's colour channels (colour constancy: a tint, brightness or contrast the
+#: water gives a whole frame is removed before the first convolution; docs/encoder.md).
+INPUT_NORMS = ("none", "channel")
+#: The clean world's mean and standard deviation per channel (in [-1, 1] units, over reset frames): a standardised
+#: frame is rescaled to them, so a model fine-tuned from one that read raw frames starts near what it knew.
+REFERENCE_MEAN = (-0.7913, -0.4274, -0.3170)
+REFERENCE_STD = (0.1183, 0.1262, 0.1340)
+
+
+class ChannelStandardise(nn.Module):
+    """Each frame's channels to zero mean and unit deviation, then to the clean world's (part of the ONNX graph)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("mean", torch.tensor(REFERENCE_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(REFERENCE_STD).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        mean = images.mean(dim=(2, 3), keepdim=True)
+        std = images.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)  # a flat frame stays flat, not NaN
+        return (images - mean) / std * self.std + self.mean
+
+
 class ImageEncoder(nn.Module):
     """q(z | image): 64x64x3 -> (mu, logvar), each (N, n_z)."""
 
-    def __init__(self, n_z: int) -> None:
+    def __init__(self, n_z: int, input_norm: str = "none") -> None:
         super().__init__()
+        if input_norm not in INPUT_NORMS:
+            raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
+        self.input_norm = input_norm
+        self.normalise = ChannelStandardise() if input_norm == "channel" else nn.Identity()
         self.features = nn.Sequential(
             nn.Conv2d(3, 32, 5, stride=2, padding=2),  # 64 -> 32
             nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16
@@ -118,7 +146,7 @@ class ImageEncoder(nn.Module):
         self.n_z = n_z
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        stats = self.head(self.features(images))
+        stats = self.head(self.features(self.normalise(images)))
         return stats[:, : self.n_z], stats[:, self.n_z :]
 
 
@@ -168,12 +196,13 @@ class CMVAEOutput:
 class CMVAE(nn.Module):
     """Image encoder, image decoder and the three state decoders, trained jointly."""
 
-    def __init__(self, n_z: int = 10) -> None:
+    def __init__(self, n_z: int = 10, input_norm: str = "none") -> None:
         super().__init__()
         if n_z < len(LABEL_NAMES):
             raise ValueError(f"n_z must be at least {len(LABEL_NAMES)} (one latent per label), got {n_z}")
         self.n_z = n_z
-        self.encoder = ImageEncoder(n_z)
+        self.input_norm = input_norm
+        self.encoder = ImageEncoder(n_z, input_norm)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in LABEL_NAMES)
 
@@ -347,7 +376,7 @@ def make_checkpoint(
     return {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
-        "config": {"n_z": model.n_z, "beta": float(beta)},
+        "config": {"n_z": model.n_z, "beta": float(beta), "input_norm": model.input_norm},
         "state_dict": state_dict,
         "epoch": int(epoch),
         "val_loss": float(val_loss),
@@ -372,7 +401,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CMVAE, dict[str, Any]]:
     """A CMVAE in eval mode, channels_last, on ``device``, with the checkpoint dict it came from."""
     checkpoint = read_checkpoint(path)
-    model = CMVAE(n_z=int(checkpoint["config"]["n_z"]))
+    model = CMVAE(n_z=int(checkpoint["config"]["n_z"]), input_norm=checkpoint["config"].get("input_norm", "none"))
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()
     return model, checkpoint

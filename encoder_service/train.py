@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from encoder_service.augment import jitter
 from encoder_service.data import (
     AnyDataset,
     Batch,
@@ -33,6 +34,7 @@ from encoder_service.data import (
 )
 from encoder_service.model import (
     CMVAE,
+    INPUT_NORMS,
     LABEL_NAMES,
     SPEC_STATE_LOSS,
     DistillationParts,
@@ -75,6 +77,8 @@ class TrainEncoderSettings:
     teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
     state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # of d, theta, psi in the state error
+    input_norm: str = "none"  # none | channel: standardise each frame's colour channels first (model.INPUT_NORMS)
+    augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -180,9 +184,13 @@ def _loss(
     settings: TrainEncoderSettings,
     device: torch.device,
     teacher: CMVAE | None,
+    jitter_rng: np.random.Generator | None = None,
 ) -> LossParts | DistillationParts:
-    """The batch's loss parts: the CMVAE loss, or with a ``teacher`` the distillation loss."""
+    """The batch's loss parts: the CMVAE loss, or with a ``teacher`` the distillation loss; ``jitter_rng`` jitters
+    a share of the inputs (never the targets)."""
     inputs, targets = inputs_and_targets(batch, feed_clean)
+    if jitter_rng is not None and settings.augment > 0:
+        inputs = jitter(inputs, jitter_rng, settings.augment)
     labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
     images = images_to_tensor(inputs, device)
     if teacher is None:
@@ -215,6 +223,7 @@ def _train_epoch(
     n_batches = count_batches(len(indices), settings.batch_size, settings.max_batches_per_epoch)
     flips = np.random.default_rng((settings.seed, epoch, 1))
     feeds = np.random.default_rng((settings.seed, epoch, 3))
+    jitters = np.random.default_rng((settings.seed, epoch, 4))
     with tqdm(
         prefetch(batches),
         total=n_batches,
@@ -227,7 +236,7 @@ def _train_epoch(
             if settings.mirror > 0:
                 batch = mirror_batch(batch, flips.random(len(batch.indices)) < settings.mirror)
             feed_clean = feeds.random(len(batch.indices)) < settings.clean_share
-            loss = _loss(model, batch, feed_clean, settings, device, teacher)
+            loss = _loss(model, batch, feed_clean, settings, device, teacher, jitters)
             optimiser.zero_grad(set_to_none=True)
             loss.total.backward()
             optimiser.step()
@@ -382,6 +391,10 @@ def run(settings: TrainEncoderSettings) -> int:
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR [DIR ...] (folders written by `swimm dataset`)")
     settings.state_loss()  # checked before the dataset is read, not at the first batch
+    if settings.input_norm not in INPUT_NORMS:
+        raise ValueError(f"--input-norm must be one of {', '.join(INPUT_NORMS)}, got {settings.input_norm!r}")
+    if not 0.0 <= settings.augment <= 1.0:
+        raise ValueError(f"--augment is a share of frames: it must lie in [0, 1], got {settings.augment}")
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)
@@ -403,7 +416,7 @@ def run(settings: TrainEncoderSettings) -> int:
         device,
     )
 
-    model = CMVAE(n_z=settings.n_z).to(device=device, memory_format=torch.channels_last)
+    model = CMVAE(n_z=settings.n_z, input_norm=settings.input_norm).to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
     if teacher is not None:
         freeze_decoders(model)

@@ -1,0 +1,43 @@
+"""Photometric jitter of training frames: colours, light and sensor effects drawn with no water model behind them.
+
+The sim's noise draws water from a handful of natural colours and strengths up to the harsh preset; real water is
+any colour and any light. Jittering the encoder's input in image space (as DMControl-GB's strongest methods do
+with colour jitter and random convolutions) teaches it that the dolphin's outline, not the water's look, says
+where the dolphin is. The targets stay the clean twin's, so the latent learns to ignore the jitter. Ranges are
+data here; docs/encoder.md says why each is as wide as it is, and the held-out splits stay outside the sim's
+training settings (sim_service/splits.py), which this jitter does not set.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+GAIN_LOG_RANGE = 0.8  # per-channel gain exp(U[-r, r]): about 0.45x to 2.2x
+OFFSET_RANGE = 40.0  # per-channel offset U[-r, r], 0-255 units
+GAMMA_LOG_RANGE = 0.5  # gamma exp(U[-r, r]): about 0.6 to 1.65
+HAZE_MAX = 0.5  # blend toward a random colour by U[0, max]: backscatter of any water
+NOISE_STD_MAX = 12.0  # Gaussian pixel noise, std U[0, max]
+BLUR_SIGMA_MAX = 1.2  # Gaussian blur, sigma U[0, max] pixels, on half of the jittered frames
+
+
+def jitter(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
+    """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them carry a random photometric jitter."""
+    out = images.copy()
+    for index in np.flatnonzero(rng.random(len(images)) < share):
+        out[index] = _jitter_one(images[index], rng)
+    return out
+
+
+def _jitter_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    pixels = image.astype(np.float32) / 255.0
+    pixels = np.clip(pixels, 0.0, 1.0) ** np.exp(rng.uniform(-GAMMA_LOG_RANGE, GAMMA_LOG_RANGE))
+    pixels = pixels * np.exp(rng.uniform(-GAIN_LOG_RANGE, GAIN_LOG_RANGE, 3)) + rng.uniform(-1, 1, 3) * (
+        OFFSET_RANGE / 255.0
+    )
+    haze = rng.uniform(0.0, HAZE_MAX)
+    pixels = (1.0 - haze) * pixels + haze * rng.uniform(0.0, 1.0, 3)
+    if rng.random() < 0.5:
+        pixels = cv2.GaussianBlur(pixels, (0, 0), rng.uniform(1e-3, BLUR_SIGMA_MAX))
+    pixels += rng.standard_normal(pixels.shape, dtype=np.float32) * (rng.uniform(0.0, NOISE_STD_MAX) / 255.0)
+    return np.rint(np.clip(pixels, 0.0, 1.0) * 255.0).astype(np.uint8)

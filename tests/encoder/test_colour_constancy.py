@@ -1,0 +1,64 @@
+"""Colour constancy in the encoder and the photometric jitter of its training frames: real torch, real checkpoints."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from encoder_service.augment import jitter
+from encoder_service.model import CMVAE, images_to_tensor, load_model, make_checkpoint
+from encoder_service.train import TrainEncoderSettings, run
+from tests.encoder.cmvae_testdata import write_dataset
+
+
+def test_a_channel_norm_encoder_reads_a_tinted_and_dimmed_frame_as_the_original() -> None:
+    """A per-channel gain and offset over the whole frame (a water tint, brighter or dimmer light) is removed
+    before the first convolution, so the latent does not move; without the norm it does."""
+    torch.manual_seed(0)
+    frames = images_to_tensor(np.random.default_rng(1).integers(40, 200, (4, 64, 64, 3), dtype=np.uint8))
+    gain = torch.tensor([0.5, 1.3, 0.8]).view(1, 3, 1, 1)
+    offset = torch.tensor([0.2, -0.1, 0.05]).view(1, 3, 1, 1)
+    tinted = frames * gain + offset
+    for input_norm, moves in (("channel", False), ("none", True)):
+        model = CMVAE(input_norm=input_norm).eval()
+        with torch.no_grad():
+            mu, _ = model.encode(frames)
+            mu_tinted, _ = model.encode(tinted)
+        assert (not torch.allclose(mu, mu_tinted, atol=1e-4)) == moves, input_norm
+
+
+def test_the_input_norm_travels_in_the_checkpoint(tmp_path: Path) -> None:
+    path = tmp_path / "cmvae.pt"
+    torch.save(make_checkpoint(CMVAE(input_norm="channel"), beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
+    model, checkpoint = load_model(path)
+    assert checkpoint["config"]["input_norm"] == "channel" and model.encoder.input_norm == "channel"
+    with pytest.raises(ValueError, match="input_norm must be one of none, channel"):
+        CMVAE(input_norm="retinex")
+
+
+def test_jitter_is_seeded_touches_only_its_share_and_keeps_uint8() -> None:
+    frames = np.random.default_rng(2).integers(0, 256, (200, 64, 64, 3), dtype=np.uint8)
+    first = jitter(frames, np.random.default_rng(5), 0.5)
+    again = jitter(frames, np.random.default_rng(5), 0.5)
+    np.testing.assert_array_equal(first, again)
+    assert first.dtype == np.uint8 and first.shape == frames.shape
+    changed = np.mean([not np.array_equal(a, b) for a, b in zip(first, frames, strict=True)])
+    assert 0.35 < changed < 0.65
+    np.testing.assert_array_equal(jitter(frames, np.random.default_rng(5), 0.0), frames)
+
+
+def test_a_run_with_norm_and_jitter_trains_and_refuses_bad_values(tmp_path: Path) -> None:
+    dataset = write_dataset(tmp_path / "data", count=64, seed=3, shard_size=32)
+    out = tmp_path / "run"
+    settings = TrainEncoderSettings(dataset=[str(dataset)], out=str(out), epochs=1, val_fraction=0.25, device="cpu",
+                                    tensorboard=False, input_norm="channel", augment=0.5)  # fmt: skip
+    assert run(settings) == 0
+    best = torch.load(out / "best.pt", weights_only=True)
+    assert best["config"]["input_norm"] == "channel" and math.isfinite(best["val_loss"])
+    for change, message in (({"augment": 1.5}, "--augment is a share"), ({"input_norm": "x"}, "--input-norm")):
+        with pytest.raises(ValueError, match=message):
+            run(TrainEncoderSettings(dataset=[str(dataset)], out=str(tmp_path / "bad"), **change))
