@@ -48,7 +48,7 @@ from learner_service.learn_settings import Backend, ObsMode, RewardVersion, Trac
 from learner_service.metrics import summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings
-from services.results import file_sha256
+from services.results import file_sha256, provenance
 from services.settings import ZenohSettings, to_dict
 from sim_service.latency import LatencySettings
 from sim_service.noise import EFFECTS, PRESETS
@@ -293,8 +293,22 @@ def evaluate(
     wall_s = time.perf_counter() - started
     record = {"contenders": [vars(entry) for entry in entries], "env": env_name, "wall_s": wall_s,
               "settings": to_dict(settings), "argv": sys.argv, **(about or {})}  # fmt: skip
-    folder.finish(summaries, record, settings.trajectory_episode if settings.figures else None)
+    folder.finish(summaries, record, run_provenance(settings, entries),
+                  settings.trajectory_episode if settings.figures else None)  # fmt: skip
     return summaries
+
+
+def run_provenance(settings: EvalCommandSettings, entries: list[Contender]) -> dict[str, Any]:
+    """What made an evaluation's numbers (services.results): contenders' and CMVAE's files, seeds, host."""
+    from learner_service.task import episode_seed
+
+    models = {entry.label: entry.checkpoint for entry in entries}
+    if settings.obs == "cmvae" or (settings.suite and settings.suite_frames > 0):  # a CMVAE read the frames
+        from encoder_service.inference import DEFAULT_CHECKPOINT
+
+        models["cmvae"] = settings.encoder_checkpoint or str(DEFAULT_CHECKPOINT)
+    episode_seeds = [episode_seed(settings.seed, episode) for episode in range(1, settings.episodes + 1)]
+    return provenance(models, seeds=[settings.seed], episode_seeds=episode_seeds)
 
 
 def noise_option(choice: str) -> bool | dict[str, Any] | None:
@@ -374,7 +388,8 @@ def score_offline(settings: EvalCommandSettings, out: Path) -> dict[str, dict[st
         folder.add_episode(row)
     labels = dict.fromkeys(row["label"] for row in rows)
     summaries = {label: summarise([row for row in rows if row["label"] == label]) for label in labels}
-    folder.finish(summaries, {"recording": settings.recording, "settings": to_dict(settings), "argv": sys.argv}, None)
+    record = {"recording": settings.recording, "settings": to_dict(settings), "argv": sys.argv}
+    folder.finish(summaries, record, provenance({"recording": settings.recording}), None)
     return summaries
 
 

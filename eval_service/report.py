@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import csv
-import json
 import logging
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ import pandas as pd
 from eval_service import plots
 from learner_service.evaluation import STEP_FIELDS
 from learner_service.metrics import SUMMARY_ROW_FIELDS
+from services.results import write_result
 
 log = logging.getLogger(__name__)
 
@@ -49,16 +49,15 @@ class RunFolder:
         self.episodes.append(row)
         self._steps_file.flush()  # a watcher (or a crash) sees whole episodes
 
-    def finish(self, summaries: dict[str, dict[str, float]], about: dict[str, Any],
+    def finish(self, summaries: dict[str, dict[str, float]], record: dict[str, Any], about: dict[str, Any],
                trajectory_episode: int | None = 1) -> Path:  # fmt: skip
-        """Close the step CSV, write episodes.csv, summary.json and the figures (the trajectory of episode
-        ``trajectory_episode``; None: no figures); returns summary.json's path."""
+        """Close the step CSV, write episodes.csv, summary.json (``record`` with its provenance ``about``) and the
+        figures (the trajectory of episode ``trajectory_episode``; None: no figures); returns summary.json's path."""
         self._steps_file.close()
         episodes = pd.DataFrame(self.episodes, columns=list(EPISODE_FIELDS))
         episodes.to_csv(self.path / "episodes.csv", index=False)
-        summary_path = self.path / "summary.json"
-        summary = {"labels": summaries, PAPER_LABEL: PAPER_SAC, **about}
-        summary_path.write_text(json.dumps(summary, indent=1, default=str))
+        summary_path = write_result(self.path / "summary.json", {"labels": summaries, PAPER_LABEL: PAPER_SAC, **record},
+                                    about)  # fmt: skip
         if trajectory_episode is not None and not episodes.empty:
             self._figures(episodes, summaries, trajectory_episode)
         log.info("evaluation written to %s", self.path)

@@ -28,7 +28,7 @@ from matplotlib.figure import Figure
 
 from eval_service.sweep import play_plan
 from learner_service.task import episode_seed
-from services.results import provenance, write_result
+from services.results import write_result
 from sim_service.noise import PRESETS, NoiseSettings
 from sim_service.settings import WorldSettings
 from sim_service.splits import Split, resolve_splits
@@ -64,7 +64,7 @@ def check_suite(settings: EvalCommandSettings) -> None:
 
 def run_suite(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     """Play every contender in every condition, read each condition's frames with the CMVAE; write the folder."""
-    from eval_service.command import contenders, load_policies  # command imports this module lazily
+    from eval_service.command import contenders, load_policies, run_provenance  # command imports this lazily
 
     conditions = suite_conditions(settings)
     entries = contenders(settings)
@@ -77,11 +77,7 @@ def run_suite(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     table.to_csv(out / "suite.csv", index=False)
     encoder.to_csv(out / "encoder.csv", index=False)
     pd.DataFrame(episodes).to_csv(out / "episodes.csv", index=False)
-    about = provenance(
-        {entry.label: entry.checkpoint for entry in entries} | {"cmvae": encoder_checkpoint(settings)},
-        seeds=[settings.seed],
-        episode_seeds=[episode_seed(settings.seed, episode) for episode in range(1, settings.episodes + 1)],
-    )
+    about = run_provenance(settings, entries)
     record = {"rows": rows, "encoder": encoder.to_dict("records"), "episodes": episodes, "wall_s": wall_s,
               "conditions": [{"name": s.name, "about": s.about, **s.reset_options()} for s in conditions],
               "contenders": [vars(entry) for entry in entries]}  # fmt: skip

@@ -26,7 +26,6 @@ share of episodes with a violation, against severity, one panel per effect group
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import sys
@@ -40,6 +39,7 @@ from tqdm import tqdm
 
 from learner_service.evaluation import play_episodes
 from learner_service.metrics import summarise
+from services.results import write_result
 from services.settings import to_dict
 from sim_service.noise import EFFECTS, PRESETS, scaled
 from sim_service.settings import WorldSettings
@@ -151,7 +151,7 @@ def play_plan(
 
 def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     """Play every contender in every condition; write the run folder; returns the per-condition table."""
-    from eval_service.command import contenders, load_policies  # command imports this module lazily
+    from eval_service.command import contenders, load_policies, run_provenance  # command imports this lazily
 
     entries = contenders(settings)
     policies = load_policies(settings, entries)
@@ -164,7 +164,7 @@ def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     record = {"rows": rows, "preset": dataclasses.asdict(PRESETS[settings.sweep_preset]),
               "contenders": [vars(entry) for entry in entries], "wall_s": wall_s,
               "settings": to_dict(settings), "argv": sys.argv}  # fmt: skip
-    (out / "sweep.json").write_text(json.dumps(record, indent=2))
+    write_result(out / "sweep.json", record, run_provenance(settings, entries))
     if settings.figures:
         sweep_figure(table, settings.sweep_preset, kind=settings.sweep_kind).savefig(out / "sweep.png", dpi=100)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
