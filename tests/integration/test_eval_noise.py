@@ -18,6 +18,7 @@ from learner_service.proxy_env import ProxyEnv, ProxySettings
 from learner_service.task import TaskSettings, episode_seed
 from sim_service.noise import PRESETS, NoiseSettings, scaled
 from sim_service.settings import WorldSettings
+from sim_service.splits import SPLITS
 from sim_service.world import World
 from tests.integration.conftest import start_sim
 
@@ -77,3 +78,14 @@ def test_a_noise_sweep_runs_end_to_end_on_a_live_sim(group, zenoh_router, namesp
     # reached the sim, and only through the env it claimed.
     fog = scaled(PRESETS["harsh"], 1.0, ("fog",))
     assert np.array_equal(eval_env_frame(zenoh_settings, zenoh_router), world_frame(fog))
+
+
+def test_a_suite_plays_the_held_out_splits_on_a_live_sim(group, zenoh_router, namespace, zenoh_settings,
+                                                         tmp_path) -> None:  # fmt: skip
+    """Each split's settings travel in the resets to the claimed env: it renders the last split's water."""
+    start_sim(group, zenoh_router, namespace)
+    out = tmp_path / "suite"
+    run_eval(group, zenoh_router, namespace, out, "--suite", "--suite-splits", "dark", "tannin", "--suite-frames", "2")
+    table = pd.read_csv(out / "suite.csv")
+    assert list(table["condition"]) == ["clean", "murky", "dark", "tannin"] and (table["episodes"] == 1).all()
+    assert np.array_equal(eval_env_frame(zenoh_settings, zenoh_router), world_frame(SPLITS["tannin"].noise))
