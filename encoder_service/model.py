@@ -95,27 +95,26 @@ class ResidualBlock(nn.Module):
 
 
 #: How the encoder normalises its input: ``none`` reads the frame as it is (every model before input norms);
-#: ``channel`` standardises each frame's colour channels (colour constancy: a tint, brightness or contrast the
-#: water gives a whole frame is removed before the first convolution; docs/encoder.md).
+#: ``channel`` white-balances it (gray world: each colour channel scaled so its mean is the clean world's), so a
+#: tint or a brightness the water gives a whole frame is gone before the first convolution, while the dolphin's
+#: contrast against the water, a distance cue, stays (docs/encoder.md).
 INPUT_NORMS = ("none", "channel")
-#: The clean world's mean and standard deviation per channel (in [-1, 1] units, over reset frames): a standardised
-#: frame is rescaled to them, so a model fine-tuned from one that read raw frames starts near what it knew.
-REFERENCE_MEAN = (-0.7913, -0.4274, -0.3170)
-REFERENCE_STD = (0.1183, 0.1262, 0.1340)
+#: The clean world's mean intensity per channel (0 to 1, over reset frames): the white balance's target, so a model
+#: fine-tuned from one that read raw frames starts near what it knew.
+REFERENCE_MEAN = (0.1043, 0.2862, 0.3415)
 
 
-class ChannelStandardise(nn.Module):
-    """Each frame's channels to zero mean and unit deviation, then to the clean world's (part of the ONNX graph)."""
+class WhiteBalance(nn.Module):
+    """Each frame's channels scaled to the clean world's mean intensity (part of the ONNX graph)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.register_buffer("mean", torch.tensor(REFERENCE_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(REFERENCE_STD).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("target", torch.tensor(REFERENCE_MEAN).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        mean = images.mean(dim=(2, 3), keepdim=True)
-        std = images.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)  # a flat frame stays flat, not NaN
-        return (images - mean) / std * self.std + self.mean
+        intensity = (images + 1.0) * 0.5  # [-1, 1] -> [0, 1]
+        mean = intensity.mean(dim=(2, 3), keepdim=True).clamp_min(1e-3)  # a black frame stays black, not NaN
+        return intensity * (self.target / mean) * 2.0 - 1.0
 
 
 class ImageEncoder(nn.Module):
@@ -126,7 +125,7 @@ class ImageEncoder(nn.Module):
         if input_norm not in INPUT_NORMS:
             raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
         self.input_norm = input_norm
-        self.normalise = ChannelStandardise() if input_norm == "channel" else nn.Identity()
+        self.normalise = WhiteBalance() if input_norm == "channel" else nn.Identity()
         self.features = nn.Sequential(
             nn.Conv2d(3, 32, 5, stride=2, padding=2),  # 64 -> 32
             nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16

@@ -16,13 +16,12 @@ from tests.encoder.cmvae_testdata import write_dataset
 
 
 def test_a_channel_norm_encoder_reads_a_tinted_and_dimmed_frame_as_the_original() -> None:
-    """A per-channel gain and offset over the whole frame (a water tint, brighter or dimmer light) is removed
-    before the first convolution, so the latent does not move; without the norm it does."""
+    """A per-channel gain over the whole frame (a water tint, brighter or dimmer light) is removed before the first
+    convolution, so the latent does not move; without the norm it does."""
     torch.manual_seed(0)
     frames = images_to_tensor(np.random.default_rng(1).integers(40, 200, (4, 64, 64, 3), dtype=np.uint8))
     gain = torch.tensor([0.5, 1.3, 0.8]).view(1, 3, 1, 1)
-    offset = torch.tensor([0.2, -0.1, 0.05]).view(1, 3, 1, 1)
-    tinted = frames * gain + offset
+    tinted = (frames + 1.0) * gain - 1.0  # the gain acts on light intensity, 0 at black
     for input_norm, moves in (("channel", False), ("none", True)):
         model = CMVAE(input_norm=input_norm).eval()
         with torch.no_grad():
