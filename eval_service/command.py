@@ -256,6 +256,7 @@ def evaluate(
 ) -> dict[str, dict[str, float]]:
     """Play every contender's episodes on one env, write the run folder ``out``; returns Table 12 per label."""
     check(settings)
+    settings = with_policy_encoder(settings)
     entries = entries if entries is not None else contenders(settings)
     policies = load_policies(settings, entries)
     summaries: dict[str, dict[str, float]] = {}
@@ -343,7 +344,6 @@ def default_out(prefix: str = "eval") -> Path:
 def run(settings: EvalCommandSettings) -> int:
     """The CLI entry: one evaluation, or the watch loop; prints the summary table."""
     check(settings)
-    settings = with_policy_encoder(settings)
     out = Path(settings.out) if settings.out else default_out("eval-watch" if settings.watch else "eval")
     with ExitStack() as stack:
         feed = LiveFeed() if settings.live_port >= 0 else None

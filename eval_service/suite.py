@@ -64,8 +64,9 @@ def check_suite(settings: EvalCommandSettings) -> None:
 
 def run_suite(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     """Play every contender in every condition, read each condition's frames with the CMVAE; write the folder."""
-    from eval_service.command import contenders, load_policies, run_provenance  # command imports this lazily
+    from eval_service.command import contenders, load_policies, run_provenance, with_policy_encoder  # lazily: a cycle
 
+    settings = with_policy_encoder(settings)
     conditions = suite_conditions(settings)
     entries = contenders(settings)
     policies = load_policies(settings, entries)

@@ -151,8 +151,9 @@ def play_plan(
 
 def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     """Play every contender in every condition; write the run folder; returns the per-condition table."""
-    from eval_service.command import contenders, load_policies, run_provenance  # command imports this lazily
+    from eval_service.command import contenders, load_policies, run_provenance, with_policy_encoder  # lazily: a cycle
 
+    settings = with_policy_encoder(settings)
     entries = contenders(settings)
     policies = load_policies(settings, entries)
     plan = [({"effects": group, "severity": severity}, options) for group, severity, options in conditions(settings)]
