@@ -57,7 +57,7 @@ from learner_service.registry import (
 )
 from learner_service.task import TaskSettings
 from services.lifecycle import stop_on_signals
-from services.settings import to_dict
+from services.settings import check_ranges, to_dict
 
 log = logging.getLogger(__name__)
 
@@ -107,11 +107,8 @@ def parse_hyperparams(text: str) -> dict[str, Any]:
 
 def check(settings: LearnCommandSettings) -> None:
     """Refuse what could only fail later, before anything is started."""
+    check_ranges(settings)  # every range, named by its flag (--eval-episodes, not the nested check's --episodes)
     check_backend(settings.backend)
-    settings.eval.check()
-    settings.demo.check()
-    settings.smooth.check()
-    settings.scripted.check()
     if settings.algo in SCRIPTED_NAMES:
         raise ValueError(f"a scripted baseline has nothing to learn; evaluate it: `swimm eval --algo {settings.algo}`")
     if settings.demo.teacher not in SCRIPTED_NAMES:
@@ -123,12 +120,6 @@ def check(settings: LearnCommandSettings) -> None:
         raise ValueError(f"--smooth-* needs a stable-baselines3 off-policy or on-policy learner; {settings.algo} "
                          f"({algorithm.__name__}) is neither")  # fmt: skip
     episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
-    if settings.group_size < 0:
-        raise ValueError(f"group_size must be >= 0 (0: each env its own messages), got {settings.group_size}")
-    if settings.envs < 1 or settings.steps < 0 or settings.checkpoint_every < 0 or settings.budget_min < 0:
-        raise ValueError("envs must be >= 1, steps, checkpoint_every and budget_min >= 0")
-    if settings.actor_average < 0:
-        raise ValueError(f"actor_average counts actor updates (0: off), got {settings.actor_average}")
     if settings.resume and not Path(settings.resume).is_file():
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
 

@@ -10,7 +10,9 @@ Three looks at the network, all read-only:
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import sys
 import threading
 import time
@@ -23,8 +25,8 @@ import zenoh
 from services.control import survey
 from services.keys import Keys
 from services.presence import live_tokens
-from services.session import build_config, describe_endpoints, open_session
-from services.settings import ZenohSettings
+from services.session import StartupTimeout, build_config, describe_endpoints, open_session
+from services.settings import NonNegFloat, PosFloat, ZenohSettings, check_ranges
 
 RATE_COUNTERS = {"sim": ("steps", "steps/s"), "encoder": ("images", "images/s")}
 
@@ -33,11 +35,12 @@ RATE_COUNTERS = {"sim": ("steps", "steps/s"), "encoder": ("images", "images/s")}
 class StatusSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
     json: bool = False  # print one JSON object instead of tables
-    window_s: float = 4.5  # seconds to listen to the services' metrics (published every 2 s: two give a rate)
+    window_s: PosFloat = 4.5  # seconds to listen to the services' metrics (published every 2 s: two give a rate)
+    wait_s: NonNegFloat = 2.0  # seconds to wait for a router to answer (replaces --startup-timeout-s)
 
-    def check(self) -> None:
-        if self.window_s <= 0:
-            raise ValueError(f"--window-s must be > 0, got {self.window_s}")
+
+def check(settings: StatusSettings) -> None:
+    check_ranges(settings)
 
 
 def live_members(session: zenoh.Session, keys: Keys) -> set[tuple[str, str]]:
@@ -131,9 +134,21 @@ def _table(rows: list[tuple[str, ...]]) -> list[str]:
 
 
 def run(settings: StatusSettings) -> int:
-    """Print the status; exit 1, saying where it looked, when nothing in the namespace answers."""
-    settings.check()
-    session = open_session(settings.zenoh, role="status")
+    """Print the status; exit 1, saying where it looked in one line, when no router or nothing in the namespace
+    answers."""
+    check(settings)
+    # A query's output is its answer: the session's own lines (waiting, joined) only at DEBUG.
+    logging.getLogger("services.session").setLevel(max(logging.WARNING, logging.getLogger().level))
+    zenoh_settings = dataclasses.replace(settings.zenoh, startup_timeout_s=settings.wait_s)
+    try:
+        session = open_session(zenoh_settings, role="status")
+    except StartupTimeout:
+        where = describe_endpoints(build_config(zenoh_settings))
+        sys.stderr.write(
+            f"no Zenoh router answered at {where} within {settings.wait_s:g} s: is `swimm up` (or `swimm router`) "
+            "running there? (--connect names another, --wait-s waits longer)\n"
+        )
+        return 1
     try:
         status = gather(settings, session)
     finally:

@@ -7,6 +7,8 @@ import json
 import os
 import re
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -125,7 +127,7 @@ def test_up_splits_the_envs_between_sims_and_steps_them_in_groups(spawn, namespa
 
 def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capfd) -> None:
     missing = tmp_path / "nowhere.yaml"
-    assert cli.main(["up", "--run-dir", str(tmp_path / "run"), "--sim-config", str(missing)]) == 1
+    assert cli.main(["up", "--run-dir", str(tmp_path / "run"), "--sim-config", str(missing)]) == 2
     message = capfd.readouterr().err
     assert f"--sim-config {missing}: no such settings file" in message
     assert not (tmp_path / "run").exists()
@@ -135,20 +137,47 @@ def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capf
     ("flags", "message"),
     [
         (["--envs", "3", "--sims", "2"], "divide --envs into equal shares"),
-        (["--envs", "4", "--sims", "0"], "--sims must be >= 1"),
+        (["--envs", "4", "--sims", "0"], "--sims 0: must be >= 1"),
         (["--envs", "8", "--sims", "2", "--group-size", "3"], "--group-size 3 does not divide the 4 envs"),
         (["--encoder-engine", "tensorrt"], "--encoder-engine must be one of torch, onnx, got 'tensorrt'"),
     ],
 )
 def test_up_refuses_sims_that_cannot_share_the_envs(tmp_path, capfd, flags, message) -> None:
-    assert cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run"), *flags]) == 1
+    assert cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run"), *flags]) == 2
     assert message in capfd.readouterr().err
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--steps", "-5"], "up refused its settings: --steps -5: must be >= 0"),
+        (["--envs", "-1"], "up refused its settings: --envs -1: must be >= 1"),
+        (["--eval-episodes", "0"], "up refused its settings: --eval-episodes 0: must be >= 1"),
+        (["--port", "70000"], "up refused its settings: --port 70000: must be <= 65535"),
+        (["--sim-config", "SIM_YAML"], "the sim it would start refuses its settings: settings file"),
+        (["--algo", "scripted"], "up refused its settings: a scripted baseline has nothing to learn"),
+    ],
+)
+def test_up_refuses_bad_settings_before_any_process_or_folder(tmp_path, flags, message) -> None:
+    """A real `swimm up`: the refusal names the flag as typed, its value and range, exits 2 at once, and
+    nothing was started (no log says so) or made (no run folder)."""
+    sim_yaml = tmp_path / "sim.yaml"
+    sim_yaml.write_text("train_envs: -3\n")  # a child's own setting, refused by that child's check
+    flags = [str(sim_yaml) if flag == "SIM_YAML" else flag for flag in flags]
+    argv = [sys.executable, "-m", "services.cli", "up", "--run-dir", str(tmp_path / "run"), "--obs", "state", *flags]
+    started = time.monotonic()
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "started" not in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "run").exists()
+    assert time.monotonic() - started < 60
+
+
 def test_up_without_the_cmvae_says_what_to_do(tmp_path, capfd) -> None:
     missing = tmp_path / "nope.pt"
-    assert cli.main(["up", "--encoder-checkpoint", str(missing), "--run-dir", str(tmp_path / "run")]) == 1
+    assert cli.main(["up", "--encoder-checkpoint", str(missing), "--run-dir", str(tmp_path / "run")]) == 2
     message = capfd.readouterr().err
     assert "--obs state" in message and str(missing) in message
     assert not (tmp_path / "run").exists()  # nothing was started

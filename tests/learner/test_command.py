@@ -178,11 +178,11 @@ def test_refusals_name_what_to_change(tmp_path: Path) -> None:
     check(LearnCommandSettings(envs=2))  # SAC's per-episode training runs on several envs (learner_service/episodic.py)
     with pytest.raises(ValueError, match="gradient_steps -1"):
         check(LearnCommandSettings(envs=2, hyperparams="{gradient_steps: -1}"))
-    with pytest.raises(ValueError, match="budget_min >= 0"):
+    with pytest.raises(ValueError, match="--budget-min -1: must be >= 0"):
         check(LearnCommandSettings(budget_min=-1))
     with pytest.raises(ValueError, match="backend"):
         check(LearnCommandSettings(backend="carrier-pigeon"))
-    assert cli.main(["learn", "--algo", "scripted", "--run-dir", str(tmp_path / "x")]) == 1
+    assert cli.main(["learn", "--algo", "scripted", "--run-dir", str(tmp_path / "x")]) == 2  # settings: exit 2
     assert not (tmp_path / "x").exists()
 
 

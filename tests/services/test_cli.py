@@ -88,11 +88,10 @@ def test_usage_errors_exit_2_with_the_reason(args, error):
     assert error in result.stderr
 
 
-def test_a_failing_command_exits_1_with_one_clear_line_not_a_traceback(tmp_path):
+def test_a_refused_setting_exits_2_with_one_clear_line_not_a_traceback(tmp_path):
     result = swimm("router", "--config", str(tmp_path / "absent.yaml"))
-    assert result.returncode == 1
-    assert "router failed: [Errno 2] No such file or directory" in result.stderr
-    assert "absent.yaml" in result.stderr
+    assert result.returncode == 2  # a settings error: `swimm up` never restarts a process that exits so
+    assert f"router refused its settings: --config {tmp_path / 'absent.yaml'}: No such file" in result.stderr
     assert "Traceback" not in result.stderr
 
 
