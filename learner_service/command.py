@@ -37,14 +37,20 @@ from learner_service.callbacks import (
     EpisodeStatsCallback,
     RolloutEvalCallback,
     StopOnEvent,
-    TqdmProgressCallback,
     WallClockLimit,
 )
 from learner_service.checkpoints import load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.episodic import episodic_schedule
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
-from learner_service.progress import FINAL_MODEL, LIVE_MODEL, PROGRESS_FILE
+from learner_service.progress import (
+    FINAL_MODEL,
+    LIVE_MODEL,
+    PROGRESS_FILE,
+    PhaseBar,
+    RunProgress,
+    latest_evaluation,
+)
 from learner_service.registry import (
     LATENT_SCRIPTED,
     SCRIPTED_NAMES,
@@ -56,6 +62,7 @@ from learner_service.registry import (
     training_callbacks,
 )
 from learner_service.task import TaskSettings
+from services.keys import Keys
 from services.lifecycle import stop_on_signals
 from services.settings import check_ranges, to_dict
 
@@ -134,6 +141,7 @@ class Training:
         self.steps = resolve_steps(settings)
         self.overrides = parse_hyperparams(settings.hyperparams)
         self.stop = stop or threading.Event()
+        self.progress = RunProgress()  # the run's phase and numbers; `run` gives it its file, bar and publisher
         self.task = TaskSettings(obs=settings.obs, reward=settings.reward, max_steps=settings.max_steps)
         self.eval_task = dataclasses.replace(self.task, max_steps=settings.eval.max_steps, early_termination=False)
 
@@ -158,12 +166,23 @@ class Training:
             "run folder %s: %s %s, %d steps on %d %s env(s)", self.run_dir, s.algo, s.obs, self.steps, s.envs, s.backend
         )
         with ExitStack() as stack:
+            bar = PhaseBar(disable=not (s.progress_bar and sys.stderr.isatty()))
+            stack.callback(bar.close)
+            self.progress = RunProgress(self.run_dir / PROGRESS_FILE, self.steps, bar=bar)
+            if (evaluation := latest_evaluation(self.run_dir)) is not None:  # a resumed run's
+                self.progress.evaluated(*evaluation)
             session = None
             if s.backend == "zenoh":
+                from services.metrics import MetricsPublisher
+                from services.presence import process_ident
                 from services.session import open_session
 
                 session = open_session(s.zenoh, role="learner")
                 stack.callback(session.close)
+                # `swimm status` shows the phase, steps and latest evaluation of each learner process.
+                publisher = MetricsPublisher(session, Keys(s.zenoh.namespace), "learner", process_ident("learner"),
+                                             self.progress)  # fmt: skip
+                stack.callback(publisher.close)
             encoder = (
                 shared_encoder(self.task, checkpoint=s.encoder_checkpoint or None) if s.backend == "inprocess" else None
             )
@@ -217,7 +236,7 @@ class Training:
                 resume_cloning(model, s.demo, s.seed, Path(s.resume), self.run_dir)
             else:
                 teacher = load_policy(s.demo.teacher, s.encoder_checkpoint or None, gains=s.scripted)
-                demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher)
+                demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher, self.progress)
         if s.smooth.enabled:
             from learner_service.smoothness import keep_smooth
 
@@ -231,12 +250,12 @@ class Training:
             log.info("evaluations and the final model average the actor over ~%d updates", s.actor_average)
         acting = average.swapped_in if average is not None else nullcontext  # the weights evaluations and saves use
         start_steps = model.num_timesteps
-        stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
-        callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]
-        callbacks += training_callbacks(s.algo, self.overrides, s.envs)
+        stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.progress)
+        callbacks = [stats, *training_callbacks(s.algo, self.overrides, s.envs)]
         evaluation = None
         if eval_env is not None:
-            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock, acting=acting)
+            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock, acting=acting,
+                                             progress=self.progress)  # fmt: skip
             callbacks.append(evaluation)
         if s.budget_min:
             callbacks.append(WallClockLimit(s.budget_min * 60, clock))

@@ -32,7 +32,6 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import encoder_service
@@ -40,9 +39,13 @@ from learner_service.learn_settings import LearnCommandSettings, default_run_dir
 from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,
+    EVALUATIONS_CSV,
+    FINAL_MODEL,
     LEARN_CONFIG,
-    latest_evaluation,
-    progress_postfix,
+    LIVE_MODEL,
+    UP_CONFIG,
+    PhaseBar,
+    describe_progress,
     read_progress,
 )
 from services import cli
@@ -275,7 +278,7 @@ class LocalSystem:
     def watch(self, learner: Service) -> int:
         """Show the learner's progress until it exits, a service dies, or a stop is asked; returns an exit code."""
         interactive = sys.stderr.isatty()
-        bar = tqdm(unit="step", disable=not interactive, dynamic_ncols=True)
+        bar = PhaseBar(disable=not interactive)
         next_line = time.monotonic() + self.learn.log_interval_s
         try:
             with logging_redirect_tqdm():
@@ -286,11 +289,10 @@ class LocalSystem:
                     self.check_services(skip=learner)
                     progress = read_progress(self.run_dir)
                     if progress is not None:
-                        self.show(bar, progress)
+                        bar.show(progress)
                         if not interactive and time.monotonic() >= next_line:
                             next_line = time.monotonic() + self.learn.log_interval_s
-                            steps = f"{progress['num_timesteps']}/{progress['total_timesteps']} steps"
-                            log.info("learner: %s, %s", steps, self.postfix(progress))
+                            log.info("learner: %s", describe_progress(progress))
                     self.stop.wait(WATCH_PERIOD_S)
         except ServiceDied:
             self.stop_learner(learner)
@@ -298,7 +300,7 @@ class LocalSystem:
         finally:
             progress = read_progress(self.run_dir)
             if progress is not None:
-                self.show(bar, progress)
+                bar.show(progress)
             bar.close()
         code = learner.process.wait()
         if code < 0:  # killed by a signal (e.g. SIGTERM before its training loop began): the shell's convention
@@ -306,15 +308,6 @@ class LocalSystem:
         if code != 0 and not self.stop.is_set():
             log.error("the learner exited with %d; its log ends:\n%s", code, learner.log_tail())
         return code
-
-    def postfix(self, progress: dict[str, Any]) -> dict[str, Any]:
-        """The bar's numbers: episodes, recent return, rate, and the latest evaluation (return@steps)."""
-        return progress_postfix(progress, latest_evaluation(self.run_dir))
-
-    def show(self, bar: tqdm, progress: dict[str, Any]) -> None:
-        bar.total = progress["total_timesteps"]
-        bar.update(progress["num_timesteps"] - bar.n)
-        bar.set_postfix(self.postfix(progress), refresh=True)
 
     def stop_learner(self, learner: Service) -> None:
         log.info("stopping the learner (up to %.0f s to save)", self.settings.stop_timeout_s)
@@ -367,6 +360,7 @@ def run(settings: UpSettings) -> int:
     checkpoint = encoder_checkpoint(learn)
     run_dir = Path(learn.run_dir) if learn.run_dir else default_run_dir(learn)
     run_dir.mkdir(parents=True, exist_ok=True)
+    write_up_config(settings, run_dir)
     stop = threading.Event()
     started = time.monotonic()
     on_signal = stop_on_signals(stop, "stopping the learner (it saves), then the services")
@@ -393,24 +387,44 @@ def run(settings: UpSettings) -> int:
         run_dir,
         run_dir / "logs",
     )
-    if code == 0:
-        sys.stdout.write(where_the_policy_is(run_dir, learn))
+    if (run_dir / FINAL_MODEL).is_file():  # finished or stopped: the learner saved before it exited
+        sys.stdout.write(what_the_run_saved(run_dir, learn))
     return code
 
 
-def where_the_policy_is(run_dir: Path, learn: LearnCommandSettings) -> str:
-    """What a finished run leaves a user: the best model, its evaluation, and the command that evaluates it."""
+def what_the_run_saved(run_dir: Path, learn: LearnCommandSettings) -> str:
+    """What a finished or stopped run leaves a user: every model file it saved, the command that evaluates the
+    policy, and the one that resumes training with this run's settings."""
+    from learner_service.checkpoints import replay_buffer_path  # stable-baselines3: not for `swimm up --help`
+
+    lines = [f"saved in {run_dir}:"]
+    final = run_dir / FINAL_MODEL
+    buffer = replay_buffer_path(final)
+    with_buffer = f" (+ {buffer.name}, its replay buffer)" if buffer.is_file() else ""
+    lines.append(f"  {final.name}{with_buffer}: the model as training ended")
+    if (run_dir / LIVE_MODEL).is_file():
+        lines.append(f"  {LIVE_MODEL}: the actor's own weights then, not averaged (what --resume takes)")
     score_path = run_dir / BEST_MODEL_SCORE
-    if not score_path.is_file():
-        return f"no evaluation ran; the final model is in {run_dir}\n"
-    score = json.loads(score_path.read_text())
-    command = (
-        f"swimm eval --backend inprocess --algo {learn.algo} --obs {learn.obs} --checkpoint {run_dir / BEST_MODEL}"
-    )
+    if score_path.is_file():
+        score = json.loads(score_path.read_text())
+        lines.append(f"  {BEST_MODEL}: the best evaluated policy, return {score['mean_return']:.0f} at "
+                     f"{score['num_timesteps']} steps (scored in {BEST_MODEL_SCORE}, {EVALUATIONS_CSV})")  # fmt: skip
+    checkpoints = sorted((run_dir / "checkpoints").glob("model_*_steps.zip"), key=lambda path: path.stat().st_mtime)
+    if checkpoints:
+        lines.append(f"  checkpoints/{checkpoints[-1].name}: the newest of {len(checkpoints)} checkpoints")
+    lines.append("  summary.png, train*.monitor.csv, tensorboard/ and logs/: how training went")
+    policy = run_dir / (BEST_MODEL if score_path.is_file() else FINAL_MODEL)
+    evaluate = f"swimm eval --backend inprocess --algo {learn.algo} --obs {learn.obs} --checkpoint {policy}"
     if learn.obs == "cmvae" and learn.encoder_checkpoint:
-        command += f" --encoder-checkpoint {learn.encoder_checkpoint}"
-    return (
-        f"policy: {run_dir / BEST_MODEL} (evaluation return {score['mean_return']:.0f} at {score['num_timesteps']} "
-        "steps)\n"
-        f"evaluate it: {command} --episodes 20 --seed 127\n"
-    )
+        evaluate += f" --encoder-checkpoint {learn.encoder_checkpoint}"
+    resume_from = run_dir / (LIVE_MODEL if (run_dir / LIVE_MODEL).is_file() else FINAL_MODEL)
+    lines.append(f"evaluate the policy: {evaluate} --episodes 20 --seed 127")
+    lines.append(f"resume training: swimm up --config {run_dir / UP_CONFIG} --resume {resume_from}")
+    return "\n".join(lines) + "\n"
+
+
+def write_up_config(settings: UpSettings, run_dir: Path) -> None:
+    """This run's settings, its folder included, as a `swimm up --config` file: what resumes it as it was."""
+    learn = dataclasses.replace(settings.learn, run_dir=str(run_dir), resume="")
+    data = to_dict(dataclasses.replace(settings, learn=learn))
+    (run_dir / UP_CONFIG).write_text(yaml.safe_dump(data, sort_keys=False))

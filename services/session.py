@@ -128,9 +128,12 @@ def endpoints(config: zenoh.Config, direction: str = "connect") -> list[str] | d
     return json.loads(config.get_json(f"{direction}/endpoints"))
 
 
-def describe_endpoints(config: zenoh.Config, direction: str = "connect") -> str:
-    """``endpoints`` as a person reads it in a log line or an error: comma-separated, per mode where mapped."""
+def describe_endpoints(config: zenoh.Config, direction: str = "connect", mode: str | None = None) -> str:
+    """``endpoints`` as a person reads it in a log line or an error: comma-separated, per mode where mapped, or
+    only ``mode``'s (Zenoh's stock config maps a router's listener, which a client never opens)."""
     found = endpoints(config, direction)
+    if isinstance(found, dict) and mode is not None:
+        found = found.get(mode, [])
     if isinstance(found, dict):
         return "; ".join(f"{mode}: {', '.join(items)}" for mode, items in found.items()) or "none"
     return ", ".join(found) or "none"
@@ -160,7 +163,7 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
                 role,
                 settings.mode,
                 describe_endpoints(config),
-                describe_endpoints(config, "listen"),
+                describe_endpoints(config, "listen", settings.mode),
                 ", low-latency transport" if settings.low_latency else "",
             )
             return session

@@ -3,9 +3,13 @@
 Three looks at the network, all read-only:
 
 - the liveliness tokens under ``<ns>/@live/**``: every sim, encoder, learner and evaluator holding a session;
-- the counters sims and encoders publish on ``<ns>/metrics/**`` every 2 s, listened to for ``window_s`` so that two
-  snapshots give a rate (steps/s, images/s) and the newest one a last-seen age;
+  the several a process may hold (a learner claims its train and eval envs under two ids) count as one row;
+- the numbers sims, encoders and learners publish on ``<ns>/metrics/**`` every 2 s, listened to for ``window_s``
+  so that two snapshots give a rate (steps/s, images/s) and the newest one a last-seen age; a learner's say what
+  it is doing (its phase and that phase's count, steps, latest evaluation);
 - the ``info`` of every env (``<ns>/*/*/ctl``): its sim, who holds it, its episode and step.
+
+With no router answering within ``--wait-s`` it says so in one line and exits 1.
 """
 
 from __future__ import annotations
@@ -24,11 +28,15 @@ import zenoh
 
 from services.control import survey
 from services.keys import Keys
-from services.presence import live_tokens
+from services.presence import live_tokens, process_of
 from services.session import StartupTimeout, build_config, describe_endpoints, open_session
 from services.settings import NonNegFloat, PosFloat, ZenohSettings, check_ranges
 
-RATE_COUNTERS = {"sim": ("steps", "steps/s"), "encoder": ("images", "images/s")}
+RATE_COUNTERS = {
+    "sim": ("steps", "steps/s"),
+    "encoder": ("images", "images/s"),
+    "learner": ("num_timesteps", "steps/s"),
+}
 
 
 @dataclass
@@ -43,9 +51,12 @@ def check(settings: StatusSettings) -> None:
     check_ranges(settings)
 
 
-def live_members(session: zenoh.Session, keys: Keys) -> set[tuple[str, str]]:
-    """(role, id) of every liveliness token in the namespace."""
-    return live_tokens(session, keys.live_role("*"))
+def live_processes(session: zenoh.Session, keys: Keys) -> dict[tuple[str, str], list[str]]:
+    """The ids of the liveliness tokens in the namespace, by (role, process) (:func:`services.presence.process_of`)."""
+    processes: dict[tuple[str, str], list[str]] = {}
+    for role, ident in sorted(live_tokens(session, keys.live_role("*"))):
+        processes.setdefault((role, process_of(ident)), []).append(ident)
+    return processes
 
 
 def listen_to_metrics(session: zenoh.Session, keys: Keys, window_s: float) -> dict[tuple[str, str], list[dict]]:
@@ -85,13 +96,15 @@ def rate(snapshots: list[dict], counter: str) -> float | None:
 def gather(settings: StatusSettings, session: zenoh.Session) -> dict[str, Any]:
     """The namespace's services and envs, as ``swimm status --json`` prints them."""
     keys = Keys(settings.zenoh.namespace)
-    members = live_members(session, keys)
+    members = live_processes(session, keys)
     metrics = listen_to_metrics(session, keys, settings.window_s)
     now = time.time()
     services = []
-    for role, ident in sorted(members | set(metrics)):
+    for role, ident in sorted(set(members) | set(metrics)):
         snapshots = metrics.get((role, ident), [])
         entry: dict[str, Any] = {"role": role, "id": ident, "live": (role, ident) in members}
+        if len(members.get((role, ident), [])) > 1:
+            entry["members"] = members[(role, ident)]
         if snapshots:
             entry["last_seen_s"] = round(now - float(snapshots[-1]["t"]), 1)
             counter, unit = RATE_COUNTERS.get(role, (None, None))
@@ -99,6 +112,8 @@ def gather(settings: StatusSettings, session: zenoh.Session) -> dict[str, Any]:
             if value is not None:
                 entry["rate"], entry["rate_unit"] = round(value, 1), unit
             entry["counters"] = {k: v for k, v in snapshots[-1].items() if k not in ("role", "id", "t")}
+            if doing := what_it_does(entry["counters"]):
+                entry["doing"] = doing
         services.append(entry)
     envs = [
         {key: info.get(key) for key in ("channel", "env", "sim", "holder", "ep", "seq")}
@@ -109,14 +124,26 @@ def gather(settings: StatusSettings, session: zenoh.Session) -> dict[str, Any]:
     return {"namespace": keys.namespace, "services": services, "envs": envs}
 
 
+def what_it_does(counters: dict[str, Any]) -> str:
+    """A learner's phase with its count, and its latest evaluation (``training 1200/20000, eval 310@1000``); ""
+    for a service that publishes no phase."""
+    if "phase" not in counters:
+        return ""
+    doing = f"{counters['phase']} {counters.get('phase_done', 0)}/{counters.get('phase_total', '?')}"
+    if "eval_return" in counters:
+        doing += f", eval {counters['eval_return']:.0f}@{counters['eval_timesteps']}"
+    return doing
+
+
 def format_status(status: dict[str, Any]) -> str:
-    """Two plain tables: the services, then the envs."""
+    """Two plain tables: the services (one row per process), then the envs."""
     lines = [f"namespace {status['namespace']}", ""]
-    rows = [("ROLE", "ID", "LIVE", "LAST SEEN", "RATE")]
+    rows = [("ROLE", "ID", "LIVE", "LAST SEEN", "RATE", "DOING")]
     for entry in status["services"]:
         seen = f"{entry['last_seen_s']:.1f} s ago" if "last_seen_s" in entry else "-"
         rated = f"{entry['rate']:.1f} {entry['rate_unit']}" if "rate" in entry else "-"
-        rows.append((entry["role"], entry["id"], "yes" if entry["live"] else "no", seen, rated))
+        live = "yes" if entry["live"] else "no"
+        rows.append((entry["role"], entry["id"], live, seen, rated, entry.get("doing", "-")))
     lines += _table(rows)
     if status["envs"]:
         lines.append("")
