@@ -165,7 +165,8 @@ def run(settings: StatusSettings) -> int:
     answers."""
     check(settings)
     # A query's output is its answer: the session's own lines (waiting, joined) only at DEBUG.
-    logging.getLogger("services.session").setLevel(max(logging.WARNING, logging.getLogger().level))
+    if not logging.getLogger().isEnabledFor(logging.DEBUG):
+        logging.getLogger("services.session").setLevel(logging.WARNING)
     zenoh_settings = dataclasses.replace(settings.zenoh, startup_timeout_s=settings.wait_s)
     try:
         session = open_session(zenoh_settings, role="status")
