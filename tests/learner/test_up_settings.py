@@ -56,3 +56,34 @@ def test_a_child_that_refuses_its_settings_is_not_restarted(tmp_path: Path) -> N
         assert sim.restarts == 0 and not system.restart_due
         with pytest.raises(RuntimeError, match="would refuse them again"):
             group.restart(sim)
+
+
+def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tmp_path: Path) -> None:
+    """A real (tiny, in-process) run folder; the resume command's settings file loads back as this run's."""
+    from learner_service.command import Training
+    from learner_service.up import what_the_run_saved, write_up_config
+    from services import cli
+    from tests.learner.test_command import tiny_settings
+
+    run_dir = tmp_path / "run"
+    Training(tiny_settings(run_dir)).run()
+    settings = UpSettings(learn=tiny_settings(run_dir, backend="zenoh", steps=300), sims=1, port=0)
+    write_up_config(settings, run_dir)
+    text = what_the_run_saved(run_dir, settings.learn)
+    for line in (
+        f"saved in {run_dir}:",
+        "final_model.zip (+ final_model_replay_buffer.pkl, its replay buffer): the model as training ended",
+        "best_model.zip: the best evaluated policy, return",
+        "checkpoints/model_200_steps.zip: the newest of 2 checkpoints",
+        f"evaluate the policy: swimm eval --backend inprocess --algo sac --obs state --checkpoint {run_dir}/best_model",
+        f"resume training: swimm up --config {run_dir}/up.yaml --resume {run_dir}/final_model.zip",
+    ):
+        assert line in text, text
+    resumed = cli.checked_settings(
+        "up", ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
+    )
+    assert resumed.learn.run_dir == str(run_dir) and resumed.learn.steps == 300 and resumed.port == 0
+    assert (
+        resumed.learn.resume == str(run_dir / "final_model.zip")
+        and resumed.learn.hyperparams == settings.learn.hyperparams
+    )
