@@ -280,6 +280,7 @@ class LocalSystem:
         interactive = sys.stderr.isatty()
         bar = PhaseBar(disable=not interactive)
         next_line = time.monotonic() + self.learn.log_interval_s
+        phase = None
         try:
             with logging_redirect_tqdm():
                 while learner.alive:
@@ -290,8 +291,10 @@ class LocalSystem:
                     progress = read_progress(self.run_dir)
                     if progress is not None:
                         bar.show(progress)
-                        if not interactive and time.monotonic() >= next_line:
+                        # No bar: a line at each new phase and every --log-interval-s.
+                        if not interactive and (progress.get("phase") != phase or time.monotonic() >= next_line):
                             next_line = time.monotonic() + self.learn.log_interval_s
+                            phase = progress.get("phase")
                             log.info("learner: %s", describe_progress(progress))
                     self.stop.wait(WATCH_PERIOD_S)
         except ServiceDied:

@@ -125,6 +125,27 @@ def test_up_splits_the_envs_between_sims_and_steps_them_in_groups(spawn, namespa
         assert f"sim sim-{index} serving 2 train and {2 if index == 0 else 0} eval envs" in sim_log
 
 
+@pytest.mark.slow
+def test_up_names_each_phase_of_a_short_run_in_order(spawn, namespace, tmp_path) -> None:
+    """Without a terminal `swimm up` logs a line at each phase the learner enters: the head start's phases, then
+    training (with evaluations between), each with its own count."""
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "1500", "--eval-min-steps", "500",
+                              "--eval-every", "500", "--eval-unit", "steps", "--eval-episodes", "1",
+                              "--eval-max-steps", "100"),
+               "--demo-steps", "600", "--demo-bc-epochs", "400", "--demo-critic-steps", "2000")  # fmt: skip
+    assert wait_exit(up, 240) == 0, up.log_tail(60)
+    shown = re.findall(r"learner: ([a-z -]+) (\d+)/(\d+) (\w+)", up.log_path.read_text())
+    phases = [phase for phase, *_ in shown]
+    order = [phase for index, phase in enumerate(phases) if index == 0 or phases[index - 1] != phase]
+    assert order[:4] == ["demonstrations", "cloning", "critic warm-up", "training"], shown
+    assert "evaluation" in order[4:], shown
+    totals = {phase: (int(total), unit) for phase, _, total, unit in shown}
+    assert totals["demonstrations"] == (600, "steps") and totals["cloning"] == (400, "epochs")
+    assert totals["critic warm-up"] == (2000, "updates") and totals["evaluation"] == (1, "episodes")
+    assert totals["training"] == (1500, "steps")
+
+
 def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capfd) -> None:
     missing = tmp_path / "nowhere.yaml"
     assert cli.main(["up", "--run-dir", str(tmp_path / "run"), "--sim-config", str(missing)]) == 2
