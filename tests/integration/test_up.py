@@ -103,6 +103,9 @@ def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tm
     result = json.loads((run_dir / "result.json").read_text())
     assert result["stopped_early"] and 100 <= result["num_timesteps"] < 1_000_000
     assert (run_dir / "final_model.zip").is_file() and (run_dir / "train.monitor.csv").is_file()
+    ending = up.log_tail(12)  # a stopped run's last lines: what it saved, and how to go on
+    assert "final_model.zip (+ final_model_replay_buffer.pkl, its replay buffer)" in ending, ending
+    assert f"resume training: swimm up --config {run_dir / 'up.yaml'} --resume {run_dir / 'final_model.zip'}" in ending
     for name in ("router", "sim", "learner"):
         assert "low-latency transport" in (run_dir / "logs" / f"{name}.log").read_text(), name
 
