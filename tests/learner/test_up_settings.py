@@ -25,6 +25,8 @@ def swimm(*argv: str) -> subprocess.CompletedProcess:
         (("sim", "--train-envs", "-1"), "sim refused its settings: --train-envs -1: must be >= 0"),
         (("learn", "--steps", "-5"), "learn refused its settings: --steps -5: must be >= 0"),
         (("status", "--window-s", "0"), "status refused its settings: --window-s 0.0: must be > 0"),
+        (("encoder", "--max-batch", "0"), "encoder refused its settings: --max-batch 0: must be >= 1"),
+        (("router", "--zenoh-threads", "-1"), "router refused its settings: --zenoh-threads -1: must be >= 0"),
     ],
 )
 def test_each_command_refuses_a_value_by_its_flag_and_range(argv, message) -> None:
