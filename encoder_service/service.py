@@ -39,7 +39,7 @@ from services.messages import BadMessage, BatchItem, BatchMsg, ErrorMsg, LatentM
 from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce
 from services.session import open_session
-from services.settings import ZenohSettings
+from services.settings import NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings
 
 log = logging.getLogger(__name__)
 IMAGE_SHAPE = (64, 64, 3)
@@ -49,13 +49,13 @@ IMAGE_SHAPE = (64, 64, 3)
 class EncoderSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
     checkpoint: str = ""  # a CMVAE checkpoint; default: the shipped model
-    max_batch: int = 32  # frames per forward pass
-    max_wait_ms: float = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
+    max_batch: PosInt = 32  # frames per forward pass
+    max_wait_ms: NonNegFloat = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
     device: str = "cpu"
-    threads: int = 0  # torch threads; 0 = torch's default (onnx: one)
+    threads: NonNegInt = 0  # torch threads; 0 = torch's default (onnx: one)
     engine: str = "torch"  # torch (a frozen TorchScript trace) | onnx (onnxruntime, CPU; faster, batch-invariant)
     ident: str = ""  # this encoder's id in routing keys and liveliness; default enc-<pid>
-    metrics_period_s: float = 2.0  # how often counters go out on <ns>/metrics/encoder/<id>
+    metrics_period_s: PosFloat = 2.0  # how often counters go out on <ns>/metrics/encoder/<id>
 
 
 @dataclass

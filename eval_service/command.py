@@ -122,8 +122,9 @@ def check(settings: EvalCommandSettings) -> None:
         from eval_service.suite import check_suite
 
         check_suite(settings)
-    if settings.episodes < 1 or settings.steps < 1:
-        raise ValueError("episodes and steps must be >= 1")
+    for name in ("episodes", "steps"):
+        if (value := getattr(settings, name)) < 1:
+            raise ValueError(f"--{name} {value}: must be >= 1")
     settings.latency.check()
     settings.scripted.check()
     task_settings(settings)  # validates obs and reward

@@ -8,10 +8,11 @@ checkpoints, a progress bar, and a graceful stop.
   evaluations are comparable (:func:`learner_service.evaluation.play_episodes`, as `swimm eval` plays them),
   and keeps ``best_model.zip`` with its score and Table 12 metrics in ``best_model.json``.
 - :class:`EpisodeStatsCallback` counts how training episodes ended (distance, visibility, collision, time
-  limit) and the env-steps per second, for TensorBoard, the log and a ``progress.json`` that `swimm up` shows.
+  limit) and the env-steps per second, for TensorBoard, the log and the run's progress (``progress.json``, the
+  bar, `swimm status`: :class:`learner_service.progress.RunProgress`).
 - :class:`CheckpointCallback` is SB3's, keeping only the newest replay buffer beside its model (a SAC buffer
   is tens of MB each time).
-- :class:`TqdmProgressCallback` draws the bar; :class:`StopOnEvent` ends training when a signal sets an event.
+- :class:`StopOnEvent` ends training when a signal sets an event.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ import gymnasium as gym
 import numpy as np
 from stable_baselines3.common import callbacks as sb3_callbacks
 from stable_baselines3.common.callbacks import BaseCallback
-from tqdm import tqdm
 
 from learner_service.evaluation import play_episodes
 from learner_service.learn_settings import EvalSettings
@@ -40,8 +40,8 @@ from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,
     EVALUATIONS_CSV,
+    RunProgress,
     file_sha256,
-    progress_postfix,
     replace_atomically,
     write_json_atomically,
 )
@@ -73,11 +73,14 @@ class RolloutEvalCallback(BaseCallback):
         verbose: int = 0,
         started: float | None = None,
         acting: Callable[[], AbstractContextManager] = nullcontext,
+        progress: RunProgress | None = None,
     ) -> None:
         """``started``: the ``time.perf_counter()`` the rows' ``wall_s`` count from (default: when training starts);
-        ``acting``: a context the evaluation and the best model's save run in (averaging.py swaps weights in)."""
+        ``acting``: a context the evaluation and the best model's save run in (averaging.py swaps weights in);
+        ``progress``: the run's, which shows the evaluation as a phase of its own."""
         super().__init__(verbose)
         self.acting = acting
+        self.progress = progress or RunProgress()
         settings.check()
         self.started = started
         self.eval_env = eval_env
@@ -121,7 +124,10 @@ class RolloutEvalCallback(BaseCallback):
     def _evaluate(self) -> dict[str, float]:
         started = time.perf_counter()
         wall_s = started - self.started  # the training time this evaluation's model cost, not its own
-        rows = play_episodes(SB3Policy(self.model), self.eval_env, "eval", self.settings.episodes, self.settings.seed)
+        training = self.progress.total
+        self.progress.start("evaluation", self.settings.episodes)
+        rows = play_episodes(SB3Policy(self.model), self.eval_env, "eval", self.settings.episodes, self.settings.seed,
+                             on_episode=lambda row: self.progress.advance(row["episode"]))  # fmt: skip
         summary = summarise(rows)
         violations = Counter(row["first_cause"] or "none" for row in rows)  # each episode's first violation
         self.evaluations += 1
@@ -131,6 +137,8 @@ class RolloutEvalCallback(BaseCallback):
             self.logger.record(f"eval/{key}", summary[key])
         self.logger.record("eval/mean_ep_length", float(np.mean([row["steps"] for row in rows])))
         self._append_row(summary, rows, wall_s)
+        self.progress.evaluated(self.num_timesteps, summary["mean_return"])
+        self.progress.start("training", training, self.num_timesteps)
         is_best = summary["mean_return"] > self.best_mean_return
         log.info(
             "evaluation %d at %d steps: mean return %.1f +- %.1f over %d episodes (first violations %s) in %.1f s%s",
@@ -177,36 +185,34 @@ class EpisodeStatsCallback(BaseCallback):
     """Counts training episodes by ending and measures env-steps/s; TensorBoard, log lines and ``progress.json``.
 
     TensorBoard gets ``episodes/<ending>`` (cumulative counts) and ``time/env_steps_per_s`` at each rollout's
-    end. ``log_interval_s`` spaces the log lines; ``progress_path`` (if set) is rewritten every
-    ``progress_interval_s`` with the same numbers, for a watcher in another process.
+    end. ``log_interval_s`` spaces the log lines; ``progress`` (the run's, if given) gets the same numbers at
+    every step, and enters the training phase when training starts.
     """
 
     def __init__(
         self,
         total_timesteps: int,
         log_interval_s: float = 30.0,
-        progress_path: str | Path | None = None,
-        progress_interval_s: float = 1.0,
+        progress: RunProgress | None = None,
         reward_window: int = 20,
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose)
         self.total_timesteps = total_timesteps
         self.log_interval_s = log_interval_s
-        self.progress_path = Path(progress_path) if progress_path else None
-        self.progress_interval_s = progress_interval_s
+        self.progress = progress or RunProgress()
         self.endings: Counter[str] = Counter({cause: 0 for cause in CAUSES})
         self.recent_returns: deque[float] = deque(maxlen=reward_window)
         self.episodes = 0
         self._start_steps = 0
         self._start_time = 0.0
         self._last_log = 0.0
-        self._last_progress = 0.0
 
     def _on_training_start(self) -> None:
         self._start_steps = self.num_timesteps
         self._start_time = self._last_log = time.perf_counter()
-        self._last_progress = 0.0
+        self.progress.update(self.snapshot())
+        self.progress.start("training", self.total_timesteps, self.num_timesteps)
 
     @property
     def steps_per_s(self) -> float:
@@ -221,10 +227,8 @@ class EpisodeStatsCallback(BaseCallback):
                 self.endings[ending_of(info)] += 1
                 if "episode" in info:  # the VecMonitor's statistics of the episode that just ended
                     self.recent_returns.append(float(info["episode"]["r"]))
+        self.progress.update(self.snapshot())
         now = time.perf_counter()
-        if self.progress_path is not None and now - self._last_progress >= self.progress_interval_s:
-            self._last_progress = now
-            self.write_progress()
         if now - self._last_log >= self.log_interval_s:
             self._last_log = now
             self.log_line()
@@ -237,8 +241,7 @@ class EpisodeStatsCallback(BaseCallback):
 
     def _on_training_end(self) -> None:
         self.log_line()
-        if self.progress_path is not None:
-            self.write_progress(finished=True)
+        self.progress.update(self.snapshot(), finished=True)
 
     def snapshot(self) -> dict[str, Any]:
         mean = float(np.mean(self.recent_returns)) if self.recent_returns else None
@@ -251,10 +254,6 @@ class EpisodeStatsCallback(BaseCallback):
             "mean_recent_return": mean,
             "elapsed_s": round(time.perf_counter() - self._start_time, 2),
         }
-
-    def write_progress(self, finished: bool = False) -> None:
-        assert self.progress_path is not None
-        write_json_atomically(self.progress_path, self.snapshot() | {"finished": finished})
 
     def log_line(self) -> None:
         snap = self.snapshot()
@@ -296,30 +295,6 @@ class CheckpointCallback(sb3_callbacks.CheckpointCallback):
         for path in older:
             path.unlink(missing_ok=True)
         return result
-
-
-class TqdmProgressCallback(BaseCallback):
-    """A tqdm bar over the run's env steps with throughput, episodes and the recent mean return."""
-
-    def __init__(self, stats: EpisodeStatsCallback, disable: bool = False) -> None:
-        super().__init__()
-        self.stats = stats
-        self.disable = disable
-        self.bar: tqdm | None = None
-
-    def _on_training_start(self) -> None:
-        self.bar = tqdm(total=self.stats.total_timesteps, initial=self.num_timesteps, unit="step", disable=self.disable)
-
-    def _on_step(self) -> bool:
-        assert self.bar is not None
-        self.bar.update(self.num_timesteps - self.bar.n)
-        if self.n_calls % 50 == 0:
-            self.bar.set_postfix(progress_postfix(self.stats.snapshot()), refresh=False)
-        return True
-
-    def _on_training_end(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
 
 
 class WallClockLimit(BaseCallback):

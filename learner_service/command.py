@@ -37,7 +37,6 @@ from learner_service.callbacks import (
     EpisodeStatsCallback,
     RolloutEvalCallback,
     StopOnEvent,
-    TqdmProgressCallback,
     WallClockLimit,
 )
 from learner_service.checkpoints import load_for_resume, save_model
@@ -45,7 +44,14 @@ from learner_service.envs import check_backend, make_env, make_vec_env, shared_e
 from learner_service.episodic import episodic_schedule
 from learner_service.identity import encoder_for, policy_identity, stamp
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
-from learner_service.progress import FINAL_MODEL, LIVE_MODEL, PROGRESS_FILE
+from learner_service.progress import (
+    FINAL_MODEL,
+    LIVE_MODEL,
+    PROGRESS_FILE,
+    PhaseBar,
+    RunProgress,
+    latest_evaluation,
+)
 from learner_service.registry import (
     LATENT_SCRIPTED,
     SCRIPTED_NAMES,
@@ -57,8 +63,9 @@ from learner_service.registry import (
     training_callbacks,
 )
 from learner_service.task import TaskSettings
+from services.keys import Keys
 from services.lifecycle import stop_on_signals
-from services.settings import to_dict
+from services.settings import check_ranges, to_dict
 
 log = logging.getLogger(__name__)
 
@@ -108,11 +115,8 @@ def parse_hyperparams(text: str) -> dict[str, Any]:
 
 def check(settings: LearnCommandSettings) -> None:
     """Refuse what could only fail later, before anything is started."""
+    check_ranges(settings)  # every range, named by its flag (--eval-episodes, not the nested check's --episodes)
     check_backend(settings.backend)
-    settings.eval.check()
-    settings.demo.check()
-    settings.smooth.check()
-    settings.scripted.check()
     if settings.algo in SCRIPTED_NAMES:
         raise ValueError(f"a scripted baseline has nothing to learn; evaluate it: `swimm eval --algo {settings.algo}`")
     if settings.demo.teacher not in SCRIPTED_NAMES:
@@ -124,12 +128,6 @@ def check(settings: LearnCommandSettings) -> None:
         raise ValueError(f"--smooth-* needs a stable-baselines3 off-policy or on-policy learner; {settings.algo} "
                          f"({algorithm.__name__}) is neither")  # fmt: skip
     episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
-    if settings.group_size < 0:
-        raise ValueError(f"group_size must be >= 0 (0: each env its own messages), got {settings.group_size}")
-    if settings.envs < 1 or settings.steps < 0 or settings.checkpoint_every < 0 or settings.budget_min < 0:
-        raise ValueError("envs must be >= 1, steps, checkpoint_every and budget_min >= 0")
-    if settings.actor_average < 0:
-        raise ValueError(f"actor_average counts actor updates (0: off), got {settings.actor_average}")
     if settings.resume and not Path(settings.resume).is_file():
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
 
@@ -144,6 +142,7 @@ class Training:
         self.steps = resolve_steps(settings)
         self.overrides = parse_hyperparams(settings.hyperparams)
         self.stop = stop or threading.Event()
+        self.progress = RunProgress()  # the run's phase and numbers; `run` gives it its file, bar and publisher
         self.task = TaskSettings(obs=settings.obs, reward=settings.reward, max_steps=settings.max_steps)
         self.eval_task = dataclasses.replace(self.task, max_steps=settings.eval.max_steps, early_termination=False)
 
@@ -168,12 +167,23 @@ class Training:
             "run folder %s: %s %s, %d steps on %d %s env(s)", self.run_dir, s.algo, s.obs, self.steps, s.envs, s.backend
         )
         with ExitStack() as stack:
+            bar = PhaseBar(disable=not (s.progress_bar and sys.stderr.isatty()))
+            stack.callback(bar.close)
+            self.progress = RunProgress(self.run_dir / PROGRESS_FILE, self.steps, bar=bar)
+            if (evaluation := latest_evaluation(self.run_dir)) is not None:  # a resumed run's
+                self.progress.evaluated(*evaluation)
             session = None
             if s.backend == "zenoh":
+                from services.metrics import MetricsPublisher
+                from services.presence import process_ident
                 from services.session import open_session
 
                 session = open_session(s.zenoh, role="learner")
                 stack.callback(session.close)
+                # `swimm status` shows the phase, steps and latest evaluation of each learner process.
+                publisher = MetricsPublisher(session, Keys(s.zenoh.namespace), "learner", process_ident("learner"),
+                                             self.progress)  # fmt: skip
+                stack.callback(publisher.close)
             encoder = (
                 shared_encoder(self.task, checkpoint=s.encoder_checkpoint or None) if s.backend == "inprocess" else None
             )
@@ -241,7 +251,7 @@ class Training:
                 resume_cloning(model, s.demo, s.seed, Path(s.resume), self.run_dir)
             else:
                 teacher = load_policy(s.demo.teacher, s.encoder_checkpoint or None, gains=s.scripted)
-                demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher)
+                demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher, self.progress)
         if s.smooth.enabled:
             from learner_service.smoothness import keep_smooth
 
@@ -255,12 +265,12 @@ class Training:
             log.info("evaluations and the final model average the actor over ~%d updates", s.actor_average)
         acting = average.swapped_in if average is not None else nullcontext  # the weights evaluations and saves use
         start_steps = model.num_timesteps
-        stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.run_dir / PROGRESS_FILE)
-        callbacks = [stats, TqdmProgressCallback(stats, disable=not (s.progress_bar and sys.stderr.isatty()))]
-        callbacks += training_callbacks(s.algo, self.overrides, s.envs)
+        stats = EpisodeStatsCallback(start_steps + self.steps, s.log_interval_s, self.progress)
+        callbacks = [stats, *training_callbacks(s.algo, self.overrides, s.envs)]
         evaluation = None
         if eval_env is not None:
-            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock, acting=acting)
+            evaluation = RolloutEvalCallback(eval_env, s.eval, self.run_dir, started=clock, acting=acting,
+                                             progress=self.progress)  # fmt: skip
             callbacks.append(evaluation)
         if s.budget_min:
             callbacks.append(WallClockLimit(s.budget_min * 60, clock))

@@ -44,13 +44,15 @@ import numpy as np
 import torch
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
-from tqdm import tqdm
 
 from learner_service.learn_settings import DemoSettings
-from learner_service.progress import DEMOS_FILE
+from learner_service.progress import DEMOS_FILE, RunProgress
 from learner_service.registry import Policy, deterministic_action
 
 log = logging.getLogger(__name__)
+#: Critic warm-up updates per call of the learner's ``train``, counted between calls; a multiple of the target
+#: and policy update intervals (``gradient_step % interval`` restarts at each call), so the updates are the same.
+CRITIC_CHUNK = 100
 
 
 @dataclass(frozen=True)
@@ -85,12 +87,16 @@ def innermost(env: VecEnv) -> VecEnv:
     return env
 
 
-def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int, teacher: Policy) -> Demonstrations:
+def play_tracker(
+    model: Any, env: VecEnv, settings: DemoSettings, seed: int, teacher: Policy, progress: RunProgress | None = None
+) -> Demonstrations:
     """Play ``teacher`` for ``settings.steps`` env steps, storing each transition in the model's buffer.
 
     The ground-truth tracker needs the telemetry in ``info`` (TrackingEnv and ProxyEnv put it there). A model
     without a replay buffer (on-policy) keeps only the observations and actions for :func:`clone_actions`.
     """
+    progress = progress or RunProgress()
+    progress.start("demonstrations", settings.steps)
     rng = np.random.default_rng(seed)
     env = innermost(env)
     buffer = getattr(model, "replay_buffer", None)
@@ -98,25 +104,24 @@ def play_tracker(model: Any, env: VecEnv, settings: DemoSettings, seed: int, tea
     infos = list(env.reset_infos)
     observations, actions, returns = [], [], []
     running = np.zeros(env.num_envs)
-    with tqdm(total=settings.steps, desc="demonstrations", unit="step", disable=None) as bar:
-        for played in range(env.num_envs, settings.steps + env.num_envs, env.num_envs):
-            clean = np.stack([teacher.act(_row(obs, i), info) for i, info in enumerate(infos)])
-            taken = np.clip(clean + rng.normal(0.0, settings.noise, clean.shape), -1.0, 1.0).astype(np.float32)
-            next_obs, rewards, dones, step_infos = env.step(taken)
-            observations.append(obs)
-            actions.append(clean)
-            if buffer is not None:
-                store(buffer, model.policy.scale_action(taken), obs, next_obs, rewards, dones, step_infos)
-            running += rewards
-            for index in np.flatnonzero(dones):
-                returns.append(float(running[index]))
-                running[index] = 0.0
-            # After an automatic reset the next action answers the new episode's first telemetry.
-            infos = [env.reset_infos[i] if dones[i] else info for i, info in enumerate(step_infos)]
-            obs = next_obs
-            bar.update(env.num_envs)
-            if bar.disable and played % max(settings.steps // 10, 1) < env.num_envs:  # no bar: a line per tenth
-                log.info("demonstrations: %d/%d steps, %d episodes ended", played, settings.steps, len(returns))
+    for played in range(env.num_envs, settings.steps + env.num_envs, env.num_envs):
+        clean = np.stack([teacher.act(_row(obs, i), info) for i, info in enumerate(infos)])
+        taken = np.clip(clean + rng.normal(0.0, settings.noise, clean.shape), -1.0, 1.0).astype(np.float32)
+        next_obs, rewards, dones, step_infos = env.step(taken)
+        observations.append(obs)
+        actions.append(clean)
+        if buffer is not None:
+            store(buffer, model.policy.scale_action(taken), obs, next_obs, rewards, dones, step_infos)
+        running += rewards
+        for index in np.flatnonzero(dones):
+            returns.append(float(running[index]))
+            running[index] = 0.0
+        # After an automatic reset the next action answers the new episode's first telemetry.
+        infos = [env.reset_infos[i] if dones[i] else info for i, info in enumerate(step_infos)]
+        obs = next_obs
+        progress.advance(played)
+        if played % max(settings.steps // 10, 1) < env.num_envs:  # a line per tenth
+            log.info("demonstrations: %d/%d steps, %d episodes ended", played, settings.steps, len(returns))
     return Demonstrations(_concat(observations), np.concatenate(actions), returns)
 
 
@@ -149,13 +154,17 @@ def _concat(batches: list[Any]) -> Any:
     return np.concatenate(batches)
 
 
-def clone_actions(model: Any, demos: Demonstrations, settings: DemoSettings, seed: int) -> list[float]:
+def clone_actions(
+    model: Any, demos: Demonstrations, settings: DemoSettings, seed: int, progress: RunProgress | None = None
+) -> list[float]:
     """Fit the policy's deterministic action to the tracker's by mean squared error; the loss of each epoch.
 
     Works for any stable-baselines3 policy whose deterministic action is differentiable (SAC, TD3, PPO, A2C): only the
     parameters on the action's path receive gradients, so a critic is left as it is. A TD3-style target actor is
     synced to the fitted actor.
     """
+    progress = progress or RunProgress()
+    progress.start("cloning", settings.bc_epochs)
     policy = model.policy
     policy.set_training_mode(True)
     parameters = [p for p in policy.parameters() if p.requires_grad]
@@ -175,6 +184,7 @@ def clone_actions(model: Any, demos: Demonstrations, settings: DemoSettings, see
             optimizer.step()
             total += loss.item() * len(rows)
         losses.append(total / count)
+        progress.advance(epoch + 1)
         log.info("behaviour cloning epoch %d/%d: action MSE %.4f", epoch + 1, settings.bc_epochs, losses[-1])
     policy.set_training_mode(False)
     if hasattr(model, "actor_target"):
@@ -194,12 +204,15 @@ def _rows(observations: Any, rows: np.ndarray) -> Any:
     return observations[rows]
 
 
-def train_critic(model: Any, gradient_steps: int) -> None:
+def train_critic(model: Any, gradient_steps: int, progress: RunProgress | None = None) -> None:
     """The off-policy learner's own ``train`` with every actor parameter frozen: the critic (and an automatic
     entropy coefficient) learn the value of the cloned policy from the buffer while the policy stays as cloned.
 
-    An actor parameter without ``requires_grad`` gets no gradient, and its optimizer skips it.
+    An actor parameter without ``requires_grad`` gets no gradient, and its optimizer skips it. ``train`` runs in
+    chunks of :data:`CRITIC_CHUNK` updates (the same updates, one after another) so ``progress`` can count them.
     """
+    progress = progress or RunProgress()
+    progress.start("critic warm-up", gradient_steps)
     frozen = [p for p in model.actor.parameters() if p.requires_grad]
     for parameter in frozen:
         parameter.requires_grad_(False)
@@ -208,7 +221,9 @@ def train_critic(model: Any, gradient_steps: int) -> None:
     except AttributeError:
         model.set_logger(Logger(folder=None, output_formats=[]))
     try:
-        model.train(gradient_steps=gradient_steps, batch_size=model.batch_size)
+        for done in range(0, gradient_steps, CRITIC_CHUNK):
+            model.train(gradient_steps=min(CRITIC_CHUNK, gradient_steps - done), batch_size=model.batch_size)
+            progress.advance(min(done + CRITIC_CHUNK, gradient_steps))
     finally:
         for parameter in frozen:
             parameter.requires_grad_(True)
@@ -235,20 +250,27 @@ def keep_cloning(model: Any, demos: Demonstrations, settings: DemoSettings, seed
 
 
 def demonstrate(
-    model: Any, env: VecEnv, settings: DemoSettings, seed: int, run_dir: Path, teacher: Policy
+    model: Any,
+    env: VecEnv,
+    settings: DemoSettings,
+    seed: int,
+    run_dir: Path,
+    teacher: Policy,
+    progress: RunProgress | None = None,
 ) -> Demonstrations:
-    """Play the teacher, fill the buffer, clone its actions, train the critic: the whole head start, logged.
+    """Play the teacher, fill the buffer, clone its actions, train the critic: the whole head start, logged, each
+    part a phase of ``progress``.
 
     The demonstrations are saved as ``run_dir/`` :data:`DEMOS_FILE` for :func:`resume_cloning`.
     """
-    demos = play_tracker(model, env, settings, seed, teacher)
+    demos = play_tracker(model, env, settings, seed, teacher, progress)
     mean = f"{np.mean(demos.returns):.1f}" if demos.returns else "n/a"
     log.info("tracker played %d steps, %d episodes ended (mean return %s)", len(demos.actions), len(demos.returns),
              mean)  # fmt: skip
     if settings.bc_epochs:
-        clone_actions(model, demos, settings, seed)
+        clone_actions(model, demos, settings, seed, progress)
     if settings.critic_steps and hasattr(model, "replay_buffer") and hasattr(model, "actor"):
-        train_critic(model, settings.critic_steps)
+        train_critic(model, settings.critic_steps, progress)
     save_demonstrations(demos, run_dir / DEMOS_FILE)
     if settings.bc_weight > 0 and hasattr(model, "actor"):
         keep_cloning(model, demos, settings, seed)

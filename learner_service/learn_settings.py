@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from services.settings import ZenohSettings
+from services.settings import NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings, check_ranges
 
 #: The choices of the learner's settings, typed so that the settings loader checks them wherever they come from.
 ObsMode = Literal["cmvae", "image", "state"]
@@ -26,39 +26,35 @@ class EvalSettings:
     """When and how the evaluation callback runs (flags ``--eval-*`` of `swimm learn`)."""
 
     enabled: bool = True
-    episodes: int = 5  # deterministic episodes per evaluation
-    min_steps: int = 500_000  # no evaluation before this many training steps (the reference: 5e5)
-    every: int = 10  # evaluate every this many training episodes (or steps, see unit) once min_steps have run
+    episodes: PosInt = 5  # deterministic episodes per evaluation
+    min_steps: NonNegInt = 500_000  # no evaluation before this many training steps (the reference: 5e5)
+    every: PosInt = 10  # evaluate every this many training episodes (or steps, see unit) once min_steps have run
     unit: Literal["episodes", "steps"] = "episodes"
     seed: int = 113  # base seed of the evaluation episodes: every evaluation plays the same episodes
-    max_steps: int = 3000  # length of an evaluation episode (no early termination: the SPEC's evaluation)
+    max_steps: PosInt = 3000  # length of an evaluation episode (no early termination: the SPEC's evaluation)
     env: str = "0"  # distributed: the id of the eval-channel env the learner claims for its evaluations
 
     def check(self) -> None:
         if self.unit not in EVAL_UNITS:
             raise ValueError(f"eval unit must be one of {EVAL_UNITS}, got {self.unit!r}")
-        if self.episodes < 1 or self.every < 1 or self.min_steps < 0 or self.max_steps < 1:
-            raise ValueError("eval episodes, every and max_steps must be >= 1 and min_steps >= 0")
+        check_ranges(self, "eval_")
 
 
 @dataclass
 class DemoSettings:
     """Flags ``--demo-*`` of `swimm learn`."""
 
-    steps: int = 0  # env steps the scripted tracker plays before training (0: no demonstrations)
+    steps: NonNegInt = 0  # env steps the scripted tracker plays before training (0: no demonstrations)
     teacher: str = "scripted"  # scripted (ground truth) | scripted-camera (the CMVAE's decoded d, theta; cmvae obs)
-    noise: float = 0.3  # std of the Gaussian noise on the tracker's actions while it plays (see demonstrations.py)
-    bc_epochs: int = 20  # epochs fitting the policy to the tracker's actions (0: fill the replay buffer only)
-    bc_batch_size: int = 256
-    bc_learning_rate: float = 1e-3
-    critic_steps: int = 5000  # off-policy: gradient steps on the critic alone after cloning, the actor held
-    bc_weight: float = 0.0  # off-policy: weight of a cloning loss added to every actor update while training (0: off)
+    noise: NonNegFloat = 0.3  # std of the Gaussian noise on the tracker's actions as it plays (demonstrations.py)
+    bc_epochs: NonNegInt = 20  # epochs fitting the policy to the tracker's actions (0: fill the replay buffer only)
+    bc_batch_size: PosInt = 256
+    bc_learning_rate: PosFloat = 1e-3
+    critic_steps: NonNegInt = 5000  # off-policy: gradient steps on the critic alone after cloning, the actor held
+    bc_weight: NonNegFloat = 0.0  # off-policy: weight of a cloning loss added to each actor update in training (0: off)
 
     def check(self) -> None:
-        if min(self.steps, self.noise, self.bc_epochs, self.critic_steps, self.bc_weight) < 0:
-            raise ValueError("demo steps, noise, bc_epochs, critic_steps and bc_weight must be >= 0")
-        if self.bc_batch_size < 1 or self.bc_learning_rate <= 0:
-            raise ValueError("demo bc_batch_size must be >= 1 and bc_learning_rate > 0")
+        check_ranges(self, "demo_")
 
 
 @dataclass
@@ -72,35 +68,30 @@ class TrackerGains:
 
     # Defaults from a sweep on the in-process env (3 evaluation episodes, seed 113): yaw gains above ~1/45 per
     # degree make the heading oscillate (A and S_A grow), lower ones lag the dolphin; surge gain matters less.
-    yaw_gain: float = 1.0 / 60.0  # command per degree of azimuth: full turn at 60 degrees
-    surge_gain: float = 1.0  # command per metre of distance error: full surge 1 m off opt_d
-    yaw_damping: float = 0.0  # command per unit of ActPrev's mean yaw command (0: none, the undelayed optimum)
+    yaw_gain: NonNegFloat = 1.0 / 60.0  # command per degree of azimuth: full turn at 60 degrees
+    surge_gain: NonNegFloat = 1.0  # command per metre of distance error: full surge 1 m off opt_d
+    yaw_damping: NonNegFloat = 0.0  # command per unit of ActPrev's mean yaw command (0: none, the undelayed optimum)
 
     def check(self) -> None:
-        if min(self.yaw_gain, self.surge_gain, self.yaw_damping) < 0:
-            raise ValueError(
-                "scripted gains must be >= 0: yaw_gain, surge_gain and yaw_damping are "
-                f"{self.yaw_gain}, {self.surge_gain} and {self.yaw_damping}"
-            )
+        check_ranges(self, "scripted_")
 
 
 @dataclass
 class SmoothSettings:
     """Flags ``--smooth-*`` of `swimm learn`: CAPS action smoothness of the actor (see smoothness.py)."""
 
-    temporal: float = 0.0  # weight of the squared action change between consecutive observations (0: off)
-    spatial: float = 0.0  # weight of the squared action change under observation noise of std sigma (0: off)
-    sigma: float = 0.05  # std of the spatial term's observation noise
-    bound: float = 0.0  # weight of the squared excess beyond the action space (PPO) or tanh's saturation (SAC, TD3)
-    batch_size: int = 256  # minibatch of each term (replay buffer or rollout), per actor update
+    temporal: NonNegFloat = 0.0  # weight of the squared action change between consecutive observations (0: off)
+    spatial: NonNegFloat = 0.0  # weight of the squared action change under observation noise of std sigma (0: off)
+    sigma: PosFloat = 0.05  # std of the spatial term's observation noise
+    bound: NonNegFloat = 0.0  # weight of the squared excess past the action space (PPO) or tanh's saturation (SAC, TD3)
+    batch_size: PosInt = 256  # minibatch of each term (replay buffer or rollout), per actor update
 
     @property
     def enabled(self) -> bool:
         return self.temporal > 0 or self.spatial > 0 or self.bound > 0
 
     def check(self) -> None:
-        if min(self.temporal, self.spatial, self.bound) < 0 or self.sigma <= 0 or self.batch_size < 1:
-            raise ValueError("smooth temporal, spatial and bound must be >= 0, sigma > 0 and batch_size >= 1")
+        check_ranges(self, "smooth_")
 
 
 @dataclass
@@ -109,29 +100,29 @@ class LearnCommandSettings:
     algo: str = "sac"  # sac | ppo | td3 | package.module:Class
     obs: ObsMode = "cmvae"
     reward: RewardVersion = "swimm2"
-    max_steps: int = 3000  # time limit of a training episode (truncation)
-    steps: int = 0  # training env steps (more when resuming); 0 = the algorithm's n_timesteps (1e6)
-    budget_min: float = 0.0  # wall-time budget in minutes (model building and demonstrations count); 0 = none
-    envs: int = 1  # parallel envs (train channel ids 0..envs-1 when distributed)
-    group_size: int = 0  # distributed: envs stepped as one message each way (e.g. envs/2: two groups); 0 = none
+    max_steps: PosInt = 3000  # time limit of a training episode (truncation)
+    steps: NonNegInt = 0  # training env steps (more when resuming); 0 = the algorithm's n_timesteps (1e6)
+    budget_min: NonNegFloat = 0.0  # wall-time budget in minutes (model building and demonstrations count); 0 = none
+    envs: PosInt = 1  # parallel envs (train channel ids 0..envs-1 when distributed)
+    group_size: NonNegInt = 0  # distributed: envs stepped as one message each way (e.g. envs/2: two groups); 0 = none
     seed: int = 97  # model seed and base seed of env 0 (env i: seed + i)
     backend: Backend = "zenoh"  # zenoh (a running sim/encoder) | inprocess (World in this process)
     run_dir: str = ""  # default runs/<algo>-<obs>-<UTC time>
     resume: str = ""  # a saved model (.zip) to go on training; its replay buffer is loaded if beside it
     hyperparams: str = ""  # YAML mapping or file over the algorithm's defaults, e.g. "{gradient_steps: 32}"
-    checkpoint_every: int = 50_000  # env steps between checkpoints; 0 = none
+    checkpoint_every: NonNegInt = 50_000  # env steps between checkpoints; 0 = none
     save_replay_buffer: bool = True  # with checkpoints (newest only) and the final model, so resume keeps it
     eval: EvalSettings = field(default_factory=EvalSettings)  # flags --eval-*
     demo: DemoSettings = field(default_factory=DemoSettings)  # flags --demo-*: the scripted tracker's head start
     smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS action smoothness
     scripted: TrackerGains = field(default_factory=TrackerGains)  # flags --scripted-*: the demonstrations' tracker
-    actor_average: int = 0  # evaluate and deliver an average of the actor's weights over ~N updates; 0 = live weights
+    actor_average: NonNegInt = 0  # evaluate and deliver the actor's weights averaged over ~N updates; 0 = live weights
     encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
-    step_timeout_s: float = 2.0  # distributed: wait per try before re-sending a step
-    max_retries: int = 10  # distributed: re-sends before a step fails naming the missing service
+    step_timeout_s: PosFloat = 2.0  # distributed: wait per try before re-sending a step
+    max_retries: NonNegInt = 10  # distributed: re-sends before a step fails naming the missing service
     device: str = "auto"  # torch device of the learner
-    threads: int = 1  # torch CPU threads; 1 leaves the other cores to the sim and encoder; 0 = torch's default
-    log_interval_s: float = 30.0  # seconds between progress lines in the log
+    threads: NonNegInt = 1  # torch CPU threads; 1 leaves the other cores to the sim and encoder; 0 = torch's default
+    log_interval_s: PosFloat = 30.0  # seconds between progress lines in the log
     progress_bar: bool = True  # tqdm bar (only when stderr is a terminal)
 
 

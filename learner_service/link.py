@@ -17,7 +17,6 @@ from __future__ import annotations
 import logging
 import queue
 import time
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -37,7 +36,7 @@ from services.messages import (
     ObservationMsg,
 )
 from services.polling import Inbox, prepare_to_poll
-from services.presence import Roster, choose_route
+from services.presence import Roster, choose_route, member_ident
 from services.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
@@ -99,7 +98,8 @@ def await_reply(
 
 
 def new_holder_id(role: str) -> str:
-    return f"{role}-{uuid.uuid4().hex[:10]}"
+    """A claim's holder id; `swimm status` finds the process in it (one row for a learner's train and eval envs)."""
+    return member_ident(role)
 
 
 class RemoteEnvLink:

@@ -29,10 +29,9 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import encoder_service
@@ -40,18 +39,33 @@ from learner_service.learn_settings import LearnCommandSettings, default_run_dir
 from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,
+    EVALUATIONS_CSV,
+    FINAL_MODEL,
     LEARN_CONFIG,
-    latest_evaluation,
-    progress_postfix,
+    LIVE_MODEL,
+    UP_CONFIG,
+    PhaseBar,
+    describe_progress,
     read_progress,
 )
+from services import cli
 from services import settings as settings_mod
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
 from services.presence import Roster
 from services.procs import ProcessGroup, Service, zenoh_flags
 from services.session import open_session
-from services.settings import ZenohSettings, to_dict
+from services.settings import (
+    NonNegFloat,
+    NonNegInt,
+    PosInt,
+    SettingsError,
+    ZenohSettings,
+    at_least,
+    at_most,
+    check_ranges,
+    to_dict,
+)
 from sim_service.responder import SimSettings, check_low_latency_group
 
 log = logging.getLogger(__name__)
@@ -64,16 +78,16 @@ WATCH_PERIOD_S = 0.5
 @dataclass
 class UpSettings:
     learn: LearnCommandSettings = field(default_factory=LearnCommandSettings, metadata={"flatten": True})
-    port: int = 7447  # the router's TCP port on 127.0.0.1; 0 = any free port
-    encoders: int = 1  # encoder processes (cmvae only)
+    port: Annotated[int, at_least(0), at_most(65535)] = 7447  # the router's TCP port on 127.0.0.1; 0 = any free port
+    encoders: PosInt = 1  # encoder processes (cmvae only)
     encoder_engine: str = "torch"  # the encoders' CMVAE inference: torch | onnx (onnxruntime; `swimm encoder --engine`)
-    sims: int = 1  # sim processes, the train envs split between them in equal ranges (the eval envs on the first)
-    sim_eval_envs: int = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
+    sims: PosInt = 1  # sim processes, the train envs split between them in equal ranges (the eval envs on the first)
+    sim_eval_envs: NonNegInt = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
     topology: Literal["peer", "client"] = "peer"  # peer: direct links once the router introduces them; client: via it
-    stop_timeout_s: float = 180.0  # how long the learner may take to save after SIGTERM before it is killed
+    stop_timeout_s: NonNegFloat = 180.0  # how long the learner may take to save after SIGTERM before it is killed
     sim_config: str = ""  # a `swimm sim` settings file for the sim it starts (e.g. its image noise)
-    restart_limit: int = 3  # times a router, sim or encoder that dies is started again before the run ends (saved)
-    restart_backoff_s: float = 2.0  # wait before a service's first restart, doubled for each one after
+    restart_limit: NonNegInt = 3  # times a router, sim or encoder that dies is restarted before the run ends (saved)
+    restart_backoff_s: NonNegFloat = 2.0  # wait before a service's first restart, doubled for each one after
 
 
 def sim_shares(envs: int, sims: int) -> list[tuple[int, int]]:
@@ -124,6 +138,29 @@ def encoder_checkpoint(learn: LearnCommandSettings) -> Path | None:
     return path
 
 
+def child_commands(settings: UpSettings, endpoint: str, checkpoint: Path | None) -> list[tuple[str, str, list[str]]]:
+    """(name, command, arguments) of each sim and encoder `swimm up` starts, joining the router at ``endpoint``:
+    what :func:`check` refuses before any starts, and what :meth:`LocalSystem.start_services` starts."""
+    zenoh = settings.learn.zenoh
+    common = ["--mode", settings.topology, "--connect", endpoint, "--namespace", zenoh.namespace]
+    common += zenoh_flags(zenoh.low_latency, zenoh.zenoh_threads)
+    config = ["--config", settings.sim_config] if settings.sim_config else []
+    shares = sim_shares(settings.learn.envs, settings.sims)
+    children = []
+    for index, (first, count) in enumerate(shares):
+        eval_envs = settings.sim_eval_envs if index == 0 else 0
+        sim_args = ["--train-envs", str(count), "--first-train-env", str(first), "--eval-envs", str(eval_envs)]
+        if len(shares) > 1:
+            sim_args += ["--ident", f"sim-{index}"]
+        children.append(("sim" if len(shares) == 1 else f"sim-{index}", "sim", [*common, *sim_args, *config]))
+    encoders = settings.encoders if checkpoint is not None else 0
+    for index in range(encoders):
+        name = "encoder" if encoders == 1 else f"encoder-{index}"
+        encoder_args = ["--checkpoint", str(checkpoint), "--ident", f"enc-{index}", "--engine", settings.encoder_engine]
+        children.append((name, "encoder", [*common, *encoder_args]))
+    return children
+
+
 def check_port_free(port: int) -> None:
     """Refuse a busy port at once: a router of another run there would otherwise be joined by mistake.
 
@@ -160,27 +197,15 @@ class LocalSystem:
             check_port_free(self.settings.port)
         zenoh = self.learn.zenoh
         endpoint = self.group.start_router(self.settings.port or None, flags=zenoh_flags(zenoh.low_latency))
-        common = ("--mode", self.settings.topology, "--connect", endpoint, "--namespace", self.namespace)
-        common += zenoh_flags(zenoh.low_latency, zenoh.zenoh_threads)
-        config = ["--config", self.settings.sim_config] if self.settings.sim_config else []
-        shares = sim_shares(self.learn.envs, self.settings.sims)
-        for index, (first, count) in enumerate(shares):
-            eval_envs = self.settings.sim_eval_envs if index == 0 else 0
-            sim_args = ["--train-envs", str(count), "--first-train-env", str(first), "--eval-envs", str(eval_envs)]
-            if len(shares) > 1:
-                sim_args += ["--ident", f"sim-{index}"]
-            self.group.start("sim" if len(shares) == 1 else f"sim-{index}", "sim", *common, *sim_args, *config)
-        encoders = self.settings.encoders if checkpoint is not None else 0
-        for index in range(encoders):
-            name = "encoder" if encoders == 1 else f"encoder-{index}"
-            self.group.start(name, "encoder", *common, "--checkpoint", str(checkpoint), "--ident", f"enc-{index}",
-                             "--engine", self.settings.encoder_engine)  # fmt: skip
+        children = child_commands(self.settings, endpoint, checkpoint)
+        for name, command, argv in children:
+            self.group.start(name, command, *argv)
         watcher = ZenohSettings(connect=[endpoint], namespace=self.namespace, startup_timeout_s=self.wait_s)
         session = open_session(watcher, role="up")
         try:
-            self.wait_for_role(session, "sim", len(shares))
-            if encoders:
-                self.wait_for_role(session, "encoder", encoders)
+            for role in ("sim", "encoder"):
+                if count := sum(command == role for _, command, _ in children):
+                    self.wait_for_role(session, role, count)
         finally:
             session.close()
         return endpoint
@@ -223,6 +248,9 @@ class LocalSystem:
         for service in self.group.services:
             if service is skip or service.alive:
                 continue
+            if service.refused_settings:
+                raise ServiceDied(f"{service.name} refused its settings (not restarted); its log ends:\n"
+                                  f"{service.log_tail()}")  # fmt: skip
             if service.restarts >= self.settings.restart_limit:
                 after = f" after {service.restarts} restarts (--restart-limit)" if service.restarts else ""
                 raise ServiceDied(
@@ -241,13 +269,7 @@ class LocalSystem:
                 self.group.restart(service)
 
     def start_learner(self, endpoint: str) -> Service:
-        learn = dataclasses.replace(
-            self.learn,
-            zenoh=dataclasses.replace(self.learn.zenoh, mode=self.settings.topology, connect=[endpoint]),
-            run_dir=str(self.run_dir),
-            backend="zenoh",
-            progress_bar=False,  # this command draws the bar
-        )
+        learn = learner_settings(self.settings, endpoint, self.run_dir)
         config = self.run_dir / LEARN_CONFIG
         config.write_text(yaml.safe_dump(to_dict(learn), sort_keys=False))
         return self.group.start("learner", "learn", "--config", str(config))
@@ -256,8 +278,9 @@ class LocalSystem:
     def watch(self, learner: Service) -> int:
         """Show the learner's progress until it exits, a service dies, or a stop is asked; returns an exit code."""
         interactive = sys.stderr.isatty()
-        bar = tqdm(unit="step", disable=not interactive, dynamic_ncols=True)
+        bar = PhaseBar(disable=not interactive)
         next_line = time.monotonic() + self.learn.log_interval_s
+        phase = None
         try:
             with logging_redirect_tqdm():
                 while learner.alive:
@@ -267,11 +290,12 @@ class LocalSystem:
                     self.check_services(skip=learner)
                     progress = read_progress(self.run_dir)
                     if progress is not None:
-                        self.show(bar, progress)
-                        if not interactive and time.monotonic() >= next_line:
+                        bar.show(progress)
+                        # No bar: a line at each new phase and every --log-interval-s.
+                        if not interactive and (progress.get("phase") != phase or time.monotonic() >= next_line):
                             next_line = time.monotonic() + self.learn.log_interval_s
-                            steps = f"{progress['num_timesteps']}/{progress['total_timesteps']} steps"
-                            log.info("learner: %s, %s", steps, self.postfix(progress))
+                            phase = progress.get("phase")
+                            log.info("learner: %s", describe_progress(progress))
                     self.stop.wait(WATCH_PERIOD_S)
         except ServiceDied:
             self.stop_learner(learner)
@@ -279,7 +303,7 @@ class LocalSystem:
         finally:
             progress = read_progress(self.run_dir)
             if progress is not None:
-                self.show(bar, progress)
+                bar.show(progress)
             bar.close()
         code = learner.process.wait()
         if code < 0:  # killed by a signal (e.g. SIGTERM before its training loop began): the shell's convention
@@ -288,43 +312,58 @@ class LocalSystem:
             log.error("the learner exited with %d; its log ends:\n%s", code, learner.log_tail())
         return code
 
-    def postfix(self, progress: dict[str, Any]) -> dict[str, Any]:
-        """The bar's numbers: episodes, recent return, rate, and the latest evaluation (return@steps)."""
-        return progress_postfix(progress, latest_evaluation(self.run_dir))
-
-    def show(self, bar: tqdm, progress: dict[str, Any]) -> None:
-        bar.total = progress["total_timesteps"]
-        bar.update(progress["num_timesteps"] - bar.n)
-        bar.set_postfix(self.postfix(progress), refresh=True)
-
     def stop_learner(self, learner: Service) -> None:
         log.info("stopping the learner (up to %.0f s to save)", self.settings.stop_timeout_s)
         self.group.stop(learner, timeout_s=self.settings.stop_timeout_s)
 
 
-def run(settings: UpSettings) -> int:
+def check(settings: UpSettings) -> UpSettings:
+    """Refuse, before any process starts or any folder is made, what this command or any process it would
+    start would refuse (each by the command's own check); the settings with the learner's group size resolved."""
+    check_ranges(settings)
     learn = settings.learn
-    if settings.topology not in ("peer", "client"):
-        raise ValueError(f"--topology must be peer or client, got {settings.topology!r}")
-    if learn.backend != "zenoh":
-        log.info("swimm up always trains through the services; --backend %s is ignored", learn.backend)
-    if settings.restart_limit < 0 or settings.restart_backoff_s < 0:
-        raise ValueError(f"--restart-limit and --restart-backoff-s must be >= 0, got {settings.restart_limit} and "
-                         f"{settings.restart_backoff_s}")  # fmt: skip
     encoder_service.check_engine(settings.encoder_engine, "--encoder-engine")
     if settings.sim_config and not Path(settings.sim_config).is_file():
         raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
-    sim_shares(learn.envs, settings.sims)  # refuses a split that leaves envs over
     largest_group = 0
     if learn.zenoh.low_latency:  # its messages cannot fragment: groups must fit the sim's observations
         image_size = settings_mod.load(SimSettings, None, settings.sim_config or None).world.image_size
         largest_group = check_low_latency_group(learn.group_size, image_size)
     group_size = group_size_for(learn.envs, learn.group_size, settings.sims, largest_group)
-    learn = dataclasses.replace(learn, group_size=group_size)
-    settings = dataclasses.replace(settings, learn=learn)
+    settings = dataclasses.replace(settings, learn=dataclasses.replace(learn, group_size=group_size))
+    endpoint = f"tcp/127.0.0.1:{settings.port}"  # its real port is known once the router listens; not checked
+    for name, command, argv in child_commands(settings, endpoint, encoder_checkpoint(settings.learn)):
+        try:
+            cli.checked_settings(command, argv)
+        except SettingsError as exc:
+            raise SettingsError(f"the {name} it would start refuses its settings: {exc}") from None
+    from learner_service.command import check as check_learner  # stable-baselines3: only once the rest passed
+
+    check_learner(learner_settings(settings, endpoint, Path(".")))
+    return settings
+
+
+def learner_settings(settings: UpSettings, endpoint: str, run_dir: Path) -> LearnCommandSettings:
+    """What the learner `swimm up` starts is given: the router's endpoint, the run folder, no bar of its own."""
+    learn = settings.learn
+    return dataclasses.replace(
+        learn,
+        zenoh=dataclasses.replace(learn.zenoh, mode=settings.topology, connect=[endpoint]),
+        run_dir=str(run_dir),
+        backend="zenoh",
+        progress_bar=False,  # this command draws the bar
+    )
+
+
+def run(settings: UpSettings) -> int:
+    if settings.learn.backend != "zenoh":
+        log.info("swimm up always trains through the services; --backend %s is ignored", settings.learn.backend)
+    settings = check(settings)
+    learn = settings.learn
     checkpoint = encoder_checkpoint(learn)
     run_dir = Path(learn.run_dir) if learn.run_dir else default_run_dir(learn)
     run_dir.mkdir(parents=True, exist_ok=True)
+    write_up_config(settings, run_dir)
     stop = threading.Event()
     started = time.monotonic()
     on_signal = stop_on_signals(stop, "stopping the learner (it saves), then the services")
@@ -351,24 +390,44 @@ def run(settings: UpSettings) -> int:
         run_dir,
         run_dir / "logs",
     )
-    if code == 0:
-        sys.stdout.write(where_the_policy_is(run_dir, learn))
+    if (run_dir / FINAL_MODEL).is_file():  # finished or stopped: the learner saved before it exited
+        sys.stdout.write(what_the_run_saved(run_dir, learn))
     return code
 
 
-def where_the_policy_is(run_dir: Path, learn: LearnCommandSettings) -> str:
-    """What a finished run leaves a user: the best model, its evaluation, and the command that evaluates it."""
+def what_the_run_saved(run_dir: Path, learn: LearnCommandSettings) -> str:
+    """What a finished or stopped run leaves a user: every model file it saved, the command that evaluates the
+    policy, and the one that resumes training with this run's settings."""
+    from learner_service.checkpoints import replay_buffer_path  # stable-baselines3: not for `swimm up --help`
+
+    lines = [f"saved in {run_dir}:"]
+    final = run_dir / FINAL_MODEL
+    buffer = replay_buffer_path(final)
+    with_buffer = f" (+ {buffer.name}, its replay buffer)" if buffer.is_file() else ""
+    lines.append(f"  {final.name}{with_buffer}: the model as training ended")
+    if (run_dir / LIVE_MODEL).is_file():
+        lines.append(f"  {LIVE_MODEL}: the actor's own weights then, not averaged (what --resume takes)")
     score_path = run_dir / BEST_MODEL_SCORE
-    if not score_path.is_file():
-        return f"no evaluation ran; the final model is in {run_dir}\n"
-    score = json.loads(score_path.read_text())
-    command = (
-        f"swimm eval --backend inprocess --algo {learn.algo} --obs {learn.obs} --checkpoint {run_dir / BEST_MODEL}"
-    )
+    if score_path.is_file():
+        score = json.loads(score_path.read_text())
+        lines.append(f"  {BEST_MODEL}: the best evaluated policy, return {score['mean_return']:.0f} at "
+                     f"{score['num_timesteps']} steps (scored in {BEST_MODEL_SCORE}, {EVALUATIONS_CSV})")  # fmt: skip
+    checkpoints = sorted((run_dir / "checkpoints").glob("model_*_steps.zip"), key=lambda path: path.stat().st_mtime)
+    if checkpoints:
+        lines.append(f"  checkpoints/{checkpoints[-1].name}: the newest of {len(checkpoints)} checkpoints")
+    lines.append("  summary.png, train*.monitor.csv, tensorboard/ and logs/: how training went")
+    policy = run_dir / (BEST_MODEL if score_path.is_file() else FINAL_MODEL)
+    evaluate = f"swimm eval --backend inprocess --algo {learn.algo} --obs {learn.obs} --checkpoint {policy}"
     if learn.obs == "cmvae" and learn.encoder_checkpoint:
-        command += f" --encoder-checkpoint {learn.encoder_checkpoint}"
-    return (
-        f"policy: {run_dir / BEST_MODEL} (evaluation return {score['mean_return']:.0f} at {score['num_timesteps']} "
-        "steps)\n"
-        f"evaluate it: {command} --episodes 20 --seed 127\n"
-    )
+        evaluate += f" --encoder-checkpoint {learn.encoder_checkpoint}"
+    resume_from = run_dir / (LIVE_MODEL if (run_dir / LIVE_MODEL).is_file() else FINAL_MODEL)
+    lines.append(f"evaluate the policy: {evaluate} --episodes 20 --seed 127")
+    lines.append(f"resume training: swimm up --config {run_dir / UP_CONFIG} --resume {resume_from}")
+    return "\n".join(lines) + "\n"
+
+
+def write_up_config(settings: UpSettings, run_dir: Path) -> None:
+    """This run's settings, its folder included, as a `swimm up --config` file: what resumes it as it was."""
+    learn = dataclasses.replace(settings.learn, run_dir=str(run_dir), resume="")
+    data = to_dict(dataclasses.replace(settings, learn=learn))
+    (run_dir / UP_CONFIG).write_text(yaml.safe_dump(data, sort_keys=False))

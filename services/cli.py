@@ -28,16 +28,32 @@ class Command:
     run: str  # "module:function" taking the settings
     help: str
     default_config: str = ""  # a settings file beside the packages, read when no --config is given
+    check: str = ""  # "module:function" refusing bad settings before the command starts anything (exit 2)
 
 
 COMMANDS: dict[str, Command] = {
     "router": Command("services.router:RouterSettings", "services.router:run", "run a Zenoh router"),
-    "sim": Command("sim_service.responder:SimSettings", "sim_service.responder:run", "serve the MuJoCo world"),
+    "sim": Command(
+        "sim_service.responder:SimSettings",
+        "sim_service.responder:run",
+        "serve the MuJoCo world",
+        check="sim_service.responder:check",
+    ),
     "encoder": Command(
         "encoder_service.service:EncoderSettings", "encoder_service.service:run", "serve the CMVAE: obs -> latent"
     ),
-    "learn": Command("learner_service.command:LearnCommandSettings", "learner_service.command:run", "train a learner"),
-    "eval": Command("eval_service.command:EvalCommandSettings", "eval_service.command:run", "evaluate checkpoints"),
+    "learn": Command(
+        "learner_service.command:LearnCommandSettings",
+        "learner_service.command:run",
+        "train a learner",
+        check="learner_service.command:check",
+    ),
+    "eval": Command(
+        "eval_service.command:EvalCommandSettings",
+        "eval_service.command:run",
+        "evaluate checkpoints",
+        check="eval_service.command:check",
+    ),
     "dataset": Command("sim_service.dataset:DatasetSettings", "sim_service.dataset:run", "write a CMVAE dataset"),
     "train-encoder": Command(
         "encoder_service.train:TrainEncoderSettings", "encoder_service.train:run", "train the CMVAE"
@@ -58,9 +74,13 @@ COMMANDS: dict[str, Command] = {
         "learner_service.up:run",
         "launch router, sim, encoder, learner (shipped recipe)",
         default_config="learner_service/models/sac_cmvae.yaml",
+        check="learner_service.up:check",
     ),
     "status": Command(
-        "services.status:StatusSettings", "services.status:run", "who is live in a namespace, and doing what"
+        "services.status:StatusSettings",
+        "services.status:run",
+        "who is live in a namespace, and doing what",
+        check="services.status:check",
     ),
     "pilot": Command(
         "pilot_service.pilot:PilotSettings", "pilot_service.pilot:run", "fly ArduSub from a video stream (ONNX policy)"
@@ -86,22 +106,48 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="swimm", description="Camera-only active target tracking over Zenoh.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, spec in COMMANDS.items():
-        command_parser = sub.add_parser(name, help=spec.help, description=spec.help)
+        description = spec.help
+        if spec.default_config:
+            description += (
+                f". A plain run reads the recipe {spec.default_config}: the defaults shown are its values where it "
+                "sets them (--config FILE replaces the recipe; flags and SWIMM_* variables override either)"
+            )
+        command_parser = sub.add_parser(name, help=spec.help, description=description)
         command_parser.add_argument("--config", help="YAML settings file (flags and SWIMM_* variables override it)")
         command_parser.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env SWIMM_LOG_LEVEL)")
         if name == command:  # only the chosen command's settings are imported
-            settings_mod.add_arguments(command_parser, _resolve(spec.settings))
+            settings_mod.add_arguments(command_parser, _resolve(spec.settings), recipe(name))
     return parser
+
+
+def recipe(command: str) -> Path | None:
+    """The settings file a command reads when no ``--config`` is given, or None."""
+    default = COMMANDS[command].default_config
+    return Path(__file__).resolve().parents[1] / default if default else None  # package data beside services/
 
 
 def config_file(command: str, given: str | None) -> str | None:
     """The settings file of a run: ``--config`` if given, else the command's default (logged), else none."""
-    default = COMMANDS[command].default_config
-    if given or not default:
+    default = recipe(command)
+    if given or default is None:
         return given
-    path = Path(__file__).resolve().parents[1] / default  # installed beside services/ as package data
-    log.info("settings from %s (--config FILE replaces them; flags and SWIMM_* still override)", default)
-    return str(path)
+    log.info("settings from %s (--config FILE replaces them; flags and SWIMM_* still override)",
+             COMMANDS[command].default_config)  # fmt: skip
+    return str(default)
+
+
+def checked_settings(command: str, argv: list[str], environ: dict[str, str] | None = None) -> Any:
+    """The settings ``swimm <command> <argv>`` would run with, refused (:class:`SettingsError`) as that command
+    would refuse them: `swimm up` checks every process it will start this way before it starts any."""
+    spec = COMMANDS[command]
+    args = build_parser(command).parse_args([command, *argv])
+    settings = settings_mod.load(_resolve(spec.settings), args, config_file(command, args.config), environ)
+    if spec.check:
+        try:
+            _resolve(spec.check)(settings)
+        except (ValueError, FileNotFoundError) as exc:
+            raise settings_mod.SettingsError(str(exc)) from None
+    return settings
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,6 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     stop_when_launcher_exits()
     try:
         settings = settings_mod.load(_resolve(spec.settings), args, config_file(args.command, args.config))
+        if spec.check:
+            _resolve(spec.check)(settings)
+    except (ValueError, FileNotFoundError) as exc:  # the user's to change: said once, and never retried
+        log.error("%s refused its settings: %s", args.command, exc)
+        return settings_mod.SETTINGS_EXIT_CODE
+    try:
         result = _resolve(spec.run)(settings)
     except KeyboardInterrupt:
         return 130

@@ -6,6 +6,7 @@ import logging
 import threading
 import time
 from collections import Counter, deque
+from typing import Any, Protocol
 
 import msgpack
 import numpy as np
@@ -44,11 +45,17 @@ class Metrics:
             return snap
 
 
+class Snapshots(Protocol):
+    """Whatever has numbers to publish: :class:`Metrics`, or a learner's progress."""
+
+    def snapshot(self) -> dict[str, Any]: ...
+
+
 class MetricsPublisher:
-    """Publishes a :class:`Metrics` snapshot every ``period_s`` from a daemon thread."""
+    """Publishes a :class:`Metrics` (or other :class:`Snapshots`) snapshot every ``period_s`` from a daemon thread."""
 
     def __init__(
-        self, session: zenoh.Session, keys: Keys, role: str, ident: str, metrics: Metrics, period_s: float = 2.0
+        self, session: zenoh.Session, keys: Keys, role: str, ident: str, metrics: Snapshots, period_s: float = 2.0
     ):
         self._publisher = session.declare_publisher(keys.metrics(role, ident))
         self._metrics = metrics

@@ -10,8 +10,10 @@ from __future__ import annotations
 import functools
 import hashlib
 import logging
+import re
 import threading
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from types import MappingProxyType
 
@@ -21,6 +23,28 @@ from services.keys import Keys
 from services.messages import DIRECT_ROUTE
 
 log = logging.getLogger(__name__)
+
+
+#: This process's tag, in the id of every member it announces (a learner claims its train and eval envs as two).
+PROCESS_TAG = uuid.uuid4().hex[:8]
+_MEMBER = re.compile(r"(.+-[0-9a-f]{8})-[0-9a-f]{6}")
+
+
+def process_ident(role: str) -> str:
+    """This process's id in ``role``: what its metrics carry, and how each of its member ids begins."""
+    return f"{role}-{PROCESS_TAG}"
+
+
+def member_ident(role: str) -> str:
+    """A new id for one of several members of this process: ``<role>-<process tag>-<member>``."""
+    return f"{process_ident(role)}-{uuid.uuid4().hex[:6]}"
+
+
+def process_of(ident: str) -> str:
+    """The process a member id belongs to (``learner-1a2b3c4d-5e6f70``: ``learner-1a2b3c4d``); any other id is a
+    process of its own (``sim-0``)."""
+    match = _MEMBER.fullmatch(ident)
+    return match.group(1) if match else ident
 
 
 def announce(session: zenoh.Session, keys: Keys, role: str, ident: str) -> zenoh.LivelinessToken:

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from services.lifecycle import LAUNCHER_PID_ENV
+from services.settings import SETTINGS_EXIT_CODE
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +72,11 @@ class Service:
     def alive(self) -> bool:
         return self.process.poll() is None
 
+    @property
+    def refused_settings(self) -> bool:
+        """It exited refusing its settings: started again, it would refuse them again, so it never is."""
+        return self.process.poll() == SETTINGS_EXIT_CODE
+
 
 @dataclass
 class ProcessGroup:
@@ -92,6 +98,8 @@ class ProcessGroup:
         """Start a dead service again with its command line, its log appended to (compose's ``restart``)."""
         if service.alive:
             raise RuntimeError(f"{service.name} is running (pid {service.process.pid}); stop it before a restart")
+        if service.refused_settings:
+            raise RuntimeError(f"{service.name} refused its settings; started again it would refuse them again")
         code = service.process.returncode
         with open(service.log_path, "a") as log_file:
             log_file.write(f"\n--- swimm up: {service.name} exited with {code}; started again ---\n")

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 from services.lifecycle import serve_until_signalled
 from services.session import open_session
-from services.settings import LOCAL_ROUTER, ZenohSettings
+from services.settings import LOCAL_ROUTER, NonNegInt, ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -22,7 +22,7 @@ class RouterSettings:
     connect: list[str] = field(default_factory=list)  # other routers, for multi-site set-ups
     zenoh_config: str | None = None  # e.g. deploy/zenoh/router-tls-acl.json5
     low_latency: bool = False  # lock-step Zenoh, as ZenohSettings.low_latency: with the clients and peers that ask too
-    zenoh_threads: int = 0  # Zenoh's worker threads; 0: Zenoh's pools (on one thread, cut links were seen late)
+    zenoh_threads: NonNegInt = 0  # Zenoh's worker threads; 0: Zenoh's pools (on one thread, cut links were seen late)
 
 
 class Router:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -127,12 +128,20 @@ def endpoints(config: zenoh.Config, direction: str = "connect") -> list[str] | d
     return json.loads(config.get_json(f"{direction}/endpoints"))
 
 
-def describe_endpoints(config: zenoh.Config, direction: str = "connect") -> str:
-    """``endpoints`` as a person reads it in a log line or an error: comma-separated, per mode where mapped."""
+def describe_endpoints(config: zenoh.Config, direction: str = "connect", mode: str | None = None) -> str:
+    """``endpoints`` as a person reads it in a log line or an error: comma-separated, per mode where mapped, or
+    only ``mode``'s (Zenoh's stock config maps a router's listener, which a client never opens)."""
     found = endpoints(config, direction)
+    if isinstance(found, dict) and mode is not None:
+        found = found.get(mode, [])
     if isinstance(found, dict):
         return "; ".join(f"{mode}: {', '.join(items)}" for mode, items in found.items()) or "none"
     return ", ".join(found) or "none"
+
+
+def zenoh_reason(exc: Exception) -> str:
+    """Zenoh's error without the Rust source location it ends with (``at /root/.cargo/.../orchestrator.rs:447.``)."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).rstrip(" .!") or type(exc).__name__
 
 
 def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Session:
@@ -154,7 +163,7 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
                 role,
                 settings.mode,
                 describe_endpoints(config),
-                describe_endpoints(config, "listen"),
+                describe_endpoints(config, "listen", settings.mode),
                 ", low-latency transport" if settings.low_latency else "",
             )
             return session
@@ -162,11 +171,13 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
             if time.monotonic() + delay > deadline:
                 raise StartupTimeout(
                     f"{role} could not reach a Zenoh router at {describe_endpoints(config)} within "
-                    f"{settings.startup_timeout_s:.0f} s ({attempt} attempts): {exc}. Is `swimm router` running?"
+                    f"{settings.startup_timeout_s:g} s ({attempt} attempts): {zenoh_reason(exc)}. "
+                    "Is `swimm router` (or `swimm up`) running?"
                 ) from None
-            log.info(
-                "%s waiting for a Zenoh router at %s (attempt %d): %s", role, describe_endpoints(config), attempt, exc
-            )
+            # One line says what it waits for; the retries after it are for DEBUG logs.
+            log.log(logging.INFO if attempt == 1 else logging.DEBUG,
+                    "%s waiting up to %g s for a Zenoh router at %s (attempt %d): %s", role,
+                    settings.startup_timeout_s, describe_endpoints(config), attempt, zenoh_reason(exc))  # fmt: skip
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
 

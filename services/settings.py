@@ -33,14 +33,45 @@ import re
 import types
 import typing
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 import pydantic
 import yaml
 
 T = TypeVar("T")
 ENV_PREFIX = "SWIMM_"
+SETTINGS_EXIT_CODE = 2  # a command that refused its settings exits with this (as argparse does): never retry it
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"  # where clients connect and `swimm router` listens when nothing says otherwise
+
+
+class SettingsError(ValueError):
+    """A setting the user must change; the command refuses it before it starts anything."""
+
+
+def at_least(minimum: float) -> pydantic.fields.FieldInfo:
+    """The range of a field that must be >= ``minimum``: ``Annotated[int, at_least(0)]``."""
+    return pydantic.Field(ge=minimum)
+
+
+def above(bound: float) -> pydantic.fields.FieldInfo:
+    """The range of a field that must be > ``bound``: ``Annotated[float, above(0)]``."""
+    return pydantic.Field(gt=bound)
+
+
+def at_most(maximum: float) -> pydantic.fields.FieldInfo:
+    """The range of a field that must be <= ``maximum``: ``Annotated[int, at_least(0), at_most(65535)]``."""
+    return pydantic.Field(le=maximum)
+
+
+NonNegInt = Annotated[int, at_least(0)]
+PosInt = Annotated[int, at_least(1)]
+NonNegFloat = Annotated[float, at_least(0)]
+PosFloat = Annotated[float, above(0)]
+
+
+def flag(name: str) -> str:
+    """The command-line flag of a leaf's name: ``eval_min_steps`` is ``--eval-min-steps``."""
+    return "--" + name.replace("_", "-")
 
 
 @dataclasses.dataclass
@@ -55,9 +86,9 @@ class ZenohSettings:
     listen: list[str] = dataclasses.field(default_factory=list)
     zenoh_config: str | None = None  # a Zenoh JSON5 config file; endpoints given as flags override its own
     namespace: str = "swimm/default"
-    startup_timeout_s: float = 60.0  # how long to wait for the router or peers at start
+    startup_timeout_s: NonNegFloat = 60.0  # how long to wait for the router or peers at start
     low_latency: bool = False  # lock-step Zenoh: low-latency transport (messages < 48 KB), no shared memory
-    zenoh_threads: int = 1  # Zenoh's worker threads in this process, one pool for all; 0: Zenoh's pool per runtime
+    zenoh_threads: NonNegInt = 1  # Zenoh's worker threads of this process, one pool for all; 0: a pool per runtime
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +100,7 @@ class _Leaf:
 
 
 def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "") -> list[_Leaf]:
-    hints = typing.get_type_hints(cls)
+    hints = typing.get_type_hints(cls, include_extras=True)  # extras: the Annotated ranges
     instance_defaults = cls()
     leaves: list[_Leaf] = []
     for f in dataclasses.fields(cls):
@@ -84,7 +115,9 @@ def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "") -> list[_Leaf
 
 
 def _base_type(kind: Any) -> tuple[Any, bool]:
-    """(underlying type, optional?) for hints such as ``str | None``."""
+    """(underlying type, optional?) for hints such as ``str | None`` or ``Annotated[int, at_least(0)]``."""
+    if typing.get_origin(kind) is Annotated:
+        kind = typing.get_args(kind)[0]
     origin = typing.get_origin(kind)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(kind) if a is not type(None)]
@@ -135,34 +168,40 @@ def _owner(cls: type, path: tuple[str, ...]) -> type:
     return cls
 
 
-def add_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
-    """Add one flag per leaf field of ``cls``; unset flags stay None so lower layers show through."""
+def add_arguments(parser: argparse.ArgumentParser, cls: type, recipe: str | Path | None = None) -> None:
+    """Add one flag per leaf field of ``cls``; unset flags stay None so lower layers show through.
+
+    ``recipe``: the settings file a plain run reads; its values are shown as the defaults they replace, so
+    ``--help`` shows what a plain run uses."""
     group = parser.add_argument_group(cls.__name__)
+    tree = read_tree(recipe, cls) if recipe else {}
     for leaf in _leaves(cls):
-        flag = "--" + leaf.name.replace("_", "-")
+        option = flag(leaf.name)
         base, _ = _base_type(leaf.kind)
         metadata = field_metadata(cls, leaf.path)
-        help_text = f"(default: {leaf.default!r}; env {ENV_PREFIX}{leaf.name.upper()})"
+        found, value = _from_file(tree, leaf, cls)
+        default = f"{value!r} from {Path(recipe).name}" if found else repr(leaf.default)
+        help_text = f"(default: {default}; env {ENV_PREFIX}{leaf.name.upper()})"
         description = metadata.get("help") or field_comments(_owner(cls, leaf.path)).get(leaf.path[-1])
         if description:
             help_text = f"{description} {help_text}"
         choices = typing.get_args(base) if typing.get_origin(base) is Literal else None
         if choices:
-            group.add_argument(flag, dest=leaf.name, choices=choices, default=None, help=help_text)
+            group.add_argument(option, dest=leaf.name, choices=choices, default=None, help=help_text)
         elif metadata.get("positional"):
             group.add_argument(leaf.name, nargs="?", type=base, default=None, help=help_text)
         elif base is bool:
             group.add_argument(
-                flag, dest=leaf.name, action=argparse.BooleanOptionalAction, default=None, help=help_text
+                option, dest=leaf.name, action=argparse.BooleanOptionalAction, default=None, help=help_text
             )
         elif typing.get_origin(base) in (list, tuple):
             (item,) = typing.get_args(base)[:1] or (str,)
             # extend: a repeated flag adds to the list (`--checkpoint a --checkpoint b`) instead of replacing it
             group.add_argument(
-                flag, dest=leaf.name, nargs="*", action="extend", type=item, default=None, help=help_text
+                option, dest=leaf.name, nargs="*", action="extend", type=item, default=None, help=help_text
             )
         else:
-            group.add_argument(flag, dest=leaf.name, type=base, default=None, help=help_text)
+            group.add_argument(option, dest=leaf.name, type=base, default=None, help=help_text)
 
 
 def field_metadata(cls: type, path: tuple[str, ...]) -> typing.Mapping[str, Any]:
@@ -206,7 +245,7 @@ def check_keys(tree: dict[str, Any], cls: type, source: str) -> None:
             known = sorted(flat) if not path else [leaf.path[-1] for leaf in leaves if leaf.path[:-1] == path]
             close = difflib.get_close_matches(str(key), known, n=3)
             hint = f"; did you mean {' or '.join(close)}?" if close else f"; known: {', '.join(known)}"
-            raise ValueError(f"{source}: unknown setting {'.'.join(here)!r}{hint}")
+            raise SettingsError(f"{source}: unknown setting {'.'.join(here)!r}{hint}")
 
     walk(tree, ())
 
@@ -226,8 +265,33 @@ def validated(leaf: _Leaf, value: Any, source: str, strict: bool = False) -> Any
     try:
         return _adapter(leaf.kind).validate_python(value, strict=strict)
     except pydantic.ValidationError as exc:
-        reasons = "; ".join(error["msg"] for error in exc.errors())
-        raise ValueError(f"{source}: setting {leaf.name!r} got {value!r}: {reasons}") from None
+        reasons = "; ".join(_reason(error) for error in exc.errors())
+        if source.startswith("--"):  # a flag names the setting itself: "--steps -5: must be >= 0"
+            raise SettingsError(f"{source} {value!r}: {reasons}") from None
+        raise SettingsError(f"{source}: setting {leaf.name!r} got {value!r}: {reasons}") from None
+
+
+_BOUNDS = {"greater_than_equal": ">=", "greater_than": ">", "less_than_equal": "<=", "less_than": "<"}
+
+
+def _reason(error: Any) -> str:
+    """A pydantic error as a person reads it: a range as ``must be >= 0``, anything else in pydantic's words."""
+    sign = _BOUNDS.get(error["type"])
+    if sign is None:
+        return error["msg"]
+    (bound,) = error["ctx"].values()
+    return f"must be {sign} {bound}"
+
+
+def check_ranges(settings: Any, prefix: str = "") -> None:
+    """Refuse a value outside its field's range in settings built in code (:func:`load` checks what it reads),
+    naming the value's flag; ``prefix``: the stem of a nested section's flags (``"demo_"``: ``--demo-steps``)."""
+    for leaf in _leaves(type(settings)):
+        if typing.get_origin(leaf.kind) is Annotated:
+            value = settings
+            for attr in leaf.path:
+                value = getattr(value, attr)
+            validated(leaf, value, flag(prefix + leaf.name))
 
 
 def from_message(cls: type[T], values: typing.Mapping[str, Any], source: str) -> T:
@@ -243,6 +307,18 @@ def from_message(cls: type[T], values: typing.Mapping[str, Any], source: str) ->
     return cls(**checked)
 
 
+def read_tree(config_file: str | Path, cls: type) -> dict[str, Any]:
+    """A settings file's YAML mapping, every key checked against the fields of ``cls``."""
+    try:
+        loaded = yaml.safe_load(Path(config_file).read_text()) or {}
+    except OSError as exc:
+        raise SettingsError(f"--config {config_file}: {exc.strerror}") from None
+    if not isinstance(loaded, dict):
+        raise SettingsError(f"settings file {config_file} must hold a YAML mapping")
+    check_keys(loaded, cls, f"settings file {config_file}")
+    return loaded
+
+
 def load(
     cls: type[T],
     args: argparse.Namespace | None = None,
@@ -251,13 +327,7 @@ def load(
 ) -> T:
     """Build ``cls`` from defaults, then the YAML file, then ``SWIMM_*`` variables, then CLI flags."""
     environ = os.environ if environ is None else environ
-    tree: dict[str, Any] = {}
-    if config_file:
-        loaded = yaml.safe_load(Path(config_file).read_text()) or {}
-        if not isinstance(loaded, dict):
-            raise ValueError(f"settings file {config_file} must hold a YAML mapping")
-        check_keys(loaded, cls, f"settings file {config_file}")
-        tree = loaded
+    tree = read_tree(config_file, cls) if config_file else {}
     settings = cls()
     for leaf in _leaves(cls):
         value: Any = dataclasses.MISSING
@@ -270,10 +340,10 @@ def load(
             try:
                 text_value = _parse_text(leaf.kind, environ[env_name])
             except ValueError as exc:
-                raise ValueError(f"{source}: {exc}") from None
+                raise SettingsError(f"{source}: {exc}") from None
             value = validated(leaf, text_value, source)
         if args is not None and getattr(args, leaf.name, None) is not None:
-            value = validated(leaf, getattr(args, leaf.name), "--" + leaf.name.replace("_", "-"))
+            value = validated(leaf, getattr(args, leaf.name), flag(leaf.name))
         if value is not dataclasses.MISSING:
             _set(settings, leaf.path, value)
     return settings

@@ -37,7 +37,7 @@ from services.metrics import Metrics, MetricsPublisher
 from services.polling import Inbox, prepare_to_poll
 from services.presence import Roster, announce, live_now
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES, open_session
-from services.settings import ZenohSettings
+from services.settings import NonNegInt, ZenohSettings, check_ranges
 from sim_service.latency import describe_latency, latency_option
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
 from sim_service.noise import describe_noise, noise_option
@@ -55,9 +55,9 @@ OBSERVATION_OVERHEAD_BYTES = 2048
 class SimSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
-    train_envs: int = 1
-    eval_envs: int = 1
-    first_train_env: int = 0  # train env ids start here: sims serving one run side by side take disjoint ranges
+    train_envs: NonNegInt = 1  # envs of the train channel this sim serves
+    eval_envs: NonNegInt = 1  # envs of the eval channel this sim serves
+    first_train_env: NonNegInt = 0  # train env ids start here: sims serving one run side by side take disjoint ranges
     realtime: bool = False  # physics keeps running at physics_dt; the last action is held
     ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
     claim_grace_s: float = 10.0  # a claim lapses when its holder's token stays gone this long
@@ -126,11 +126,15 @@ def check_fits_low_latency(settings: SimSettings) -> None:
         )
 
 
+def check(settings: SimSettings) -> None:
+    """Refuse, before any world is built, settings no sim can serve (`swimm up` runs it before it starts one)."""
+    check_ranges(settings)
+    check_fits_low_latency(settings)
+
+
 class SimResponder:
     def __init__(self, settings: SimSettings) -> None:
-        if min(settings.train_envs, settings.eval_envs, settings.first_train_env) < 0:
-            raise ValueError("train_envs, eval_envs and first_train_env must be >= 0")
-        check_fits_low_latency(settings)
+        check(settings)
         self.settings = settings
         self.keys = Keys(settings.zenoh.namespace)
         self.ident = settings.ident or f"sim-{os.getpid()}"

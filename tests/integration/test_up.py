@@ -7,6 +7,8 @@ import json
 import os
 import re
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -101,6 +103,9 @@ def test_up_stops_everything_on_sigterm_and_keeps_the_model(spawn, namespace, tm
     result = json.loads((run_dir / "result.json").read_text())
     assert result["stopped_early"] and 100 <= result["num_timesteps"] < 1_000_000
     assert (run_dir / "final_model.zip").is_file() and (run_dir / "train.monitor.csv").is_file()
+    ending = up.log_tail(12)  # a stopped run's last lines: what it saved, and how to go on
+    assert "final_model.zip (+ final_model_replay_buffer.pkl, its replay buffer)" in ending, ending
+    assert f"resume training: swimm up --config {run_dir / 'up.yaml'} --resume {run_dir / 'final_model.zip'}" in ending
     for name in ("router", "sim", "learner"):
         assert "low-latency transport" in (run_dir / "logs" / f"{name}.log").read_text(), name
 
@@ -123,9 +128,30 @@ def test_up_splits_the_envs_between_sims_and_steps_them_in_groups(spawn, namespa
         assert f"sim sim-{index} serving 2 train and {2 if index == 0 else 0} eval envs" in sim_log
 
 
+@pytest.mark.slow
+def test_up_names_each_phase_of_a_short_run_in_order(spawn, namespace, tmp_path) -> None:
+    """Without a terminal `swimm up` logs a line at each phase the learner enters: the head start's phases, then
+    training (with evaluations between), each with its own count."""
+    run_dir = tmp_path / "run"
+    up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "1500", "--eval-min-steps", "500",
+                              "--eval-every", "500", "--eval-unit", "steps", "--eval-episodes", "1",
+                              "--eval-max-steps", "100"),
+               "--demo-steps", "600", "--demo-bc-epochs", "400", "--demo-critic-steps", "2000")  # fmt: skip
+    assert wait_exit(up, 240) == 0, up.log_tail(60)
+    shown = re.findall(r"learner: ([a-z -]+) (\d+)/(\d+) (\w+)", up.log_path.read_text())
+    phases = [phase for phase, *_ in shown]
+    order = [phase for index, phase in enumerate(phases) if index == 0 or phases[index - 1] != phase]
+    assert order[:4] == ["demonstrations", "cloning", "critic warm-up", "training"], shown
+    assert "evaluation" in order[4:], shown
+    totals = {phase: (int(total), unit) for phase, _, total, unit in shown}
+    assert totals["demonstrations"] == (600, "steps") and totals["cloning"] == (400, "epochs")
+    assert totals["critic warm-up"] == (2000, "updates") and totals["evaluation"] == (1, "episodes")
+    assert totals["training"] == (1500, "steps")
+
+
 def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capfd) -> None:
     missing = tmp_path / "nowhere.yaml"
-    assert cli.main(["up", "--run-dir", str(tmp_path / "run"), "--sim-config", str(missing)]) == 1
+    assert cli.main(["up", "--run-dir", str(tmp_path / "run"), "--sim-config", str(missing)]) == 2
     message = capfd.readouterr().err
     assert f"--sim-config {missing}: no such settings file" in message
     assert not (tmp_path / "run").exists()
@@ -135,20 +161,47 @@ def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capf
     ("flags", "message"),
     [
         (["--envs", "3", "--sims", "2"], "divide --envs into equal shares"),
-        (["--envs", "4", "--sims", "0"], "--sims must be >= 1"),
+        (["--envs", "4", "--sims", "0"], "--sims 0: must be >= 1"),
         (["--envs", "8", "--sims", "2", "--group-size", "3"], "--group-size 3 does not divide the 4 envs"),
         (["--encoder-engine", "tensorrt"], "--encoder-engine must be one of torch, onnx, got 'tensorrt'"),
     ],
 )
 def test_up_refuses_sims_that_cannot_share_the_envs(tmp_path, capfd, flags, message) -> None:
-    assert cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run"), *flags]) == 1
+    assert cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run"), *flags]) == 2
     assert message in capfd.readouterr().err
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--steps", "-5"], "up refused its settings: --steps -5: must be >= 0"),
+        (["--envs", "-1"], "up refused its settings: --envs -1: must be >= 1"),
+        (["--eval-episodes", "0"], "up refused its settings: --eval-episodes 0: must be >= 1"),
+        (["--port", "70000"], "up refused its settings: --port 70000: must be <= 65535"),
+        (["--sim-config", "SIM_YAML"], "the sim it would start refuses its settings: settings file"),
+        (["--algo", "scripted"], "up refused its settings: a scripted baseline has nothing to learn"),
+    ],
+)
+def test_up_refuses_bad_settings_before_any_process_or_folder(tmp_path, flags, message) -> None:
+    """A real `swimm up`: the refusal names the flag as typed, its value and range, exits 2 at once, and
+    nothing was started (no log says so) or made (no run folder)."""
+    sim_yaml = tmp_path / "sim.yaml"
+    sim_yaml.write_text("train_envs: -3\n")  # a child's own setting, refused by that child's check
+    flags = [str(sim_yaml) if flag == "SIM_YAML" else flag for flag in flags]
+    argv = [sys.executable, "-m", "services.cli", "up", "--run-dir", str(tmp_path / "run"), "--obs", "state", *flags]
+    started = time.monotonic()
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert "started" not in result.stderr and "Traceback" not in result.stderr
+    assert not (tmp_path / "run").exists()
+    assert time.monotonic() - started < 60
+
+
 def test_up_without_the_cmvae_says_what_to_do(tmp_path, capfd) -> None:
     missing = tmp_path / "nope.pt"
-    assert cli.main(["up", "--encoder-checkpoint", str(missing), "--run-dir", str(tmp_path / "run")]) == 1
+    assert cli.main(["up", "--encoder-checkpoint", str(missing), "--run-dir", str(tmp_path / "run")]) == 2
     message = capfd.readouterr().err
     assert "--obs state" in message and str(missing) in message
     assert not (tmp_path / "run").exists()  # nothing was started

@@ -65,7 +65,7 @@ def test_a_horizon_below_one_update_is_refused() -> None:
     from learner_service.command import check
     from learner_service.learn_settings import LearnCommandSettings
 
-    with pytest.raises(ValueError, match="actor_average"):
+    with pytest.raises(ValueError, match="--actor-average -1: must be >= 0"):
         check(LearnCommandSettings(actor_average=-1))
 
 

@@ -178,11 +178,11 @@ def test_refusals_name_what_to_change(tmp_path: Path) -> None:
     check(LearnCommandSettings(envs=2))  # SAC's per-episode training runs on several envs (learner_service/episodic.py)
     with pytest.raises(ValueError, match="gradient_steps -1"):
         check(LearnCommandSettings(envs=2, hyperparams="{gradient_steps: -1}"))
-    with pytest.raises(ValueError, match="budget_min >= 0"):
+    with pytest.raises(ValueError, match="--budget-min -1: must be >= 0"):
         check(LearnCommandSettings(budget_min=-1))
     with pytest.raises(ValueError, match="backend"):
         check(LearnCommandSettings(backend="carrier-pigeon"))
-    assert cli.main(["learn", "--algo", "scripted", "--run-dir", str(tmp_path / "x")]) == 1
+    assert cli.main(["learn", "--algo", "scripted", "--run-dir", str(tmp_path / "x")]) == 2  # settings: exit 2
     assert not (tmp_path / "x").exists()
 
 
@@ -205,3 +205,30 @@ def test_inprocess_cmvae_trains_on_latents_of_a_given_encoder(tmp_path: Path) ->
     assert result.num_timesteps >= 60 and result.episodes == len(episodes)
     saved = SAC.load(tmp_path / "run" / FINAL_MODEL)
     assert saved.observation_space.shape == (30,)  # 10 latents + 10 previous (surge, yaw) actions
+
+
+def test_the_bar_names_each_phase_in_order_with_its_own_count(tmp_path: Path, monkeypatch) -> None:
+    """A tiny in-process run with the real callbacks and demonstrations, its bar drawn into a buffer: each phase
+    in order, counted in its own units, and training's count starting from zero when training starts."""
+    import io
+
+    from learner_service import command
+    from learner_service.learn_settings import DemoSettings
+    from learner_service.progress import PhaseBar
+
+    drawn = io.StringIO()
+    monkeypatch.setattr(command, "PhaseBar", lambda disable: PhaseBar(file=drawn))
+    demo = DemoSettings(steps=60, bc_epochs=2, critic_steps=150, bc_batch_size=32)
+    Training(tiny_settings(tmp_path / "run", demo=demo, checkpoint_every=0)).run()
+    frames = [frame.strip() for frame in drawn.getvalue().replace("\n", "\r").split("\r") if frame.strip()]
+    phases = [frame.split(":")[0] for frame in frames]
+    order = [phase for index, phase in enumerate(phases) if index == 0 or phases[index - 1] != phase]
+    assert order[:5] == ["demonstrations", "cloning", "critic warm-up", "training", "evaluation"], order
+    assert order[5] == "training" and set(order) == {"demonstrations", "cloning", "critic warm-up", "training",
+                                                     "evaluation"}  # fmt: skip
+    first = {phase: next(frame for frame in frames if frame.startswith(phase + ":")) for phase in order}
+    assert "0/60" in first["demonstrations"] and "0/2" in first["cloning"] and "0/150" in first["critic warm-up"]
+    assert f"0/{STEPS}" in first["training"] and "0/1" in first["evaluation"]
+    assert "epoch" in first["cloning"] and "update" in first["critic warm-up"] and "episode" in first["evaluation"]
+    progress = json.loads((tmp_path / "run" / "progress.json").read_text())
+    assert progress["phase"] == "training" and progress["finished"] and progress["eval_timesteps"] >= 100

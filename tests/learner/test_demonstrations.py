@@ -141,11 +141,11 @@ def test_a_kept_cloning_loss_holds_the_actor_near_the_tracker_through_training()
 
 
 def test_bad_demo_settings_are_refused() -> None:
-    with pytest.raises(ValueError, match="demo steps, noise, bc_epochs, critic_steps and bc_weight must be >= 0"):
+    with pytest.raises(ValueError, match="--demo-steps -1: must be >= 0"):
         DemoSettings(steps=-1).check()
-    with pytest.raises(ValueError, match="bc_weight"):
+    with pytest.raises(ValueError, match="--demo-bc-weight -1.0: must be >= 0"):
         DemoSettings(bc_weight=-1.0).check()
-    with pytest.raises(ValueError, match="bc_learning_rate"):
+    with pytest.raises(ValueError, match="--demo-bc-learning-rate 0.0: must be > 0"):
         DemoSettings(bc_learning_rate=0.0).check()
 
 

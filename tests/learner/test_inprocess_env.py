@@ -189,7 +189,7 @@ def test_damped_tracker_subtracts_the_mean_yaw_that_actprev_commanded(physics_wo
     assert damped.act(obs, info)[1] == pytest.approx(30.0 / 90 - 2.0 * 0.45, abs=1e-6)
     assert damped.act({"image": None, "actions": history}, info)[1] == pytest.approx(30.0 / 90 - 0.9, abs=1e-6)
     assert ScriptedTracker().act(obs, info)[1] == pytest.approx(0.5)  # no damping: ActPrev unread
-    with pytest.raises(ValueError, match="yaw_damping"):
+    with pytest.raises(ValueError, match="--scripted-yaw-damping -1.0: must be >= 0"):
         TrackerGains(yaw_damping=-1.0).check()
 
 

@@ -163,7 +163,7 @@ def test_a_learner_without_a_buffer_is_refused_by_name() -> None:
 def test_bad_smoothness_settings_are_refused() -> None:
     for bad in (SmoothSettings(temporal=-1.0), SmoothSettings(sigma=0.0), SmoothSettings(batch_size=0),
                 SmoothSettings(bound=-0.5)):  # fmt: skip
-        with pytest.raises(ValueError, match="smooth"):
+        with pytest.raises(ValueError, match="--smooth-"):
             bad.check()
     assert not SmoothSettings().enabled and SmoothSettings(spatial=0.1).enabled and SmoothSettings(bound=1).enabled
 

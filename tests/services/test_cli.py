@@ -88,11 +88,10 @@ def test_usage_errors_exit_2_with_the_reason(args, error):
     assert error in result.stderr
 
 
-def test_a_failing_command_exits_1_with_one_clear_line_not_a_traceback(tmp_path):
+def test_a_refused_setting_exits_2_with_one_clear_line_not_a_traceback(tmp_path):
     result = swimm("router", "--config", str(tmp_path / "absent.yaml"))
-    assert result.returncode == 1
-    assert "router failed: [Errno 2] No such file or directory" in result.stderr
-    assert "absent.yaml" in result.stderr
+    assert result.returncode == 2  # a settings error: `swimm up` never restarts a process that exits so
+    assert f"router refused its settings: --config {tmp_path / 'absent.yaml'}: No such file" in result.stderr
     assert "Traceback" not in result.stderr
 
 
@@ -132,3 +131,22 @@ def test_up_runs_the_shipped_recipe_unless_given_a_settings_file(tmp_path) -> No
     spec = up_settings("--config", "learner_service/configs/sac_spec.yaml")
     assert spec.learn.demo.steps == 0 and spec.learn.steps == 1_000_000 and spec.learn.hyperparams == ""
     assert config_file("sim", None) is None
+
+
+def test_up_help_shows_the_values_a_plain_run_uses() -> None:
+    """The recipe a plain `swimm up` reads replaces some defaults; --help shows its values and names it."""
+    shown = " ".join(swimm("up", "--help").stdout.split())
+    assert "A plain run reads the recipe learner_service/models/sac_cmvae.yaml" in shown
+    assert "(default: 20000 from sac_cmvae.yaml; env SWIMM_STEPS)" in shown
+    assert "(default: 24000 from sac_cmvae.yaml; env SWIMM_DEMO_STEPS)" in shown
+    assert "(default: 1 from sac_cmvae.yaml; env SWIMM_EVAL_MIN_STEPS)" in shown
+    assert "(default: 7447; env SWIMM_PORT)" in shown  # not in the recipe: the field's own
+
+
+def test_a_client_logs_the_endpoints_it_uses_not_the_routers_stock_listener(spawn, processes, free_port) -> None:
+    port = free_port()
+    endpoint = processes.start_router(port)
+    status = spawn("status", "--connect", endpoint, "--log-level", "DEBUG", "--window-s", "0.2")
+    status.process.wait(timeout=30)
+    joined = next(line for line in status.log_tail(200).splitlines() if "joined Zenoh" in line)
+    assert f"connect={endpoint} listen=none" in joined and "7447" not in joined

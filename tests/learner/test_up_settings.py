@@ -1,0 +1,91 @@
+"""Settings refused by name before anything starts, and a child that refuses its settings never restarted."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+
+from learner_service.up import LocalSystem, ServiceDied, UpSettings
+from services.procs import ProcessGroup
+from services.settings import SETTINGS_EXIT_CODE
+
+
+def swimm(*argv: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "services.cli", *argv], capture_output=True, text=True, timeout=60)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (("eval", "--episodes", "-1"), "eval refused its settings: --episodes -1: must be >= 1"),
+        (("sim", "--train-envs", "-1"), "sim refused its settings: --train-envs -1: must be >= 0"),
+        (("learn", "--steps", "-5"), "learn refused its settings: --steps -5: must be >= 0"),
+        (("status", "--window-s", "0"), "status refused its settings: --window-s 0.0: must be > 0"),
+        (("encoder", "--max-batch", "0"), "encoder refused its settings: --max-batch 0: must be >= 1"),
+        (("router", "--zenoh-threads", "-1"), "router refused its settings: --zenoh-threads -1: must be >= 0"),
+    ],
+)
+def test_each_command_refuses_a_value_by_its_flag_and_range(argv, message) -> None:
+    result = swimm(*argv)
+    assert result.returncode == SETTINGS_EXIT_CODE, result.stderr
+    assert message in result.stderr and "Traceback" not in result.stderr
+
+
+def test_a_yaml_key_and_a_variable_are_named_as_written(tmp_path: Path) -> None:
+    config = tmp_path / "learn.yaml"
+    config.write_text("demo:\n  steps: -3\n")
+    result = swimm("learn", "--config", str(config))
+    assert result.returncode == SETTINGS_EXIT_CODE
+    assert f"settings file {config}: setting 'demo_steps' got -3: must be >= 0" in result.stderr
+    env = {**__import__("os").environ, "SWIMM_ENVS": "0"}
+    result = subprocess.run([sys.executable, "-m", "services.cli", "learn"], capture_output=True, text=True,
+                            timeout=60, env=env)  # fmt: skip
+    assert "environment variable SWIMM_ENVS: setting 'envs' got 0: must be >= 1" in result.stderr
+
+
+def test_a_child_that_refuses_its_settings_is_not_restarted(tmp_path: Path) -> None:
+    """A real sim process given a bad setting exits 2; the supervisor ends the run at once, no back-off."""
+    with ProcessGroup(tmp_path / "logs") as group:
+        sim = group.start("sim", "sim", "--train-envs", "-1")
+        assert sim.process.wait(timeout=60) == SETTINGS_EXIT_CODE
+        system = LocalSystem(UpSettings(restart_limit=3), group, tmp_path, threading.Event())
+        with pytest.raises(ServiceDied, match="sim refused its settings \\(not restarted\\)"):
+            system.check_services()
+        assert sim.restarts == 0 and not system.restart_due
+        with pytest.raises(RuntimeError, match="would refuse them again"):
+            group.restart(sim)
+
+
+def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tmp_path: Path) -> None:
+    """A real (tiny, in-process) run folder; the resume command's settings file loads back as this run's."""
+    from learner_service.command import Training
+    from learner_service.up import what_the_run_saved, write_up_config
+    from services import cli
+    from tests.learner.test_command import tiny_settings
+
+    run_dir = tmp_path / "run"
+    Training(tiny_settings(run_dir)).run()
+    settings = UpSettings(learn=tiny_settings(run_dir, backend="zenoh", steps=300), sims=1, port=0)
+    write_up_config(settings, run_dir)
+    text = what_the_run_saved(run_dir, settings.learn)
+    for line in (
+        f"saved in {run_dir}:",
+        "final_model.zip (+ final_model_replay_buffer.pkl, its replay buffer): the model as training ended",
+        "best_model.zip: the best evaluated policy, return",
+        "checkpoints/model_200_steps.zip: the newest of 2 checkpoints",
+        f"evaluate the policy: swimm eval --backend inprocess --algo sac --obs state --checkpoint {run_dir}/best_model",
+        f"resume training: swimm up --config {run_dir}/up.yaml --resume {run_dir}/final_model.zip",
+    ):
+        assert line in text, text
+    resumed = cli.checked_settings(
+        "up", ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
+    )
+    assert resumed.learn.run_dir == str(run_dir) and resumed.learn.steps == 300 and resumed.port == 0
+    assert (
+        resumed.learn.resume == str(run_dir / "final_model.zip")
+        and resumed.learn.hyperparams == settings.learn.hyperparams
+    )
