@@ -48,7 +48,8 @@ from sim_service.latency import LatencyLine, LatencySettings
 from sim_service.noise import NOISY_PRESET, ImageNoise, NoiseSettings, draw_episode_noise
 from sim_service.rotations import euler_to_matrix
 from sim_service.rover import RoverDynamics
-from sim_service.scenery import Scenery, SceneSettings, build_model, draw_episode_scene
+from sim_service.scenery import SceneSettings, draw_episode_scene
+from sim_service.scenery_model import Scenery, build_model
 from sim_service.settings import WorldSettings
 
 MODEL_PATH = Path(__file__).parent / "assets" / "world.xml"
