@@ -27,6 +27,7 @@ SEABED_TILE_M = 40.0  # mounds, rocks and seagrass repeat every 40 m around the 
 SHAFT_TILE_M = 24.0
 PARTICLE_TILE_M = 6.0  # a cube of water around the camera; particles farther than 3 m are below a pixel
 FISH_TILE_M = 30.0
+MIN_SUN_ELEVATION_DEG = 10.0  # lower suns' shafts would run for kilometres under the surface
 DEPTH_FALLOFF = 0.08  # per metre: daylight fades as exp(-0.08 (depth - 4 m)) below the rover's usual depth
 NOMINAL_DEPTH = 4.0
 #: Seabed looks (name: base colour, mark colour, mark density, texture repeats); "sand" is the plain world's.
@@ -58,7 +59,7 @@ class SceneSettings:
     seagrass: list[int] | None = None  # range of the number of seagrass blades on a 40 m tile
     sun_intensity: list[float] | None = None  # sunlight (sun, surface glow, ambient) relative to the plain world's
     sun_elevation_deg: list[float] | None = None  # sun elevation range (the azimuth is uniform)
-    light_shafts: list[int] | None = None  # range of the number of light shafts from the surface on a 24 m tile
+    light_shafts: list[int] | None = None  # range of the number of light shafts on a 24 m tile (with the sun on)
     shaft_strength: list[float] | None = None  # opacity range of the light shafts
     particles: list[int] | None = None  # range of the number of suspended particles in a 6 m cube around the camera
     fish_shoals: list[int] | None = None  # range of the number of fish shoals crossing the view
@@ -83,12 +84,6 @@ class SceneSettings:
         resolved = dataclasses.replace(self, **filled)
         _validate(resolved)
         return resolved
-
-    @property
-    def plain(self) -> bool:
-        """True when every element is off: the episode is the plain world's, pixel for pixel."""
-        resolved = self.resolved()
-        return resolved.seabed_textures in ([], ["sand"]) and not any(getattr(resolved, n) for n in _RANGE_FIELDS)
 
 
 def scene_option(value: object) -> SceneSettings | None:
@@ -129,6 +124,9 @@ def _validate(settings: SceneSettings) -> None:
         most = MAX_FISH_PER_SHOAL if name == "fish_per_shoal" else CAPACITY.get(name)
         if bounds and most is not None and bounds[1] > most:
             raise ValueError(f"scene setting {name} may ask for at most {most}, got {bounds}")
+    elevation = settings.sun_elevation_deg
+    if elevation and not MIN_SUN_ELEVATION_DEG <= elevation[0] <= elevation[1] <= 90:
+        raise ValueError(f"scene setting sun_elevation_deg must lie in [{MIN_SUN_ELEVATION_DEG}, 90], got {elevation}")
 
 
 # --- one episode's draw ------------------------------------------------------------------------------------------
@@ -198,14 +196,15 @@ def draw_episode_scene(settings: SceneSettings, rng: np.random.Generator) -> Epi
         rng.uniform(0.006, 0.018, CAPACITY["particles"]),
     ])  # fmt: skip
     shoals, fish_offsets = _shoals(s, rng)
+    counts = {name: _count(getattr(s, name), rng) for name in ("rocks", "seagrass", "light_shafts", "particles")}
     return EpisodeScene(
         seabed_texture=None if texture in (None, "sand") else texture,
         mounds=mounds if relief else mounds[:0],
-        rocks=rocks[: _count(s.rocks, rng)],
-        seagrass=seagrass[: _count(s.seagrass, rng)],
+        rocks=rocks[: counts["rocks"]],
+        seagrass=seagrass[: counts["seagrass"]],
         sun=sun,
-        shafts=shafts[: _count(s.light_shafts, rng)] if sun is not None else shafts[:0],
-        particles=particles[: _count(s.particles, rng)],
+        shafts=shafts[: counts["light_shafts"] if sun is not None else 0],  # shafts follow the sun's rays
+        particles=particles[: counts["particles"]],
         shoals=shoals,
         fish_offsets=fish_offsets,
         dolphin_scale=_uniform(s.dolphin_scale, rng),

@@ -30,7 +30,7 @@ from sim_service.scenery import (
     SHAFT_TILE_M,
     EpisodeScene,
     Sun,
-)  # fmt: skip
+)
 
 SHOWN, UNUSED = 4, 5  # geom groups: drawn in a varied episode / never drawn
 
@@ -94,6 +94,7 @@ class Scenery:
     def __init__(self, model: mujoco.MjModel) -> None:
         self.model = model
         self.scene = EpisodeScene()
+        self._varied = False
         self.option = mujoco.MjvOption()  # the renderer's scene option: group SHOWN on in varied episodes
         count = {**CAPACITY, "fish": CAPACITY["fish_shoals"] * MAX_FISH_PER_SHOAL}
         kinds = ("mounds", "rocks", "seagrass", "light_shafts", "particles", "fish")
@@ -108,6 +109,7 @@ class Scenery:
         self._nominal = self._snapshot()
         self._rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]] = []  # geoms, anchors, velocities, tile
         self._movers = _Movers.empty()
+        self._geom_pos = model.geom_pos  # a view, fetched once: a step writes the movers' rows
 
     @property
     def dolphin_scale(self) -> float:
@@ -117,8 +119,9 @@ class Scenery:
         """Make ``scene`` the episode's, laid out round the rover at ``rover_pos`` facing ``rover_yaw``."""
         self._restore()
         self.scene = scene
-        self.option.geomgroup[SHOWN] = not scene.plain
-        if scene.plain:
+        self._varied = not scene.plain
+        self.option.geomgroup[SHOWN] = self._varied
+        if not self._varied:
             return
         rover_pos = np.array(rover_pos, float)
         if scene.seabed_texture is not None:
@@ -136,13 +139,13 @@ class Scenery:
 
     def follow(self, rover_pos: np.ndarray, time: float) -> None:
         """Move the tiles with the rover and the shoals along their course, at sim time ``time``."""
-        if self.scene.plain:
+        if not self._varied:
             return
         movers = self._movers
-        positions = movers.anchors + movers.velocities * time
-        positions[:, :2] = _wrapped(positions[:, :2], rover_pos[:2], movers.tiles)
-        positions[movers.deep, 2] = _wrapped(positions[movers.deep, 2], rover_pos[2], PARTICLE_TILE_M)
-        self.model.geom_pos[movers.geoms] = positions
+        if len(movers.geoms):
+            positions = movers.anchors + movers.velocities * time
+            offsets = positions - rover_pos
+            self._geom_pos[movers.geoms] = positions - movers.wraps * np.floor(offsets / movers.tiles + 0.5)
         if self.scene.sun is not None:
             fade = self.scene.sun.intensity * math.exp(-DEPTH_FALLOFF * (-rover_pos[2] - NOMINAL_DEPTH))
             self.model.vis.headlight.ambient = self._nominal["ambient"] * fade
@@ -245,30 +248,32 @@ class Scenery:
 
 @dataclass(frozen=True)
 class _Movers:
-    """The table a step moves: each drawn geom's anchor (world), velocity and tile; ``deep`` rows wrap in z too."""
+    """The table a step moves: each drawn geom's anchor (world), velocity and tile size per axis.
+
+    A geom is moved by whole tiles to lie within half a tile of the rover on each axis that wraps (x and y; z too
+    for the ``deep`` rows, the particles): ``wraps`` is the tile on those axes and 0 on the others.
+    """
 
     geoms: np.ndarray
     anchors: np.ndarray
     velocities: np.ndarray
-    tiles: np.ndarray  # (n, 1)
-    deep: np.ndarray  # bool (n,)
+    tiles: np.ndarray  # (n, 3), 1 on an axis that does not wrap
+    wraps: np.ndarray  # (n, 3)
 
     @classmethod
     def of(cls, rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]], deep: np.ndarray) -> _Movers:
         rows = [(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), 1.0), *rows]
         geoms = np.concatenate([row[0] for row in rows])
-        tiles = np.concatenate([np.full((len(row[0]), 1), row[3]) for row in rows])
         anchors, velocities = (np.concatenate([row[i] for row in rows]) for i in (1, 2))
-        return cls(geoms, anchors, velocities, tiles, np.isin(geoms, deep))
+        tiles = np.concatenate([np.full((len(row[0]), 3), row[3]) for row in rows])
+        tiles[~np.isin(geoms, deep), 2] = 1.0
+        wraps = tiles.copy()
+        wraps[~np.isin(geoms, deep), 2] = 0.0
+        return cls(geoms, anchors, velocities, tiles, wraps)
 
     @classmethod
     def empty(cls) -> _Movers:
         return cls.of([], np.zeros(0, int))
-
-
-def _wrapped(anchors: np.ndarray, centre: np.ndarray, tile: float) -> np.ndarray:
-    """Each anchor moved by whole tiles to lie within half a tile of ``centre`` on every axis."""
-    return centre + np.mod(anchors - centre + tile / 2, tile) - tile / 2
 
 
 def _yaw_matrix(yaw: float) -> np.ndarray:

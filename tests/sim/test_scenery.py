@@ -102,6 +102,11 @@ def test_draws_stay_in_their_ranges_and_one_element_never_moves_another():
     base = draw_episode_scene(VARIED, np.random.default_rng(4))
     assert len(scene.shoals) == 3 and scene.dolphin_scale == 1.1 and len(scene.particles) == 0
     assert np.array_equal(scene.rocks, base.rocks) and scene.sun == base.sun  # the others drew the same
+    dark = draw_episode_scene(
+        SceneSettings(preset="varied", sun_intensity=[], sun_elevation_deg=[]), np.random.default_rng(4)
+    )
+    assert dark.sun is None and len(dark.shafts) == 0  # the shafts follow the sun
+    assert np.array_equal(dark.particles, base.particles) and dark.dolphin_shade == base.dolphin_shade
     assert draw_episode_scene(SceneSettings(), np.random.default_rng(4)).plain
 
 
@@ -112,6 +117,8 @@ def test_bad_scene_settings_are_refused_by_name():
         SceneSettings.from_mapping({"preset": "lush"})
     with pytest.raises(ValueError, match="fish_shoals may ask for at most 3"):
         SceneSettings.from_mapping({"fish_shoals": [1, 9]})
+    with pytest.raises(ValueError, match=r"sun_elevation_deg must lie in \[10.0, 90\]"):
+        SceneSettings.from_mapping({"sun_elevation_deg": [0.0, 30.0]})
     with pytest.raises(ValueError, match="relief_m must be"):
         SceneSettings.from_mapping({"relief_m": [2.0, 1.0]})
     with pytest.raises(ValueError, match="unknown seabed textures"):
