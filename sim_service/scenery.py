@@ -104,8 +104,8 @@ PRESETS = {
     ),
     "varied": SceneSettings(
         preset="varied", seabed_textures=list(SEABED_TEXTURES), relief_m=[0.5, 2.5], rocks=[0, 8], seagrass=[0, 16],
-        sun_intensity=[0.6, 1.3], sun_elevation_deg=[40.0, 90.0], light_shafts=[0, 3], shaft_strength=[0.04, 0.14],
-        particles=[5, 25], fish_shoals=[0, 2], fish_per_shoal=[3, 6], dolphin_scale=[0.85, 1.15],
+        sun_intensity=[0.6, 1.3], sun_elevation_deg=[40.0, 90.0], light_shafts=[0, 2], shaft_strength=[0.04, 0.14],
+        particles=[5, 20], fish_shoals=[0, 2], fish_per_shoal=[3, 6], dolphin_scale=[0.85, 1.15],
         dolphin_shade=[0.7, 1.25],
     ),
 }  # fmt: skip
