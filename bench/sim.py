@@ -26,8 +26,8 @@ headline way made its round trip 0.72-0.77 ms instead of 0.64-0.65. In a process
 also gets the Zenoh threads its setting asks for, which a process fixes when it opens its first session.
 
 Before the ways, the scenery's cost (the ``plain_*``/``varied_*`` keys): the plain world and the varied one
-(sim_service/scenery.py) step in-process in alternating blocks, each starting a new episode every
-:data:`SCENERY_EPISODE_STEPS` steps so the varied rate averages over many drawn scenes.
+(sim_service/scenery.py) step in-process, one :data:`SCENERY_EPISODE_STEPS`-step episode each in turn, so the
+varied rate averages over many drawn scenes.
 """
 
 from __future__ import annotations
@@ -276,8 +276,9 @@ def run_learner(way: Way, endpoint: str, steps: int, rounds: int, sim: Service) 
     return {name: Tally(**fields) for name, fields in json.loads(done.stdout).items()}
 
 
-def measure_scenery(steps: int, rounds: int) -> dict:
-    """In-process steps/s of the plain and the varied world, ``steps`` each in ``rounds`` alternating blocks."""
+def measure_scenery(steps: int) -> dict:
+    """In-process steps/s of the plain and the varied world, ``steps`` each, episode for episode in turn (which of
+    the two goes first alternating), so both see the same drift of the machine's speed."""
     tallies = {"plain": Tally(), "varied": Tally()}
     with ExitStack() as stack:
         worlds = {name: World(WorldSettings(scene=SceneSettings(preset=name))) for name in tallies}
@@ -285,12 +286,10 @@ def measure_scenery(steps: int, rounds: int) -> dict:
             stack.callback(world.close)
             world.reset(0)
             step_inprocess(world, random_actions(WARMUP_STEPS, seed=1), Tally())
-        episodes = np.array_split(np.arange(steps), max(1, steps // SCENERY_EPISODE_STEPS))
-        for index, block in enumerate(np.array_split(np.arange(len(episodes)), rounds)):
-            for name in sorted(tallies, reverse=index % 2 == 1):
-                for episode in block:
-                    worlds[name].reset(int(episode))
-                    step_inprocess(worlds[name], random_actions(len(episodes[episode]), int(episode)), tallies[name])
+        for episode, block in enumerate(np.array_split(np.arange(steps), max(1, steps // SCENERY_EPISODE_STEPS))):
+            for name in sorted(tallies, reverse=episode % 2 == 1):
+                worlds[name].reset(episode)
+                step_inprocess(worlds[name], random_actions(len(block), episode), tallies[name])
     plain, varied = tallies["plain"].rate, tallies["varied"].rate
     return {
         "plain_steps_per_s": round(plain, 1),
@@ -305,7 +304,7 @@ def run(steps: int = 2000, rounds: int = ROUNDS, envs: int = 1) -> dict:
     scenery's cost: ``steps`` in-process steps of the plain world and of the varied one."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
-    result = measure_scenery(steps, rounds)
+    result = measure_scenery(steps)
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp, ProcessGroup(Path(tmp)) as group:
         endpoint = group.start_router()
         for way in WAYS:

@@ -109,7 +109,7 @@ class Scenery:
         self._nominal = self._snapshot()
         self._rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]] = []  # geoms, anchors, velocities, tile
         self._movers = _Movers.empty()
-        self._geom_pos = model.geom_pos  # a view, fetched once: a step writes the movers' rows
+        self._geom_pos, self._geom_group = model.geom_pos, model.geom_group  # views, fetched once for the steps
 
     @property
     def dolphin_scale(self) -> float:
@@ -134,18 +134,26 @@ class Scenery:
         self.model.geom_size[particles] = scene.particles[:, 3:4]
         self._swim_fish(scene, rover_pos, rover_yaw)
         self._dolphin_look(scene)
-        self._movers = _Movers.of(self._rows, deep=particles)
-        self.follow(rover_pos, 0.0)
+        radii = np.maximum(np.linalg.norm(self.model.geom_size, axis=1), self.model.geom_rbound)
+        self._movers = _Movers.of(self._rows, deep=particles, radii=radii)
+        self.follow(rover_pos, rover_yaw, 0.0)
 
-    def follow(self, rover_pos: np.ndarray, time: float) -> None:
-        """Move the tiles with the rover and the shoals along their course, at sim time ``time``."""
+    def follow(self, rover_pos: np.ndarray, rover_yaw: float, time: float) -> None:
+        """Move the tiles with the rover and the shoals along their course, at sim time ``time``.
+
+        What lies wholly outside the 90 degree wedge ahead of the rover (the camera sees 80 degrees across) is
+        left out of the drawing: a geom costs the software renderer about as much drawn off screen as on it.
+        """
         if not self._varied:
             return
         movers = self._movers
         if len(movers.geoms):
             positions = movers.anchors + movers.velocities * time
-            offsets = positions - rover_pos
-            self._geom_pos[movers.geoms] = positions - movers.wraps * np.floor(offsets / movers.tiles + 0.5)
+            positions -= movers.wraps * np.floor((positions - rover_pos) / movers.tiles + 0.5)
+            self._geom_pos[movers.geoms] = positions
+            ahead, aside = ((positions[:, :2] - rover_pos[:2]) @ _heading_frame(rover_yaw)).T
+            seen = (ahead > -movers.radii) & (np.abs(aside) - ahead < _WEDGE_MARGIN * movers.radii)
+            self._geom_group[movers.geoms] = np.where(seen, SHOWN, UNUSED)
         if self.scene.sun is not None:
             fade = self.scene.sun.intensity * math.exp(-DEPTH_FALLOFF * (-rover_pos[2] - NOMINAL_DEPTH))
             self.model.vis.headlight.ambient = self._nominal["ambient"] * fade
@@ -259,9 +267,12 @@ class _Movers:
     velocities: np.ndarray
     tiles: np.ndarray  # (n, 3), 1 on an axis that does not wrap
     wraps: np.ndarray  # (n, 3)
+    radii: np.ndarray  # (n,) bounding radius of each geom
 
     @classmethod
-    def of(cls, rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]], deep: np.ndarray) -> _Movers:
+    def of(
+        cls, rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]], deep: np.ndarray, radii: np.ndarray
+    ) -> _Movers:
         rows = [(np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), 1.0), *rows]
         geoms = np.concatenate([row[0] for row in rows])
         anchors, velocities = (np.concatenate([row[i] for row in rows]) for i in (1, 2))
@@ -269,11 +280,20 @@ class _Movers:
         tiles[~np.isin(geoms, deep), 2] = 1.0
         wraps = tiles.copy()
         wraps[~np.isin(geoms, deep), 2] = 0.0
-        return cls(geoms, anchors, velocities, tiles, wraps)
+        return cls(geoms, anchors, velocities, tiles, wraps, radii[geoms])
 
     @classmethod
     def empty(cls) -> _Movers:
-        return cls.of([], np.zeros(0, int))
+        return cls.of([], np.zeros(0, int), np.zeros(0))
+
+
+_WEDGE_MARGIN = 1.5  # > sqrt(2): a geom's radius measured across the wedge's 45 degree edge, with room to spare
+
+
+def _heading_frame(yaw: float) -> np.ndarray:
+    """Columns: the rover's forward and left directions in the horizontal plane (offsets @ it: ahead, aside)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
 
 
 def _yaw_matrix(yaw: float) -> np.ndarray:

@@ -284,7 +284,7 @@ class World:
         self._prepared = None
         mujoco.mj_step2(self.model, d)
         self._pose_dolphin(dolphin)
-        self.scenery.follow(d.qpos[:3], d.time)
+        self.scenery.follow(d.qpos[:3], d.qpos[3], d.time)  # rover_x, _y, _z, _yaw joints
         mujoco.mj_step1(self.model, d)
         return self._telemetry(dolphin), self.latency.frame(self._render())
 
