@@ -141,8 +141,9 @@ class Scenery:
     def follow(self, rover_pos: np.ndarray, rover_yaw: float, time: float) -> None:
         """Move the tiles with the rover and the shoals along their course, at sim time ``time``.
 
-        What lies wholly outside the 90 degree wedge ahead of the rover (the camera sees 80 degrees across) is
-        left out of the drawing: a geom costs the software renderer about as much drawn off screen as on it.
+        What lies wholly outside the 100 degree wedge ahead of the rover is left out of the drawing: a geom costs
+        the software renderer about as much drawn off screen as on it. The camera sees 80 degrees across, up to 93
+        at its corners when the rover rolls; the wedge holds that with room for a few degrees of pitch.
         """
         if not self._varied:
             return
@@ -152,7 +153,7 @@ class Scenery:
             positions -= movers.wraps * np.floor((positions - rover_pos) / movers.tiles + 0.5)
             self._geom_pos[movers.geoms] = positions
             ahead, aside = ((positions[:, :2] - rover_pos[:2]) @ _heading_frame(rover_yaw)).T
-            seen = (ahead > -movers.radii) & (np.abs(aside) - ahead < _WEDGE_MARGIN * movers.radii)
+            seen = (ahead > -movers.radii) & (np.abs(aside) - _WEDGE_SLOPE * ahead < _WEDGE_MARGIN * movers.radii)
             self._geom_group[movers.geoms] = np.where(seen, SHOWN, UNUSED)
         if self.scene.sun is not None:
             fade = self.scene.sun.intensity * math.exp(-DEPTH_FALLOFF * (-rover_pos[2] - NOMINAL_DEPTH))
@@ -287,7 +288,8 @@ class _Movers:
         return cls.of([], np.zeros(0, int), np.zeros(0))
 
 
-_WEDGE_MARGIN = 1.5  # > sqrt(2): a geom's radius measured across the wedge's 45 degree edge, with room to spare
+_WEDGE_SLOPE = 1.2  # tan(50 degrees): the wedge's half-width per metre ahead
+_WEDGE_MARGIN = 1.6  # > sqrt(1 + 1.2^2): a geom's radius measured across the wedge's edge, with room to spare
 
 
 def _heading_frame(yaw: float) -> np.ndarray:
