@@ -24,6 +24,10 @@ One way at a time, because the others' idle processes are not idle enough: a pol
 poll time still wakes every millisecond to look for work (services/polling.py), and three of them beside the
 headline way made its round trip 0.72-0.77 ms instead of 0.64-0.65. In a process of its own, each way's learner
 also gets the Zenoh threads its setting asks for, which a process fixes when it opens its first session.
+
+Before the ways, the scenery's cost (the ``plain_*``/``varied_*`` keys): the plain world and the varied one
+(sim_service/scenery.py) step in-process, one :data:`SCENERY_EPISODE_STEPS`-step episode each in turn, so the
+varied rate averages over many drawn scenes.
 """
 
 from __future__ import annotations
@@ -49,6 +53,8 @@ from services.presence import Roster, announce
 from services.procs import ProcessGroup, Service, zenoh_flags
 from services.session import open_session
 from services.settings import ZenohSettings
+from sim_service.scenery import SceneSettings
+from sim_service.settings import WorldSettings
 from sim_service.world import World
 
 GROUPED_NAMESPACE = "swimm/bench-grouped"
@@ -62,6 +68,7 @@ DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs
 #: How long a way's learner process may take: a start-up allowance, and 50 ms a step (a step in-process and
 #: served takes about 2.3 ms on a slow day).
 LEARNER_START_S, LEARNER_S_PER_STEP = 120.0, 0.05
+SCENERY_EPISODE_STEPS = 100  # the scenery measurement's episode length: 20 scenes a world in 2000 steps
 
 
 @dataclass(frozen=True)
@@ -269,12 +276,35 @@ def run_learner(way: Way, endpoint: str, steps: int, rounds: int, sim: Service) 
     return {name: Tally(**fields) for name, fields in json.loads(done.stdout).items()}
 
 
+def measure_scenery(steps: int) -> dict:
+    """In-process steps/s of the plain and the varied world, ``steps`` each, episode for episode in turn (which of
+    the two goes first alternating), so both see the same drift of the machine's speed."""
+    tallies = {"plain": Tally(), "varied": Tally()}
+    with ExitStack() as stack:
+        worlds = {name: World(WorldSettings(scene=SceneSettings(preset=name))) for name in tallies}
+        for world in worlds.values():
+            stack.callback(world.close)
+            world.reset(0)
+            step_inprocess(world, random_actions(WARMUP_STEPS, seed=1), Tally())
+        for episode, block in enumerate(np.array_split(np.arange(steps), max(1, steps // SCENERY_EPISODE_STEPS))):
+            for name in sorted(tallies, reverse=episode % 2 == 1):
+                worlds[name].reset(episode)
+                step_inprocess(worlds[name], random_actions(len(block), episode), tallies[name])
+    plain, varied = tallies["plain"].rate, tallies["varied"].rate
+    return {
+        "plain_steps_per_s": round(plain, 1),
+        "varied_steps_per_s": round(varied, 1),
+        "varied_over_plain": round(varied / plain, 3),
+    }
+
+
 def run(steps: int = 2000, rounds: int = ROUNDS, envs: int = 1) -> dict:
     """``steps`` per way, taken in ``rounds`` blocks, and as many in-process steps alternating with them; with
-    ``envs`` > 1, also ``steps`` env steps of that many envs in groups (the ``grouped_*`` keys)."""
+    ``envs`` > 1, also ``steps`` env steps of that many envs in groups (the ``grouped_*`` keys). First the
+    scenery's cost: ``steps`` in-process steps of the plain world and of the varied one."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
-    result: dict = {}
+    result = measure_scenery(steps)
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp, ProcessGroup(Path(tmp)) as group:
         endpoint = group.start_router()
         for way in WAYS:

@@ -1,11 +1,14 @@
-"""A contact sheet of camera frames: the same reset poses rendered clean and noisy, side by side.
+"""A contact sheet of camera frames: the same reset poses rendered clean and noisy, or plain and varied.
 
     python -m sim_service.contact_sheet --out docs/frames.png --count 8 --seed 11
+    python -m sim_service.contact_sheet --out docs/frames_varied.png --count 6 --seed 11 --scene varied --pairs 3
 
 Row one shows clean 64x64 frames, row two the same poses with
-:data:`~sim_service.noise.NOISY_PRESET`; each frame is upscaled (nearest
-neighbour, so the pixels the encoder sees stay visible) and captioned with
-the target's distance and azimuth.
+:data:`~sim_service.noise.NOISY_PRESET`. With ``--scene``, each pair of rows
+shows the plain world and the same poses in the named scenery preset
+(sim_service/scenery.py), the next pair the next seeds. Each frame is upscaled
+(nearest neighbour, so the pixels the encoder sees stay visible) and captioned
+with the target's distance and azimuth.
 """
 
 from __future__ import annotations
@@ -17,19 +20,20 @@ import cv2
 import numpy as np
 
 from services.geometry import relative_geometry
+from sim_service.scenery import SceneSettings
 from sim_service.world import World
 
 UPSCALE = 3
 CAPTION_PX = 14
 
 
-def frames(count: int, seed: int, noise: bool) -> tuple[list[np.ndarray], list[str]]:
-    """``count`` reset frames of seeds ``seed, seed+1, ...`` and their captions."""
+def frames(count: int, seed: int, noise: bool, scene: str = "plain") -> tuple[list[np.ndarray], list[str]]:
+    """``count`` reset frames of seeds ``seed, seed+1, ...`` in the ``scene`` preset, and their captions."""
     world = World()
     images, captions = [], []
     try:
         for offset in range(count):
-            telemetry, image = world.reset(seed + offset, noise=noise)
+            telemetry, image = world.reset(seed + offset, noise=noise, scene=SceneSettings(preset=scene))
             images.append(image)
             where = relative_geometry(telemetry)
             captions.append(f"{where.d:.1f}m {where.azimuth:+.0f}deg")
@@ -45,11 +49,20 @@ def tile(image: np.ndarray, caption: str) -> np.ndarray:
     return np.vstack([big, band])
 
 
+def row(images: list[np.ndarray], captions: list[str]) -> np.ndarray:
+    return np.hstack([tile(image, caption) for image, caption in zip(images, captions, strict=True)])
+
+
 def contact_sheet(count: int, seed: int) -> np.ndarray:
+    return np.vstack([row(*frames(count, seed, noise)) for noise in (False, True)])
+
+
+def scenery_sheet(count: int, seed: int, scene: str, pairs: int) -> np.ndarray:
+    """``pairs`` pairs of rows: ``count`` clean plain frames over the same poses in the ``scene`` preset."""
     rows = []
-    for noise in (False, True):
-        images, captions = frames(count, seed, noise)
-        rows.append(np.hstack([tile(image, caption) for image, caption in zip(images, captions, strict=True)]))
+    for pair in range(pairs):
+        first = seed + pair * count
+        rows += [row(*frames(count, first, False, preset)) for preset in ("plain", scene)]
     return np.vstack(rows)
 
 
@@ -58,8 +71,14 @@ def main() -> None:
     parser.add_argument("--out", default="docs/frames.png")
     parser.add_argument("--count", type=int, default=8)
     parser.add_argument("--seed", type=int, default=11)
+    parser.add_argument("--scene", default="", help="a scenery preset: plain rows over rows in it, not noise")
+    parser.add_argument("--pairs", type=int, default=2, help="with --scene: pairs of rows, each on new seeds")
     args = parser.parse_args()
-    sheet = contact_sheet(args.count, args.seed)
+    sheet = (
+        scenery_sheet(args.count, args.seed, args.scene, args.pairs)
+        if args.scene
+        else contact_sheet(args.count, args.seed)
+    )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(args.out, cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, ObservationMsg
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
+from sim_service.scenery import SceneSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
@@ -85,6 +86,7 @@ class LockstepEnv:
         route: str = DIRECT_ROUTE,
         noise: bool | NoiseSettings | None = None,
         latency: LatencySettings | None = None,
+        scene: SceneSettings | None = None,
     ) -> Outcome:
         self._check_holder(sender)
         self.route = route
@@ -94,7 +96,7 @@ class LockstepEnv:
             raise Refusal(f"env {self.name}: episode {ep} is not after the current episode {self.ep}")
         if latency is not None:
             self.world.configure_latency(latency)
-        telemetry, image = self.world.reset(seed, noise)
+        telemetry, image = self.world.reset(seed, noise, scene)
         self.ep, self.seq, self.seed = ep, 0, seed
         self.action = (0.0, 0.0, 0.0, 0.0)
         return self._emit(telemetry, image)

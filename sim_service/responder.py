@@ -41,6 +41,7 @@ from services.settings import NonNegInt, ZenohSettings, check_ranges
 from sim_service.latency import describe_latency, latency_option
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
 from sim_service.noise import describe_noise, noise_option
+from sim_service.scenery import scene_option
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -180,7 +181,7 @@ class SimResponder:
         self._token = announce(self.session, self.keys, "sim", self.ident)
         self._metrics_publisher = MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics)
         log.info(
-            "sim %s serving %d train and %d eval envs under %s (%s); image noise: %s; latency: %s",
+            "sim %s serving %d train and %d eval envs under %s (%s); image noise: %s; latency: %s; scenery: %s",
             self.ident,
             self.settings.train_envs,
             self.settings.eval_envs,
@@ -188,6 +189,7 @@ class SimResponder:
             "real-time" if self.settings.realtime else "lock-step",
             describe_noise(self.settings.world.noise),
             describe_latency(self.settings.world.latency),
+            self.settings.world.scene.preset,
         )
 
     def _on_roster_change(self, joined: set[str], left: set[str]) -> None:
@@ -374,9 +376,10 @@ class SimResponder:
                     raise BadMessage("reset needs integer 'ep' and 'seed'")
                 try:
                     noise, latency = noise_option(body.get("noise")), latency_option(body.get("latency"))
+                    scene = scene_option(body.get("scene"))
                 except ValueError as exc:
                     raise BadMessage(f"reset's {exc}") from None
-                outcome = env.reset(holder, ep, seed, route, noise, latency)
+                outcome = env.reset(holder, ep, seed, route, noise, latency, scene)
                 self._publish(env, route, outcome, request.received_at)
                 control.reply(query, True, **env.info(), replayed=outcome.replayed)
             else:

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
+from sim_service.scenery import SceneSettings
 
 
 @dataclass
@@ -17,3 +18,6 @@ class WorldSettings:
     physics_dt: float = 0.02  # seconds per step: one action per physics step (lock-step)
     noise: NoiseSettings = field(default_factory=NoiseSettings)  # image noise, all off by default (--noise-* flags)
     latency: LatencySettings = field(default_factory=LatencySettings)  # camera and control delays (--latency-* flags)
+    scene: SceneSettings = field(
+        default_factory=SceneSettings
+    )  # the world's scenery, plain by default (--scene-* flags)

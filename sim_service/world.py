@@ -12,6 +12,8 @@ generator for the pose draws and the dolphin's waypoints, so a seed and an
 action sequence fix the whole episode, images included. Image noise draws
 from a child of that generator's seed, so switching noise on or off never
 changes the trajectory: clean and noisy runs of one seed see the same poses.
+The scenery (sim_service/scenery.py: seabed, light, particles, fish, the
+dolphin's look) draws from another child, so it never changes them either.
 
 The dolphin's next move does not depend on the rover's action, so a server can
 work it out while it waits for that action (:meth:`World.prepare_step`) and
@@ -46,6 +48,8 @@ from sim_service.latency import LatencyLine, LatencySettings
 from sim_service.noise import NOISY_PRESET, ImageNoise, NoiseSettings, draw_episode_noise
 from sim_service.rotations import euler_to_matrix
 from sim_service.rover import RoverDynamics
+from sim_service.scenery import SceneSettings, draw_episode_scene
+from sim_service.scenery_model import Scenery, build_model
 from sim_service.settings import WorldSettings
 
 MODEL_PATH = Path(__file__).parent / "assets" / "world.xml"
@@ -108,7 +112,7 @@ class PreparedStep:
 class World:
     def __init__(self, settings: WorldSettings | None = None) -> None:
         self.settings = settings or WorldSettings()
-        self.model = mujoco.MjModel.from_xml_path(str(MODEL_PATH))
+        self.model = build_model(MODEL_PATH)
         self.model.opt.timestep = self.settings.physics_dt
         self.data = mujoco.MjData(self.model)
         self.rover = RoverDynamics()
@@ -124,6 +128,8 @@ class World:
         self._camera = self.model.camera(CAMERA).id
         self.frustum = CameraFrustum.from_model(self.model, self._camera)
         self._prepared: PreparedStep | None = None
+        self.scenery = Scenery(self.model)
+        self.configure_scene(self.settings.scene)
         self._renderer: mujoco.Renderer | None = None
         if self.settings.render:
             self._renderer = self._make_renderer()
@@ -162,6 +168,11 @@ class World:
         ImageNoise(self._configured_noise)  # validates
         self._noise_on = noise.enabled
 
+    def configure_scene(self, scene: SceneSettings) -> None:
+        """Make ``scene`` the world's scenery from the next episode on (checked here); plain draws nothing."""
+        scene.resolved()
+        self._configured_scene = scene
+
     def configure_latency(self, latency: LatencySettings) -> None:
         """Make ``latency`` the world's camera and control delays from the next episode on (checked here)."""
         latency.check()
@@ -173,14 +184,19 @@ class World:
         return self._noise.settings if self._noise is not None else None
 
     # --- episodes --------------------------------------------------------------------------
-    def reset(self, seed: int, noise: bool | NoiseSettings | None = None) -> tuple[Telemetry, np.ndarray | None]:
+    def reset(
+        self, seed: int, noise: bool | NoiseSettings | None = None, scene: SceneSettings | None = None
+    ) -> tuple[Telemetry, np.ndarray | None]:
         """Start an episode from the SPEC's reset distributions, every draw from ``seed``.
 
         ``noise`` switches image noise for this episode and the ones after it: True applies the world's
         noise settings (or :data:`~sim_service.noise.NOISY_PRESET` when they are all off), False renders
         clean frames, None keeps the current choice, and settings replace the world's noise (on when they
         change images). Alternating clean and noisy episodes is how the paper trains for robustness.
+        ``scene`` replaces the world's scenery settings for this episode and the ones after it (None keeps them).
         """
+        if scene is not None:
+            self.configure_scene(scene)
         if isinstance(noise, NoiseSettings):
             self.configure_noise(noise)
         elif noise is not None:
@@ -213,7 +229,8 @@ class World:
 
         Angles in radians; ``turn_weight`` is the dolphin's turn rate in deg/step (it sets its bank).
         ``noise_rng`` feeds the image noise (a randomised noise setting's draw first); by default a child of the
-        world's generator, drawn without advancing it.
+        world's generator, drawn without advancing it. The scenery draws from a child of ``noise_rng`` when it is
+        given (so each dataset sample has its own), else from the next child of the world's generator.
         """
         self._discard_prepared()
         self._noise_rng = noise_rng or self._spawn_rng()
@@ -222,11 +239,14 @@ class World:
         self.data.qpos[:] = [rover_pos[0], rover_pos[1], rover_pos[2], rover_yaw, 0.0, 0.0]
         self.rover.reset(depth=float(rover_pos[2]))
         self.dolphin.reset(self.rng, np.asarray(target_pos, float), target_yaw, turn_weight, phase, rover_pos[:2])
+        latency_rng = self._spawn_rng()
+        scene_rng = _child(noise_rng) if noise_rng is not None else self._spawn_rng()
+        self.scenery.apply(draw_episode_scene(self._configured_scene, scene_rng), self.data.qpos[:3], rover_yaw)
         dolphin = self._dolphin_pose()
         self._pose_dolphin(dolphin)
         mujoco.mj_forward(self.model, self.data)
         frame = self._render()
-        self.latency = LatencyLine(self._configured_latency.draw(self._spawn_rng()), frame)
+        self.latency = LatencyLine(self._configured_latency.draw(latency_rng), frame)
         return self._telemetry(dolphin), frame
 
     def prepare_step(self) -> None:
@@ -264,6 +284,7 @@ class World:
         self._prepared = None
         mujoco.mj_step2(self.model, d)
         self._pose_dolphin(dolphin)
+        self.scenery.follow(d.qpos[:3], d.qpos[3], d.time)  # rover_x, _y, _z, _yaw joints
         mujoco.mj_step1(self.model, d)
         return self._telemetry(dolphin), self.latency.frame(self._render())
 
@@ -274,7 +295,7 @@ class World:
         """
         if self._renderer is None:
             raise RuntimeError("target_mask needs a rendering world (WorldSettings(render=True))")
-        self._renderer.update_scene(self.data, camera=self._camera)
+        self._renderer.update_scene(self.data, camera=self._camera, scene_option=self.scenery.option)
         self._renderer.enable_segmentation_rendering()
         try:
             segmentation = self._renderer.render()
@@ -308,7 +329,7 @@ class World:
 
     def _spawn_rng(self) -> np.random.Generator:
         """A generator of the episode's own, from the world's seed without advancing the world's draws."""
-        return np.random.default_rng(self.rng.bit_generator.seed_seq.spawn(1)[0])
+        return _child(self.rng)
 
     def _discard_prepared(self) -> None:
         if self._prepared is not None:
@@ -336,8 +357,11 @@ class World:
         )
 
     def _pose_dolphin(self, dolphin: DolphinPose) -> None:
+        """Pose the mocap bodies; a scaled dolphin's tail pivots sit as much farther from its body (drawn only)."""
+        scale = self.scenery.dolphin_scale
+        body = dolphin.mocap[0][0]
         for mocap, (position, quat) in zip(self._mocap, dolphin.mocap, strict=True):
-            self.data.mocap_pos[mocap] = position
+            self.data.mocap_pos[mocap] = position if scale == 1.0 else body + scale * (position - body)
             self.data.mocap_quat[mocap] = quat
 
     def _rover_ang_vel(self) -> np.ndarray:
@@ -376,7 +400,7 @@ class World:
     def _render(self) -> np.ndarray | None:
         if self._renderer is None:
             return None
-        self._renderer.update_scene(self.data, camera=self._camera)
+        self._renderer.update_scene(self.data, camera=self._camera, scene_option=self.scenery.option)
         image = self._downscale(self._renderer.render())
         self.clean_frame = image
         if self._noise is None:
@@ -398,6 +422,11 @@ class World:
         if pixels.shape[0] == size:
             return pixels
         return cv2.resize(pixels, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def _child(rng: np.random.Generator) -> np.random.Generator:
+    """The next child generator of ``rng``'s seed; ``rng``'s own draws are left as they are."""
+    return np.random.default_rng(rng.bit_generator.seed_seq.spawn(1)[0])
 
 
 def _vec(values) -> tuple[float, ...]:
