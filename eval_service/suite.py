@@ -116,7 +116,8 @@ def encoder_errors(settings: EvalCommandSettings, conditions: list[Split]) -> pd
         for split in conditions:
             frames, labels = [], []
             for seed in seeds:
-                telemetry, frame = world.reset(seed, noise=split.noise if split.noise.enabled else False)
+                noise = split.noise if split.noise.enabled else False
+                telemetry, frame = world.reset(seed, noise=noise, scene=split.scene)
                 frames.append(frame)
                 labels.append(labels_and_pose(telemetry)[0])
             mu, _ = encoder.encode(np.stack(frames))

@@ -15,11 +15,20 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from learner_service.task import LATENCY_OPTION, NOISE_OPTION, Frame, TaskSettings, TrackingTask, episode_seed
+from learner_service.task import (
+    LATENCY_OPTION,
+    NOISE_OPTION,
+    SCENE_OPTION,
+    Frame,
+    TaskSettings,
+    TrackingTask,
+    episode_seed,
+)
 from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.latency import latency_option
 from sim_service.noise import noise_option
+from sim_service.scenery import scene_option
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -73,18 +82,19 @@ class TrackingEnv(gym.Env):
 
         ``options={"noise": ...}`` switches image noise as a distributed sim's reset does: true, false or a map of
         noise settings, kept for the episodes after it; ``{"latency": {...}}`` likewise sets the camera and control
-        delays (sim_service.latency).
+        delays (sim_service.latency), and ``{"scene": {...}}`` the scenery (sim_service.scenery).
         """
         super().reset(seed=seed)
         noise = noise_option((options or {}).get(NOISE_OPTION))
         latency = latency_option((options or {}).get(LATENCY_OPTION))
+        scene = scene_option((options or {}).get(SCENE_OPTION))
         if latency is not None:
             self.world.configure_latency(latency)
         if seed is not None:
             self.base_seed, self.episode = seed, 0
         self.episode += 1
         world_seed = episode_seed(self.base_seed, self.episode)
-        telemetry, image = self.world.reset(world_seed, noise)
+        telemetry, image = self.world.reset(world_seed, noise, scene=scene)
         obs = self.task.reset(self._frame(telemetry, image), seed=world_seed)
         info = self.task.info(telemetry) | {"ep": self.episode, "seed": world_seed}
         log.debug(

@@ -180,12 +180,19 @@ class RemoteEnvLink:
         return choose_route(encoders, self.name, self.step_timeout_s * self.max_retries, self.siblings)
 
     # --- stepping ----------------------------------------------------------------------------------
-    def send_reset(self, ep: int, seed: int, noise: bool | dict | None = None, latency: dict | None = None) -> None:
-        """Start episode ``ep``; ``noise`` switches the sim's image noise (on, off, a map of noise settings) and
-        ``latency`` its camera and control delays (a map of sim_service.latency settings); None leaves either as it
-        is."""
+    def send_reset(
+        self,
+        ep: int,
+        seed: int,
+        noise: bool | dict | None = None,
+        latency: dict | None = None,
+        scene: dict | None = None,
+    ) -> None:
+        """Start episode ``ep``; ``noise`` switches the sim's image noise (on, off, a map of noise settings),
+        ``latency`` its camera and control delays (a map of sim_service.latency settings) and ``scene`` its scenery
+        (a map of sim_service.scenery settings); None leaves each as it is."""
         self.ep, self.seq = ep, 0
-        self._pending = ("reset", (seed, noise, latency))
+        self._pending = ("reset", (seed, noise, latency, scene))
         try:
             self._send()
         except control.ControlTimeout as exc:  # a busy or restarting sim: wait() re-sends it, like a step
@@ -212,8 +219,9 @@ class RemoteEnvLink:
         kind, args = self._pending
         route = self._route()
         if kind == "reset":
-            seed, noise, latency = args
-            world_fields = {key: value for key, value in (("noise", noise), ("latency", latency)) if value is not None}
+            seed, noise, latency, scene = args
+            world_fields = {key: value for key, value in (("noise", noise), ("latency", latency), ("scene", scene))
+                            if value is not None}  # fmt: skip
             control.request(
                 self.session,
                 self.keys.ctl(self.channel, self.env),

@@ -36,6 +36,7 @@ from learner_service.task import (
     CAUSE_SIM_LOST,
     LATENCY_OPTION,
     NOISE_OPTION,
+    SCENE_OPTION,
     Frame,
     TaskSettings,
     TrackingTask,
@@ -195,7 +196,7 @@ class ProxyEnv(gym.Env):
 
         ``options={"noise": True | False | {...}}`` switches the sim's image noise from this episode on (a map holds
         noise settings by name, e.g. ``{"preset": "murky"}``); ``{"latency": {...}}`` sets its camera and control
-        delays (sim_service.latency) the same way.
+        delays (sim_service.latency) the same way, and ``{"scene": {...}}`` its scenery (sim_service.scenery).
         """
         super().reset(seed=seed)
         if seed is not None:
@@ -218,7 +219,8 @@ class ProxyEnv(gym.Env):
 
     def _start_episode(self, world_seed: int, options: dict) -> Reply:
         link = self.link
-        link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION))
+        link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION),
+                        options.get(SCENE_OPTION))  # fmt: skip
         return link.wait()
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:

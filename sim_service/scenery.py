@@ -38,7 +38,7 @@ SEABED_TEXTURES = {
     "mud": ((0.30, 0.28, 0.20), (0.40, 0.37, 0.27), 0.10, 30),
     "meadow": ((0.32, 0.38, 0.22), (0.18, 0.26, 0.12), 0.35, 50),
 }
-_RANGE_FIELDS = (
+RANGE_FIELDS = (
     "relief_m", "rocks", "seagrass", "sun_intensity", "sun_elevation_deg", "light_shafts", "shaft_strength",
     "particles", "fish_shoals", "fish_per_shoal", "dolphin_scale", "dolphin_shade",
 )  # fmt: skip
@@ -79,7 +79,7 @@ class SceneSettings:
         if self.preset not in PRESETS:
             raise ValueError(f"unknown scene preset {self.preset!r}; choose one of {', '.join(PRESETS)}")
         base = PRESETS[self.preset]
-        names = ("seabed_textures", *_RANGE_FIELDS)
+        names = ("seabed_textures", *RANGE_FIELDS)
         filled = {name: getattr(base, name) if getattr(self, name) is None else getattr(self, name) for name in names}
         resolved = dataclasses.replace(self, **filled)
         _validate(resolved)
@@ -115,7 +115,7 @@ def _validate(settings: SceneSettings) -> None:
     unknown = set(settings.seabed_textures) - set(SEABED_TEXTURES)
     if unknown:
         raise ValueError(f"unknown seabed textures {sorted(unknown)}; choose from {', '.join(SEABED_TEXTURES)}")
-    for name in _RANGE_FIELDS:
+    for name in RANGE_FIELDS:
         bounds = getattr(settings, name)
         if len(bounds) not in (0, 2) or (bounds and not 0 <= bounds[0] <= bounds[1]):
             raise ValueError(

@@ -17,7 +17,7 @@ from eval_service.suite import REFERENCES, run_suite
 from services.results import file_sha256
 from sim_service.splits import SPLITS
 
-SPLIT_NAMES = ["tannin", "dark"]
+SPLIT_NAMES = ["tannin", "dark", "shoals"]
 
 
 def settings(tmp_path: Path, **overrides) -> EvalCommandSettings:
@@ -54,6 +54,10 @@ def test_a_suite_plays_every_condition_and_reads_each_with_the_encoder(tmp_path)
     assert len(about["episode_seeds"]) == given.episodes and about["seeds"] == [131]
     assert [c["name"] for c in record["conditions"]] == conditions
     assert record["conditions"][2]["noise"]["fog_color"] == SPLITS["tannin"].noise.fog_color
+    assert (
+        record["conditions"][4]["scene"]["fish_shoals"] == [3, 3]
+        and record["conditions"][2]["scene"]["preset"] == "plain"
+    )
     assert matplotlib.image.imread(out / "suite.png").shape[0] > 100
 
 

@@ -82,10 +82,17 @@ def test_a_noise_sweep_runs_end_to_end_on_a_live_sim(group, zenoh_router, namesp
 
 def test_a_suite_plays_the_held_out_splits_on_a_live_sim(group, zenoh_router, namespace, zenoh_settings,
                                                          tmp_path) -> None:  # fmt: skip
-    """Each split's settings travel in the resets to the claimed env: it renders the last split's water."""
+    """Each split's water and scenery travel in the resets to the claimed env: it renders the last split's."""
     start_sim(group, zenoh_router, namespace)
     out = tmp_path / "suite"
-    run_eval(group, zenoh_router, namespace, out, "--suite", "--suite-splits", "dark", "tannin", "--suite-frames", "2")
+    run_eval(
+        group, zenoh_router, namespace, out, "--suite", "--suite-splits", "tannin", "shoals", "--suite-frames", "2"
+    )
     table = pd.read_csv(out / "suite.csv")
-    assert list(table["condition"]) == ["clean", "murky", "dark", "tannin"] and (table["episodes"] == 1).all()
-    assert np.array_equal(eval_env_frame(zenoh_settings, zenoh_router), world_frame(SPLITS["tannin"].noise))
+    assert list(table["condition"]) == ["clean", "murky", "tannin", "shoals"] and (table["episodes"] == 1).all()
+    world = World(WorldSettings())
+    try:
+        expected = world.reset(episode_seed(SEED, 1), noise=False, scene=SPLITS["shoals"].scene)[1]
+    finally:
+        world.close()
+    assert np.array_equal(eval_env_frame(zenoh_settings, zenoh_router), expected)

@@ -10,7 +10,15 @@ import pytest
 import yaml
 
 from sim_service.noise import PRESETS, WATER_COLOURS, NoiseSettings, draw_episode_noise
-from sim_service.splits import SPLITS, TRAINING_NOISE, outside_training, resolve_splits
+from sim_service.scenery import SceneSettings, draw_episode_scene
+from sim_service.splits import (
+    SPLITS,
+    TRAINING_NOISE,
+    TRAINING_SCENE,
+    outside_training,
+    resolve_splits,
+    scene_outside_training,
+)
 from sim_service.world import World
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -18,7 +26,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.parametrize("name", list(SPLITS))
 def test_every_split_lies_outside_the_training_randomisation(name) -> None:
-    assert outside_training(SPLITS[name].noise), f"split {name} overlaps the training ranges"
+    assert SPLITS[name].outside_training(), f"split {name} overlaps the training ranges"
 
 
 def test_no_training_draw_is_called_held_out() -> None:
@@ -78,3 +86,22 @@ def test_a_split_reaches_a_world_through_its_reset_options_and_keeps_the_poses()
         assert world.noise_settings.fog_color == [75, 48, 28]
     finally:
         world.close()
+
+
+def test_the_scenery_check_can_say_no_and_names_each_axis() -> None:
+    assert scene_outside_training(TRAINING_SCENE) == []
+    assert scene_outside_training(SceneSettings(preset="varied", rocks=[2, 4])) == []  # inside the training range
+    reasons = scene_outside_training(SceneSettings(preset="varied", rocks=[9, 10], fish_shoals=[]))
+    assert any("rocks [9, 10]" in r for r in reasons) and any("fish_shoals off" in r for r in reasons)
+
+
+def test_a_scenery_split_draws_outside_the_training_ranges_every_time() -> None:
+    """Every draw of a scenery split has at least one element the training ranges never give."""
+    for name in ("seabed", "low-sun", "shoals"):
+        split, rng = SPLITS[name], np.random.default_rng(1)
+        for _ in range(50):
+            drawn = draw_episode_scene(split.scene, rng)
+            training = TRAINING_SCENE
+            assert (drawn.mounds[:, 4].max() > training.relief_m[1] or len(drawn.rocks) > training.rocks[1]
+                    or (drawn.sun is not None and drawn.sun.intensity < training.sun_intensity[0])
+                    or len(drawn.shoals) > training.fish_shoals[1]), name  # fmt: skip
