@@ -28,7 +28,8 @@ from typing import Any
 from eval_service.live import LiveFeed
 from eval_service.publish import ResultPublisher
 from learner_service.evaluation import Contender
-from learner_service.progress import BEST_MODEL, BEST_MODEL_SCORE, file_sha256
+from learner_service.progress import BEST_MODEL, BEST_MODEL_SCORE
+from services.results import file_sha256
 
 log = logging.getLogger(__name__)
 

@@ -41,12 +41,12 @@ from learner_service.progress import (
     BEST_MODEL_SCORE,
     EVALUATIONS_CSV,
     RunProgress,
-    file_sha256,
     replace_atomically,
     write_json_atomically,
 )
 from learner_service.registry import SB3Policy
 from learner_service.task import CAUSE_COLLISION, CAUSE_DISTANCE, CAUSE_VISIBILITY
+from services.results import file_sha256
 
 log = logging.getLogger(__name__)
 

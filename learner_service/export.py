@@ -28,9 +28,9 @@ import numpy as np
 import torch
 
 from learner_service.identity import encoder_for
-from learner_service.progress import file_sha256
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
+from services.results import file_sha256
 from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)

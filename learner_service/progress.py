@@ -12,7 +12,6 @@ epochs" rather than a training bar stuck at zero, and counts training's rate and
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import threading
@@ -50,12 +49,6 @@ def replace_atomically(path: Path, write: Callable[[Path], Any]) -> None:
     partial = path.with_name(path.name + ".partial")
     write(partial)
     os.replace(partial, path)
-
-
-def file_sha256(path: Path) -> str:
-    """The file's SHA-256 as hex: what ``best_model.json`` records of the zip it scores, so a reader can tell that
-    the zip it copied is the one the score belongs to."""
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def write_json_atomically(path: Path, data: dict[str, Any]) -> None:
