@@ -18,7 +18,7 @@ drive to it (eval_service.live_tap).
 
 Contenders: each ``--algo`` in order; every algorithm but ``scripted`` takes the next ``--checkpoint``.
 One ``--algo`` (default ``sac``) with several checkpoints applies to all of them. ``--label`` names them.
-With no checkpoint and cmvae observations, ``sac`` means the shipped policy (:data:`SHIPPED_POLICY`, trained on
+With no checkpoint and cmvae observations, ``sac`` means the policy to fly (:data:`SHIPPED_POLICY`, trained on
 cmvae), so a bare ``swimm eval`` evaluates it; in other observation modes the default contender is ``scripted``.
 """
 

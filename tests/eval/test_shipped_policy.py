@@ -1,4 +1,4 @@
-"""The shipped policy (learner_service/models/sac_cmvae.zip) still tracks: a bare `swimm eval`'s contender,
+"""The policy to fly (learner_service/models/sac_cmvae_fly.zip, SHIPPED_POLICY) still tracks: a bare `swimm eval`'s contender,
 on the real world with the shipped CMVAE in one process, against the scripted baseline on the same episode.
 
 A short episode, so it guards the artefacts (a policy and an encoder that no longer fit each other, an
