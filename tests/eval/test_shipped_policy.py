@@ -1,5 +1,6 @@
-"""The policy to fly (learner_service/models/sac_cmvae_fly.zip, SHIPPED_POLICY) still tracks: a bare `swimm eval`'s contender,
-on the real world with the shipped CMVAE in one process, against the scripted baseline on the same episode.
+"""The policy to fly (learner_service/models/sac_cmvae_fly.zip, SHIPPED_POLICY) still tracks: a bare `swimm eval`'s
+contender, on the real world with the CMVAE it records in one process, against the scripted baseline on the same
+episode.
 
 A short episode, so it guards the artefacts (a policy and an encoder that no longer fit each other, an
 observation layout that changed under them) rather than measuring them; docs/eval_report.md measures.
