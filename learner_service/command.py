@@ -121,7 +121,7 @@ def check(settings: LearnCommandSettings) -> None:
         raise ValueError(f"a scripted baseline has nothing to learn; evaluate it: `swimm eval --algo {settings.algo}`")
     if settings.demo.teacher not in SCRIPTED_NAMES:
         raise ValueError(f"demo teacher must be one of {', '.join(SCRIPTED_NAMES)}, got {settings.demo.teacher!r}")
-    if settings.demo.teacher == LATENT_SCRIPTED and settings.obs != "cmvae":
+    if settings.demo.steps and settings.demo.teacher == LATENT_SCRIPTED and settings.obs != "cmvae":
         raise ValueError(f"demo teacher {LATENT_SCRIPTED} reads the latent: it needs --obs cmvae, got {settings.obs}")
     algorithm, defaults = resolve_algorithm(settings.algo)
     if settings.smooth.enabled and not issubclass(algorithm, OffPolicyAlgorithm | OnPolicyAlgorithm):
