@@ -20,6 +20,7 @@ from pathlib import Path
 
 from bench.learn_settings import LearnBenchSettings
 from encoder_service import check_engine
+from services.results import PROVENANCE_KEY, provenance
 
 log = logging.getLogger(__name__)
 
@@ -96,8 +97,8 @@ def run(settings: BenchSettings) -> int:
 
 def report(result: dict, as_json: bool) -> int:
     """One JSON object, or a two-column table of the top-level keys (nested tables: ``--json``)."""
-    if as_json:
-        sys.stdout.write(json.dumps(result) + "\n")
+    if as_json:  # a benchmark's JSON is what gets committed: it says what made it (services.results)
+        sys.stdout.write(json.dumps({PROVENANCE_KEY: provenance(), **result}) + "\n")
         return 0
     table = {key: value for key, value in result.items() if key not in ("runs", "settings", "how")}
     width = max(len(k) for k in table)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from bench.command import BenchSettings, medians, run
@@ -54,3 +56,14 @@ def test_a_layout_that_cannot_run_is_refused_before_anything_runs(settings, mess
 def test_a_ceiling_asked_of_another_benchmark_is_refused_before_anything_runs() -> None:
     with pytest.raises(ValueError, match="--ceiling is for `swimm bench train`"):
         run(BenchSettings(target="sim", ceiling=True))
+
+
+def test_a_json_report_says_what_made_it(capsys) -> None:
+    """Committed benchmark JSON carries its provenance: the command, the commit, the host."""
+    from bench.command import report
+    from services.results import PROVENANCE_KEY
+
+    assert report({"ratio": 0.5}, as_json=True) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["ratio"] == 0.5
+    assert printed[PROVENANCE_KEY]["host"]["cores"] >= 1 and len(printed[PROVENANCE_KEY]["git"]["commit"]) == 40
