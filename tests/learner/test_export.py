@@ -91,3 +91,20 @@ def test_bad_requests_name_the_problem_and_leave_no_file(tmp_path: Path) -> None
     with pytest.raises(ValueError, match="not kept"):
         run(ExportSettings(out=str(tmp_path / "c.onnx"), check_frames=20, tolerance=1e-12))
     assert not list(tmp_path.glob("*.onnx*"))
+
+
+def test_a_policy_on_a_white_balancing_cmvae_exports_with_its_preprocessing(tmp_path: Path) -> None:
+    """cmvae_general.pt white-balances each frame inside its encoder module, so the ONNX graph does too: the policy
+    trained on it exports with that CMVAE (the one it records) and onnxruntime's actions match the Python path's
+    within 1e-4 on real frames."""
+    from learner_service.identity import encoder_for
+    from services.results import file_sha256
+
+    policy = Path("learner_service/models/sac_cmvae_general.zip")
+    out = tmp_path / "general.onnx"
+    assert run(ExportSettings(checkpoint=str(policy), out=str(out), check_frames=FRAMES)) == 0
+    assert json.loads(out.with_suffix(".json").read_text())["max_action_difference"] <= 1e-4
+    session = onnxruntime.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    recorded = encoder_for(policy, None)
+    assert recorded.name == "cmvae_general.pt"
+    assert session.get_modelmeta().custom_metadata_map["swimm.encoder_sha256"] == file_sha256(recorded)
