@@ -35,7 +35,7 @@ from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
 
-SHIPPED_POLICY = Path(__file__).parent / "models" / "sac_cmvae_fly.zip"  # the policy to fly (docs/learner.md)
+SHIPPED_POLICY = Path(__file__).parent / "models" / "sac_cmvae_general.zip"  # the policy to fly (docs/learner.md)
 INPUTS = ("frame", "action_history")
 OUTPUTS = ("action", "next_history")
 OPSET = 17

@@ -73,7 +73,7 @@ COMMANDS: dict[str, Command] = {
         "learner_service.up:UpSettings",
         "learner_service.up:run",
         "launch router, sim, encoder, learner (shipped recipe)",
-        default_config="learner_service/models/sac_cmvae_fly.yaml",
+        default_config="learner_service/models/sac_cmvae_general.yaml",
         check="learner_service.up:check",
     ),
     "status": Command(

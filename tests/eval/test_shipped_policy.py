@@ -1,4 +1,4 @@
-"""The policy to fly (learner_service/models/sac_cmvae_fly.zip, SHIPPED_POLICY) still tracks: a bare `swimm eval`'s
+"""The policy to fly (learner_service/models/sac_cmvae_general.zip, SHIPPED_POLICY) still tracks: a bare `swimm eval`'s
 contender, on the real world with the CMVAE it records in one process, against the scripted baseline on the same
 episode.
 
