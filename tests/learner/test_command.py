@@ -217,6 +217,7 @@ def test_the_bar_names_each_phase_in_order_with_its_own_count(tmp_path: Path, mo
     from learner_service.progress import PhaseBar
 
     drawn = io.StringIO()
+    # Not a stand-in: the real bar, drawn into a buffer, since under pytest stderr is no terminal and it would hide.
     monkeypatch.setattr(command, "PhaseBar", lambda disable: PhaseBar(file=drawn))
     demo = DemoSettings(steps=60, bc_epochs=2, critic_steps=150, bc_batch_size=32)
     Training(tiny_settings(tmp_path / "run", demo=demo, checkpoint_every=0)).run()
