@@ -36,7 +36,7 @@ class BenchSettings:
     envs: int = 0  # encoder: batched half's envs (16); train: distributed envs (1); sim: grouped envs; learn: per run
     group_size: int = -1  # train: envs stepped as one message each way; -1 = one group per sim (from 4 envs)
     engine: str = "torch"  # train: the encoders' CMVAE inference, torch | onnx (onnxruntime), in both halves
-    policy: str = "auto"  # train: auto (sac: the shipped policy, steady state; else scratch) | scratch | a model zip
+    policy: str = "auto"  # train: auto (sac: sac_cmvae.zip, steady state; else scratch) | scratch | a model zip
     sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one; learn: 1
     encoders: int = 1  # train: encoder processes, the learner's groups spread evenly over them
     mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients

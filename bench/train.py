@@ -37,12 +37,12 @@ from pathlib import Path
 import torch
 from stable_baselines3.common.callbacks import BaseCallback
 
+import learner_service
 from bench.layout import default_layout
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.checkpoints import load_for_resume
 from learner_service.envs import make_vec_env
-from learner_service.export import SHIPPED_POLICY
 from learner_service.proxy_env import ProxySettings
 from learner_service.registry import make_model, training_callbacks
 from learner_service.task import TaskSettings
@@ -96,13 +96,19 @@ def process_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLOCK_TICKS
 
 
+#: The steady state's policy: the clean-frame SAC, whose encoder (cmvae.pt) is the one the bench's encoders run, so
+#: its episodes are as long as a tracking policy makes them; kept across the policy to fly's changes so that
+#: benchmark numbers stay comparable (docs/benchmarks.md).
+STEADY_STATE_POLICY = Path(learner_service.__file__).parent / "models" / "sac_cmvae.zip"
+
+
 def starting_policy(algo: str, policy: str) -> Path | None:
-    """What both halves train on from: ``"auto"`` is the shipped SAC policy for ``sac`` (steady state: episodes as
-    long as a tracking policy makes them, as in most of a run, not the first minutes' short ones) and a new model
+    """What both halves train on from: ``"auto"`` is :data:`STEADY_STATE_POLICY` for ``sac`` (steady state: episodes
+    as long as a tracking policy makes them, as in most of a run, not the first minutes' short ones) and a new model
     for other algorithms; ``"scratch"`` a new model; anything else a saved model of ``algo``."""
-    if policy == "scratch" or (policy == "auto" and (algo != "sac" or not SHIPPED_POLICY.is_file())):
+    if policy == "scratch" or (policy == "auto" and (algo != "sac" or not STEADY_STATE_POLICY.is_file())):
         return None
-    path = SHIPPED_POLICY if policy == "auto" else Path(policy)
+    path = STEADY_STATE_POLICY if policy == "auto" else Path(policy)
     if not path.is_file():
         raise FileNotFoundError(f"--policy {path}: no such saved model (or use --policy scratch)")
     return path
