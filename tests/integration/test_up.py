@@ -135,7 +135,7 @@ def test_up_names_each_phase_of_a_short_run_in_order(spawn, namespace, tmp_path)
     run_dir = tmp_path / "run"
     up = spawn("up", *up_args(run_dir, namespace, "--obs", "state", "--steps", "1500", "--eval-min-steps", "500",
                               "--eval-every", "500", "--eval-unit", "steps", "--eval-episodes", "1",
-                              "--eval-max-steps", "100"),
+                              "--eval-max-steps", "1500"),  # long enough for the launcher's 0.5 s polls to see
                "--demo-steps", "600", "--demo-teacher", "scripted", "--demo-bc-epochs", "400",
                "--demo-critic-steps", "2000")  # fmt: skip
     assert wait_exit(up, 240) == 0, up.log_tail(60)
