@@ -41,10 +41,12 @@ def test_no_training_draw_is_called_held_out() -> None:
 
 def test_the_policies_training_noise_lies_inside_the_training_noise() -> None:
     """The shipped policies trained on the sim configs below; the splits' training ranges must cover them."""
-    for config in ("randomised_noise.yaml", "randomised_noise_latency.yaml"):
+    for config in ("randomised_noise.yaml", "randomised_noise_latency.yaml", "randomised_world.yaml"):
         values = yaml.safe_load((REPO_ROOT / "sim_service" / "configs" / config).read_text())
         preset = PRESETS[values["noise_preset"]]
         assert outside_training(preset) == [], config
+        if "scene_preset" in values:  # the varied world's training ranges, not beyond them
+            assert scene_outside_training(SceneSettings(preset=values["scene_preset"])) == [], config
 
 
 @pytest.mark.parametrize(
