@@ -2,8 +2,9 @@
 
 A guard on the committed model and on the sim that renders for it: 400 fresh frames from the held-out
 generator (seed 5, as in docs/encoder.md) must give errors close to the documented ones, measured by
-`swimm eval-encoder` on 5000 frames. The tolerances cover the sampling error of 400 frames; a model or a
-renderer that changed what the latents mean would miss them.
+`swimm eval-encoder` on 5000 frames. The tolerances cover the sampling error of 400 frames, so they are wide
+enough for any shipped CMVAE to pass another's scores: which model is which is the job of the last test, whose
+per-model readings on a few fixed frames are tight enough that swapping any other shipped CMVAE in fails it.
 """
 
 from __future__ import annotations
@@ -75,3 +76,74 @@ def test_a_noise_robust_cmvae_scores_its_documented_errors_on_fresh_clean_and_mu
         )
         for label, allowed in tolerance.items():
             assert measured[label] == pytest.approx(expected[label], abs=allowed), (name, label, measured)
+
+
+#: The shipped CMVAEs, each told apart from every other by its readings on IDENTITY_FRAMES fixed frames.
+SHIPPED = ("cmvae.pt", "cmvae_robust.pt", "cmvae_mixture.pt", "cmvae_general.pt")
+IDENTITY_FRAMES, IDENTITY_SEED = 8, 5
+#: Each shipped CMVAE's readings (d metres, theta degrees) on those frames, measured at commit 9eb0b59 by
+#: `MUJOCO_GL=egl PYTHONPATH=. python tests/encoder/test_shipped_encoder.py`, which prints this table. psi is left
+#: out: it wraps at +-180 degrees and is the noisiest reading.
+READINGS = {
+    "cmvae.pt": [[2.4537, -10.1413], [6.1562, 2.1554], [2.2378, 1.498], [2.2498, -29.8259],
+                 [8.8362, -37.2408], [4.7082, 35.6585], [8.8233, -16.939], [4.0606, -1.9325]],
+    "cmvae_robust.pt": [[2.3463, -10.0228], [6.1207, 2.0661], [2.2972, -0.5181], [2.4576, -31.0041],
+                        [8.6204, -37.1425], [4.5619, 36.8997], [8.5882, -17.2812], [4.1405, -3.0697]],
+    "cmvae_mixture.pt": [[2.4179, -9.3772], [6.4451, 2.5], [2.3545, -1.0429], [2.4487, -28.9789],
+                         [9.031, -36.9243], [4.706, 36.2915], [8.6879, -17.3349], [4.2556, -2.6326]],
+    "cmvae_general.pt": [[2.2436, -10.4929], [6.986, 0.6882], [2.2891, -1.3118], [2.2294, -32.336],
+                         [7.6689, -37.3446], [5.5859, 36.3348], [8.4949, -17.3504], [4.4027, -5.0797]],
+}  # fmt: skip
+#: Room for a renderer or a float library that differs in the last bits; any two shipped CMVAEs differ on some frame
+#: by at least 0.23 m in d and on some frame by at least 2.0 deg in theta, four times these.
+READING_TOLERANCE = {"d_m": 0.05, "theta_deg": 0.5}
+
+
+def _readings(checkpoint: Path, folder: Path) -> np.ndarray:
+    """(d, theta) the CMVAE reads on every frame of a dataset folder, (N, 2)."""
+    frames = CMVAEDataset(folder)
+    encoder = LatentEncoder(checkpoint)
+    mu, _ = encoder.encode(frames.read(np.arange(len(frames))).images)
+    d, theta, _ = encoder.decode_state(mu)
+    return np.stack([d, theta], axis=1).astype(np.float64)
+
+
+def _identity_frames(out: Path) -> Path:
+    from sim_service.dataset import write_dataset
+
+    return write_dataset(out, count=IDENTITY_FRAMES, seed=IDENTITY_SEED, progress=False)
+
+
+def reads_as(readings: np.ndarray, name: str) -> bool:
+    """Whether readings match the shipped CMVAE ``name``'s measured ones within READING_TOLERANCE on every frame."""
+    expected = np.asarray(READINGS[name])
+    allowed = np.array(list(READING_TOLERANCE.values()))
+    return readings.shape == expected.shape and bool(np.all(np.abs(readings - expected) <= allowed))
+
+
+@pytest.fixture(scope="module")
+def shipped_readings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
+    """Every shipped CMVAE's readings on the same freshly rendered fixed-seed frames."""
+    folder = _identity_frames(tmp_path_factory.mktemp("identity") / "frames")
+    return {name: _readings(path, folder) for name in SHIPPED if (path := DEFAULT_CHECKPOINT.with_name(name)).is_file()}
+
+
+@pytest.mark.parametrize("candidate", SHIPPED)
+@pytest.mark.parametrize("expected", SHIPPED)
+def test_a_shipped_cmvae_reads_its_measured_readings_and_no_other_shipped_cmvae_does(
+    shipped_readings: dict[str, np.ndarray], expected: str, candidate: str
+) -> None:
+    if candidate not in shipped_readings:
+        pytest.skip(f"no {candidate} in this checkout")
+    assert reads_as(shipped_readings[candidate], expected) == (candidate == expected), (
+        f"{candidate} read {np.round(shipped_readings[candidate], 4).tolist()}; {expected} reads {READINGS[expected]}"
+    )
+
+
+if __name__ == "__main__":  # measures READINGS on the checked-out models
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as scratch:
+        identity = _identity_frames(Path(scratch) / "frames")
+        for shipped in SHIPPED:
+            print(f"{shipped!r}: {np.round(_readings(DEFAULT_CHECKPOINT.with_name(shipped), identity), 4).tolist()},")

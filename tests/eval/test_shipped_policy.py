@@ -3,16 +3,20 @@ contender, on the real world with the CMVAE it records in one process, against t
 episode.
 
 A short episode, so it guards the artefacts (a policy and an encoder that no longer fit each other, an
-observation layout that changed under them) rather than measuring them; docs/eval_report.md measures.
+observation layout that changed under them) rather than measuring them; docs/eval_report.md measures. Its bounds
+are loose, so the last test tells the shipped policies apart: each one's actions on fixed observations, measured once,
+are checked tightly enough that swapping any other shipped policy in fails.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from eval_service.command import SHIPPED_POLICY, EvalCommandSettings, evaluate
+from learner_service.registry import load_policy
 
 STEPS = 400
 
@@ -27,3 +31,69 @@ def test_the_shipped_policy_follows_the_dolphin_from_the_camera_alone(tmp_path) 
     assert shipped["A'"] == shipped["D'"] == shipped["C'"] == 0.0  # kept it in view, in the band, no contact
     assert shipped["mean_return"] > 0.6 * STEPS
     assert shipped["mean_return"] > 0.7 * baseline["mean_return"]
+
+
+#: The shipped policies, each told apart from every other by its actions on IDENTITY_OBS fixed observations: latents
+#: and action history drawn uniformly from [-1, 1] with IDENTITY_SEED (the layout the policies read, 30 numbers).
+SHIPPED = (
+    "sac_cmvae.zip",
+    "sac_cmvae_robust.zip",
+    "sac_cmvae_latency.zip",
+    "sac_cmvae_fly.zip",
+    "sac_cmvae_general.zip",
+)
+IDENTITY_OBS, IDENTITY_SEED = 8, 0
+#: Each shipped policy's deterministic actions (surge, yaw) on those observations, measured at commit 9eb0b59 by
+#: `PYTHONPATH=. python tests/eval/test_shipped_policy.py`, which prints this table.
+ACTIONS = {
+    "sac_cmvae.zip": [[0.2307, -0.3087], [-0.6881, -0.0515], [-0.0101, -0.3469], [0.3981, 0.6308],
+                      [-0.5726, -0.259], [-0.7854, 0.172], [-0.5268, -0.4261], [-0.964, -0.1179]],
+    "sac_cmvae_robust.zip": [[0.6542, -0.1147], [0.9396, -0.0789], [-0.5964, -0.3497], [0.964, 0.6964],
+                             [-0.2789, -0.2549], [-0.964, -0.1779], [0.964, -0.2797], [-0.964, -0.1747]],
+    "sac_cmvae_latency.zip": [[0.5574, 0.5631], [0.9446, 0.1711], [-0.7007, -0.5551], [0.964, 0.6973],
+                              [-0.5018, -0.5005], [-0.964, -0.4814], [0.964, -0.1222], [-0.964, -0.248]],
+    "sac_cmvae_fly.zip": [[0.7633, 0.4777], [0.9158, 0.2701], [-0.5104, -0.5719], [0.964, 0.7364],
+                          [-0.3999, -0.4222], [-0.964, -0.3703], [0.964, -0.1276], [-0.964, -0.1508]],
+    "sac_cmvae_general.zip": [[0.7351, 0.5838], [0.964, 0.1851], [-0.6207, -0.5416], [0.964, 0.6368],
+                              [-0.5261, -0.5585], [-0.964, -0.5027], [0.964, -0.1226], [-0.964, -0.2073]],
+}  # fmt: skip
+#: Room for a float library that differs in the last bits; any two shipped policies differ by at least 0.13 on some
+#: action, six times this.
+ACTION_TOLERANCE = 0.02
+
+
+def _actions(checkpoint: Path) -> np.ndarray:
+    """The policy's deterministic actions on the fixed observations, (IDENTITY_OBS, 2)."""
+    policy = load_policy("sac", checkpoint, device="cpu")
+    shape = policy.model.observation_space.shape
+    obs = np.random.default_rng(IDENTITY_SEED).uniform(-1.0, 1.0, size=(IDENTITY_OBS, *shape)).astype(np.float32)
+    return policy.act(obs, {}).astype(np.float64)
+
+
+def acts_as(actions: np.ndarray, name: str) -> bool:
+    """Whether actions match the shipped policy ``name``'s measured ones within ACTION_TOLERANCE."""
+    expected = np.asarray(ACTIONS[name])
+    return actions.shape == expected.shape and bool(np.all(np.abs(actions - expected) <= ACTION_TOLERANCE))
+
+
+@pytest.fixture(scope="module")
+def shipped_actions() -> dict[str, np.ndarray]:
+    models = SHIPPED_POLICY.parent
+    return {name: _actions(models / name) for name in SHIPPED if (models / name).is_file()}
+
+
+@pytest.mark.parametrize("candidate", SHIPPED)
+@pytest.mark.parametrize("expected", SHIPPED)
+def test_a_shipped_policy_takes_its_measured_actions_and_no_other_shipped_policy_does(
+    shipped_actions: dict[str, np.ndarray], expected: str, candidate: str
+) -> None:
+    if candidate not in shipped_actions:
+        pytest.skip(f"no {candidate} in this checkout")
+    assert acts_as(shipped_actions[candidate], expected) == (candidate == expected), (
+        f"{candidate} acted {np.round(shipped_actions[candidate], 4).tolist()}; {expected} acts {ACTIONS[expected]}"
+    )
+
+
+if __name__ == "__main__":  # measures ACTIONS on the checked-out policies
+    for shipped in SHIPPED:
+        print(f"{shipped!r}: {np.round(_actions(SHIPPED_POLICY.parent / shipped), 4).tolist()},")
