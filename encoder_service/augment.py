@@ -19,6 +19,9 @@ GAMMA_LOG_RANGE = 0.5  # gamma exp(U[-r, r]): about 0.6 to 1.65
 HAZE_MAX = 0.5  # blend toward a random colour by U[0, max]: backscatter of any water
 NOISE_STD_MAX = 12.0  # Gaussian pixel noise, std U[0, max]
 BLUR_SIGMA_MAX = 1.2  # Gaussian blur, sigma U[0, max] pixels, on half of the jittered frames
+BANDS_MAX = 4  # translucent bands per banded frame, 1 to max
+BAND_WIDTH = (0.03, 0.3)  # band width, a share of the frame's width U[lo, hi]
+BAND_ALPHA_MAX = 0.5  # a band's peak opacity U[0.1, max]: the dolphin still shows through
 
 
 def jitter(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
@@ -41,3 +44,33 @@ def _jitter_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         pixels = cv2.GaussianBlur(pixels, (0, 0), rng.uniform(1e-3, BLUR_SIGMA_MAX))
     pixels += rng.standard_normal(pixels.shape, dtype=np.float32) * (rng.uniform(0.0, NOISE_STD_MAX) / 255.0)
     return np.rint(np.clip(pixels, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def bands(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
+    """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them carry translucent straight bands.
+
+    Each band crosses the frame at any angle in a random colour and fades along its length, as light shafts, kelp
+    or a passing shadow would: structure that is not the dolphin and that the sim's training scenery draws only
+    in a narrow range of angles and strengths.
+    """
+    out = images.copy()
+    for index in np.flatnonzero(rng.random(len(images)) < share):
+        out[index] = _bands_one(images[index], rng)
+    return out
+
+
+def _bands_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    height, width = image.shape[:2]
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float32)
+    pixels = image.astype(np.float32)
+    for _ in range(rng.integers(1, BANDS_MAX + 1)):
+        angle = rng.uniform(0.0, np.pi)
+        centre_x, centre_y = rng.uniform(0, width), rng.uniform(0, height)
+        across = (cols - centre_x) * np.sin(angle) - (rows - centre_y) * np.cos(angle)
+        along = ((cols - centre_x) * np.cos(angle) + (rows - centre_y) * np.sin(angle)) / width
+        half_width = rng.uniform(*BAND_WIDTH) * width / 2
+        inside = np.clip(half_width - np.abs(across) + 0.5, 0.0, 1.0)  # a one-pixel soft edge
+        fade = np.clip(0.5 + rng.uniform(-1.5, 1.5) * along, 0.0, 1.0)
+        alpha = (rng.uniform(0.1, BAND_ALPHA_MAX) * inside * fade)[..., None]
+        pixels = pixels * (1.0 - alpha) + rng.uniform(0.0, 255.0, 3).astype(np.float32) * alpha
+    return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)

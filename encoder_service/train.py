@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from encoder_service.augment import jitter
+from encoder_service.augment import bands, jitter
 from encoder_service.data import (
     AnyDataset,
     Batch,
@@ -79,6 +79,7 @@ class TrainEncoderSettings:
     state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # of d, theta, psi in the state error
     input_norm: str = "none"  # none | channel: white-balance each frame first (model.INPUT_NORMS)
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
+    augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -191,6 +192,8 @@ def _loss(
     inputs, targets = inputs_and_targets(batch, feed_clean)
     if jitter_rng is not None and settings.augment > 0:
         inputs = jitter(inputs, jitter_rng, settings.augment)
+    if jitter_rng is not None and settings.augment_bands > 0:
+        inputs = bands(inputs, jitter_rng, settings.augment_bands)
     labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
     images = images_to_tensor(inputs, device)
     if teacher is None:
@@ -393,8 +396,9 @@ def run(settings: TrainEncoderSettings) -> int:
     settings.state_loss()  # checked before the dataset is read, not at the first batch
     if settings.input_norm not in INPUT_NORMS:
         raise ValueError(f"--input-norm must be one of {', '.join(INPUT_NORMS)}, got {settings.input_norm!r}")
-    if not 0.0 <= settings.augment <= 1.0:
-        raise ValueError(f"--augment is a share of frames: it must lie in [0, 1], got {settings.augment}")
+    for flag, share in (("--augment", settings.augment), ("--augment-bands", settings.augment_bands)):
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.augment import jitter
+from encoder_service.augment import bands, jitter
 from encoder_service.model import CMVAE, images_to_tensor, load_model, make_checkpoint
 from encoder_service.train import TrainEncoderSettings, run
 from tests.encoder.cmvae_testdata import write_dataset
@@ -50,14 +50,34 @@ def test_jitter_is_seeded_touches_only_its_share_and_keeps_uint8() -> None:
     np.testing.assert_array_equal(jitter(frames, np.random.default_rng(5), 0.0), frames)
 
 
+def test_bands_are_seeded_translucent_and_touch_only_their_share() -> None:
+    frames = np.full((200, 64, 64, 3), 40, dtype=np.uint8)
+    first = bands(frames, np.random.default_rng(5), 0.5)
+    np.testing.assert_array_equal(first, bands(frames, np.random.default_rng(5), 0.5))
+    assert first.dtype == np.uint8 and first.shape == frames.shape
+    banded = [image for image in first if not np.array_equal(image, frames[0])]
+    assert 0.35 < len(banded) / len(frames) < 0.65
+    for image in banded:
+        untouched = np.mean(np.all(image == 40, axis=-1))
+        assert 0.0 < untouched < 1.0  # a band crosses part of the frame, never all of it
+        assert np.abs(image.astype(int) - 40).max() <= 0.5 * 255 + 1  # at most half opaque
+    np.testing.assert_array_equal(bands(frames, np.random.default_rng(5), 0.0), frames)
+
+
 def test_a_run_with_norm_and_jitter_trains_and_refuses_bad_values(tmp_path: Path) -> None:
     dataset = write_dataset(tmp_path / "data", count=64, seed=3, shard_size=32)
     out = tmp_path / "run"
     settings = TrainEncoderSettings(dataset=[str(dataset)], out=str(out), epochs=1, val_fraction=0.25, device="cpu",
-                                    tensorboard=False, input_norm="channel", augment=0.5)  # fmt: skip
+                                    tensorboard=False, input_norm="channel", augment=0.5,
+                                    augment_bands=0.5)  # fmt: skip
     assert run(settings) == 0
     best = torch.load(out / "best.pt", weights_only=True)
     assert best["config"]["input_norm"] == "channel" and math.isfinite(best["val_loss"])
-    for change, message in (({"augment": 1.5}, "--augment is a share"), ({"input_norm": "x"}, "--input-norm")):
+    refusals = (
+        ({"augment": 1.5}, "--augment is a share"),
+        ({"augment_bands": -0.1}, "--augment-bands is a share"),
+        ({"input_norm": "x"}, "--input-norm"),
+    )
+    for change, message in refusals:
         with pytest.raises(ValueError, match=message):
             run(TrainEncoderSettings(dataset=[str(dataset)], out=str(tmp_path / "bad"), **change))
