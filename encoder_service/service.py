@@ -37,7 +37,8 @@ from services.keys import GROUPS, Keys
 from services.lifecycle import serve_until_signalled
 from services.messages import BadMessage, BatchItem, BatchMsg, ErrorMsg, LatentMsg, ObservationMsg, stamp_of
 from services.metrics import Metrics, MetricsPublisher
-from services.presence import announce
+from services.presence import announce, declare_about
+from services.results import file_sha256
 from services.session import open_session
 from services.settings import NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings
 
@@ -181,6 +182,9 @@ class EncoderService:
         self._metrics_publisher = MetricsPublisher(
             self.session, self.keys, "encoder", self.ident, self.metrics, self.settings.metrics_period_s
         )
+        # Learners and evaluations check that this is the CMVAE their policy was trained with.
+        about = {"checkpoint": str(self.encoder.checkpoint), "sha256": file_sha256(self.encoder.checkpoint)}
+        self._about = declare_about(self.session, self.keys, "encoder", self.ident, about)
         # Announce last: a learner routes here only once this encoder can hear it.
         self._token = announce(self.session, self.keys, "encoder", self.ident)
         log.info(
@@ -312,6 +316,7 @@ class EncoderService:
 
     def stop(self) -> None:
         self._token.undeclare()  # leave the roster first so learners route elsewhere
+        self._about.undeclare()
         self._subscriber.undeclare()
         self._group_subscriber.undeclare()
         self.batcher.close()

@@ -103,6 +103,13 @@ class Keys:
     def live_role(self, role: str) -> str:
         return f"{self.namespace}/@live/{role}/*"
 
+    def about(self, role: str, ident: str) -> str:
+        """Where a service answers what it runs (an encoder: its CMVAE's path and hash)."""
+        return f"{self.namespace}/@about/{role}/{ident}"
+
+    def about_role(self, role: str) -> str:
+        return f"{self.namespace}/@about/{role}/*"
+
     def metrics(self, role: str, ident: str) -> str:
         return f"{self.namespace}/metrics/{role}/{ident}"
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import json
 import logging
 import re
 import threading
@@ -50,6 +51,21 @@ def process_of(ident: str) -> str:
 def announce(session: zenoh.Session, keys: Keys, role: str, ident: str) -> zenoh.LivelinessToken:
     """Declare this service's token; keep the returned object referenced or it is undeclared."""
     return session.liveliness().declare_token(keys.live(role, ident))
+
+
+def declare_about(session: zenoh.Session, keys: Keys, role: str, ident: str, about: dict) -> zenoh.Queryable:
+    """Answer queries for what this service runs with ``about`` (JSON); keep the returned object referenced."""
+    key, payload = keys.about(role, ident), json.dumps(about)
+    return session.declare_queryable(key, lambda query: query.reply(key, payload))  # its own key names it
+
+
+def ask_about(session: zenoh.Session, keys: Keys, role: str, timeout_s: float = 2.0) -> dict[str, dict]:
+    """What every live member of ``role`` that answers says it runs, by id."""
+    answers = {}
+    for reply in session.get(keys.about_role(role), timeout=timeout_s):
+        if reply.ok is not None:
+            answers[str(reply.ok.key_expr).rsplit("/", 1)[-1]] = json.loads(reply.ok.payload.to_bytes())
+    return answers
 
 
 def live_now(session: zenoh.Session, keys: Keys, role: str, timeout_s: float = 2.0) -> set[str]:

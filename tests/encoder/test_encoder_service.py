@@ -19,12 +19,15 @@ import pytest
 import torch
 import zenoh
 
+from encoder_service.inference import DEFAULT_CHECKPOINT as SHIPPED_CMVAE
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
+from learner_service.identity import check_live_encoders
 from services.keys import Keys
 from services.messages import PROTOCOL_VERSION, ErrorMsg, LatentMsg, ObservationMsg, image_to_fields
-from services.presence import Roster
+from services.presence import Roster, ask_about
+from services.results import file_sha256
 from services.settings import ZenohSettings
 from services.telemetry import Telemetry
 
@@ -208,3 +211,18 @@ def test_the_batcher_caps_batches_and_drains_before_closing() -> None:
     assert waiting.next_batch(idle_timeout_s=0.01) == []
     with pytest.raises(ValueError, match="max_batch"):
         LatentBatcher(max_batch=0, max_wait_ms=1.0)
+
+
+def test_a_live_encoder_says_which_cmvae_it_runs_and_a_run_on_another_is_refused(
+    start_service, zenoh_router: str, zenoh_session, namespace: str, checkpoint: Path
+) -> None:
+    """Over Zenoh a learner cannot see the encoder's file: the encoder answers its path and hash, and a run that
+    would record another CMVAE is refused naming both files and the encoder."""
+    start_service()
+    session, keys = zenoh_session(zenoh_router), Keys(namespace)
+    Roster(session, keys, "encoder").wait_for(1, timeout_s=20)
+    answers = ask_about(session, keys, "encoder")
+    assert answers == {IDENT: {"checkpoint": str(checkpoint), "sha256": file_sha256(checkpoint)}}
+    check_live_encoders(answers, checkpoint, "this run")  # the same file: accepted
+    with pytest.raises(ValueError, match=rf"this run reads encoder {SHIPPED_CMVAE}.*{IDENT} runs {checkpoint}"):
+        check_live_encoders(answers, SHIPPED_CMVAE, "this run")
