@@ -42,7 +42,7 @@ from learner_service.callbacks import (
 from learner_service.checkpoints import load_for_resume, save_model
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.episodic import episodic_schedule
-from learner_service.identity import check_live_encoders, encoder_for, policy_identity, stamp
+from learner_service.identity import encoder_for, policy_identity, require_live_encoders, stamp
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
 from learner_service.progress import (
     FINAL_MODEL,
@@ -132,21 +132,6 @@ def check(settings: LearnCommandSettings) -> None:
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
 
 
-def check_encoders(session: Any, s: LearnCommandSettings) -> None:
-    """The latents a run learns from must come from the CMVAE its models will record: wait for the first live
-    encoder (a run on latents cannot start without one), then refuse any that runs another."""
-    from encoder_service.inference import DEFAULT_CHECKPOINT
-    from services.presence import Roster, ask_about
-
-    keys, encoder = Keys(s.zenoh.namespace), s.encoder_checkpoint or DEFAULT_CHECKPOINT
-    roster = Roster(session, keys, "encoder")
-    try:
-        roster.wait_for(1, timeout_s=s.zenoh.startup_timeout_s)
-    finally:
-        roster.close()
-    check_live_encoders(ask_about(session, keys, "encoder"), encoder, f"this run (--encoder-checkpoint {encoder})")
-
-
 class Training:
     """One run of `swimm learn`: envs, model and callbacks built from the settings, trained, saved, summarised."""
 
@@ -189,14 +174,17 @@ class Training:
                 self.progress.evaluated(*evaluation)
             session = None
             if s.backend == "zenoh":
+                from encoder_service.inference import DEFAULT_CHECKPOINT
                 from services.metrics import MetricsPublisher
                 from services.presence import process_ident
                 from services.session import open_session
 
                 session = open_session(s.zenoh, role="learner")
                 stack.callback(session.close)
-                if s.obs == "cmvae":
-                    check_encoders(session, s)
+                if s.obs == "cmvae":  # its latents must come from the CMVAE its models will record
+                    encoder = s.encoder_checkpoint or DEFAULT_CHECKPOINT
+                    reader = f"this run (--encoder-checkpoint {encoder})"
+                    require_live_encoders(session, Keys(s.zenoh.namespace), encoder, reader, s.zenoh.startup_timeout_s)
                 # `swimm status` shows the phase, steps and latest evaluation of each learner process.
                 publisher = MetricsPublisher(session, Keys(s.zenoh.namespace), "learner", process_ident("learner"),
                                              self.progress)  # fmt: skip

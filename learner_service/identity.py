@@ -15,6 +15,8 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
+from services.keys import Keys
+from services.presence import Roster, ask_about
 from services.results import REPO_ROOT, file_sha256
 
 log = logging.getLogger(__name__)
@@ -102,6 +104,16 @@ def check_live_encoders(answers: dict[str, dict], expected: str | Path, reader: 
             f"with --checkpoint {expected}, or give --encoder-checkpoint the file they run"
         )
     log.info("every live encoder (%s) runs %s", ", ".join(sorted(answers)), expected)
+
+
+def require_live_encoders(session: Any, keys: Keys, expected: str | Path, reader: str, timeout_s: float) -> None:
+    """Wait for the first live encoder (latents need one), then :func:`check_live_encoders` every one live."""
+    roster = Roster(session, keys, "encoder")
+    try:
+        roster.wait_for(1, timeout_s=timeout_s)
+    finally:
+        roster.close()
+    check_live_encoders(ask_about(session, keys, "encoder"), expected, reader)
 
 
 def _find(recorded: dict[str, str], checkpoint: str | Path) -> Path:
