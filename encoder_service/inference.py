@@ -32,12 +32,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from encoder_service import ENGINES
+from encoder_service import DEFAULT_CHECKPOINT, ENGINES
 from encoder_service.model import IMAGE_SHAPE, denormalise_labels, images_to_tensor, load_model
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CHECKPOINT = Path(__file__).parent / "models" / "cmvae.pt"
 Encoder = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 

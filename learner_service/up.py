@@ -70,8 +70,6 @@ from sim_service.responder import SimSettings, check_low_latency_group
 
 log = logging.getLogger(__name__)
 
-#: encoder_service.inference.DEFAULT_CHECKPOINT, found without importing torch into this process.
-SHIPPED_CMVAE = Path(encoder_service.__file__).parent / "models" / "cmvae.pt"
 WATCH_PERIOD_S = 0.5
 
 
@@ -129,7 +127,7 @@ def encoder_checkpoint(learn: LearnCommandSettings) -> Path | None:
     """The CMVAE the encoders load (None when the observation mode needs no encoder); fails clearly if absent."""
     if learn.obs != "cmvae":
         return None
-    path = Path(learn.encoder_checkpoint) if learn.encoder_checkpoint else SHIPPED_CMVAE
+    path = Path(learn.encoder_checkpoint) if learn.encoder_checkpoint else encoder_service.DEFAULT_CHECKPOINT
     if not path.is_file():
         raise FileNotFoundError(
             f"the CMVAE checkpoint {path} does not exist. Train one (`swimm dataset`, then `swimm train-encoder`) "
