@@ -33,7 +33,8 @@ import numpy as np
 import torch
 
 from encoder_service import DEFAULT_CHECKPOINT, ENGINES
-from encoder_service.model import IMAGE_SHAPE, denormalise_labels, images_to_tensor, load_model
+from encoder_service.model import denormalise_labels, images_to_tensor, load_model
+from services.messages import IMAGE_SHAPE
 
 log = logging.getLogger(__name__)
 

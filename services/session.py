@@ -180,9 +180,3 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
                     settings.startup_timeout_s, describe_endpoints(config), attempt, zenoh_reason(exc))  # fmt: skip
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
-
-
-def router_settings(
-    listen: list[str], namespace: str = "swimm/default", zenoh_config: str | None = None
-) -> ZenohSettings:
-    return ZenohSettings(mode="router", connect=[], listen=listen, namespace=namespace, zenoh_config=zenoh_config)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import zenoh
 
 from services import control
+from services.control import CLAIMANT_ROLES
 from services.keys import Keys
 from services.lifecycle import serve_until_signalled
 from services.messages import (
@@ -46,7 +47,6 @@ from sim_service.settings import WorldSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
-CLAIMANT_ROLES = ("learner", "eval")
 #: Room allowed for what an observation carries besides its image (stamps, telemetry, field names): 505 to
 #: 523 bytes encoded, measured.
 OBSERVATION_OVERHEAD_BYTES = 2048
