@@ -52,6 +52,7 @@ from services import cli
 from services import settings as settings_mod
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
+from services.low_latency import check_low_latency_group
 from services.presence import Roster
 from services.procs import ProcessGroup, Service, zenoh_flags
 from services.session import open_session
@@ -66,7 +67,7 @@ from services.settings import (
     check_ranges,
     to_dict,
 )
-from sim_service.responder import SimSettings, check_low_latency_group
+from sim_service.responder import SimSettings
 
 log = logging.getLogger(__name__)
 
