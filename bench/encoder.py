@@ -20,9 +20,11 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import torch
 import zenoh
 
-from encoder_service.inference import DEFAULT_CHECKPOINT
+from encoder_service import DEFAULT_CHECKPOINT
+from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.service import EncoderSettings
 from services.keys import Keys
 from services.messages import LatentMsg, ObservationMsg
@@ -56,10 +58,6 @@ def checkpoint_for_bench(tmp: Path) -> tuple[Path, str]:
     """The shipped CMVAE when present; otherwise a freshly initialised one (same architecture, same cost)."""
     if DEFAULT_CHECKPOINT.is_file():
         return DEFAULT_CHECKPOINT, f"shipped {DEFAULT_CHECKPOINT.relative_to(Path(__file__).parents[1])}"
-    import torch
-
-    from encoder_service.model import CMVAE, make_checkpoint
-
     torch.manual_seed(0)
     path = tmp / "cmvae-fresh.pt"
     torch.save(make_checkpoint(CMVAE(), beta=8.0, epoch=0, val_loss=math.nan, metrics={}), path)

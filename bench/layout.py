@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from learner_service.up import group_size_for, largest_whole_group, sim_shares
-from sim_service.responder import check_low_latency_group
+from services.low_latency import check_low_latency_group
 from sim_service.settings import WorldSettings
 
 

@@ -31,9 +31,16 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+from matplotlib.figure import Figure
+from tqdm import tqdm
 
-from bench.learn_settings import LearnBenchSettings
+from bench.learn_merge import merge
+from bench.learn_settings import SUMMARY, LearnBenchSettings
 from bench.scores import bootstrap_ci, curve_band, first_reaching, iqm
+from eval_service.engine import EvaluationSettings, evaluate
+from learner_service import up
+from learner_service.command import RESULT_FILE
+from learner_service.command import check as check_learner
 from learner_service.learn_settings import EvalSettings, LearnCommandSettings
 from learner_service.progress import BEST_MODEL, EVALUATIONS_CSV, FINAL_MODEL
 from services.settings import ZenohSettings
@@ -42,7 +49,6 @@ log = logging.getLogger(__name__)
 
 FINAL_EVAL = "final-eval"
 BEST_EVAL = "best-eval"  # the same episodes for the best model of the training evaluations
-SUMMARY = "summary.json"
 FIGURE = "learn.png"
 CURVE_POINTS = 60
 NAMESPACE = "swimm/bench-learn"  # its own, so no other system on this network mistakes its processes for theirs
@@ -97,8 +103,6 @@ def learn_settings(
 
 def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = Layout()) -> None:
     """One `swimm up` to the end of its budget; refuses to go on past a learner that failed."""
-    from learner_service import up
-
     learn = learn_settings(settings, algo, seed, layout)
     folder = Path(learn.run_dir)
     if folder.exists():
@@ -111,8 +115,6 @@ def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = L
 
 def trained(folder: Path) -> bool:
     """Whether a run's training ended by its budget (not stopped by a signal), so only its evaluation is missing."""
-    from learner_service.command import RESULT_FILE  # torch loads only when a run is looked at
-
     result = folder / RESULT_FILE
     if not (result.is_file() and (folder / FINAL_MODEL).is_file()):
         return False
@@ -127,10 +129,8 @@ def final_evaluation(
 ) -> dict[str, Any]:
     """A run's ``model`` (the final one, or the best one) plays the final episodes in-process; written to (and read
     back from) ``folder`` in the run's folder."""
-    from eval_service.command import EvalCommandSettings, evaluate
-
     out = run_dir(settings, algo, seed) / folder
-    evaluation = EvalCommandSettings(
+    evaluation = EvaluationSettings(
         algo=[algo],
         checkpoint=[str(run_dir(settings, algo, seed) / model)],
         label=[f"{algo}-{seed}"],
@@ -139,7 +139,6 @@ def final_evaluation(
         steps=settings.eval_max_steps,
         obs="cmvae",
         backend="inprocess",
-        out=str(out),
         encoder_checkpoint=settings.encoder_checkpoint,
         figures=False,
     )
@@ -222,15 +221,11 @@ def _rounded(values: list[float | None]) -> list[float | None]:
     return [None if value is None else round(value, 1) for value in values]
 
 
-def learning_figure(evaluations: pd.DataFrame) -> Any:
+def learning_figure(evaluations: pd.DataFrame) -> Figure:
     """Two panels, return against env steps and against wall minutes: each algorithm's mean across seeds and its
     95% bootstrap band."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figure, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True)
+    figure = Figure(figsize=(12, 4.5))
+    axes = figure.subplots(1, 2, sharey=True)
     for x, axis, label in (("num_timesteps", axes[0], "env steps"), ("wall_min", axes[1], "wall minutes")):
         for algo, table in evaluations.groupby("algo", sort=False):
             runs = [run for _, run in table.groupby("seed")]
@@ -249,14 +244,8 @@ def learning_figure(evaluations: pd.DataFrame) -> Any:
 
 def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, Any]:
     """Train what is missing, evaluate it, write the results folder; returns the summary."""
-    from tqdm import tqdm
-
-    from learner_service.command import check as check_learner
-
     settings.check()
     if settings.merge:
-        from bench.learn_merge import merge
-
         return write_results(Path(settings.out), *merge(settings))
     layout.check()
     for algo in settings.algos:  # a learner's mistake (hyperparams, smoothing) refused before the first run

@@ -18,8 +18,7 @@ from typing import Any
 
 import pandas as pd
 
-from bench.learn import SUMMARY
-from bench.learn_settings import LearnBenchSettings
+from bench.learn_settings import SUMMARY, LearnBenchSettings
 from learner_service.progress import EVALUATIONS_CSV
 
 

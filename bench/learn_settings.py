@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 from learner_service.learn_settings import SmoothSettings
 
+SUMMARY = "summary.json"  # a results folder's summary, which --merge reads back (bench.learn_merge)
+
 
 @dataclass
 class LearnBenchSettings:

@@ -46,6 +46,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.layout import default_layout
+from learner_service.group_link import GroupLink
+from learner_service.link import RemoteEnvLink, new_holder_id
 from learner_service.up import sim_shares
 from services.keys import Keys
 from services.polling import POLLING_SWITCH_INTERVAL_S
@@ -135,8 +137,6 @@ class ServedEnv:
     """One env of a `swimm sim` process, claimed and reset, stepped lock-step from this process."""
 
     def __init__(self, way: Way, endpoint: str, stack: ExitStack) -> None:
-        from learner_service.link import RemoteEnvLink, new_holder_id
-
         self.way = way
         settings = way.zenoh_settings(endpoint)
         session = open_session(settings, role="bench")
@@ -170,9 +170,6 @@ class GroupedEnvs:
     Zenoh's defaults, as `swimm up` runs): every group's actions go out before the first reply is awaited."""
 
     def __init__(self, endpoint: str, envs: int, group_size: int, stack: ExitStack) -> None:
-        from learner_service.group_link import GroupLink
-        from learner_service.link import RemoteEnvLink, new_holder_id
-
         settings = ZenohSettings(mode="peer", connect=[endpoint], namespace=GROUPED_NAMESPACE)
         session = open_session(settings, role="bench")
         stack.callback(session.close)

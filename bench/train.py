@@ -17,8 +17,7 @@ start of the processes and the building of the model.
 
 CPU threads: torch runs with one thread in the learner and in the encoder. In lock step only one process
 works at a time, and the idle-spinning threads of a two-thread torch pool steal the core the next process in
-the chain needs (measured on the 2-core machine: a batch-1 encode took 11-28 ms with two threads under load,
-1.1-1.7 ms with one).
+the chain needs (docs/benchmarks.md, one torch thread in the training benchmark).
 """
 
 from __future__ import annotations

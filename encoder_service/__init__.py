@@ -1,3 +1,10 @@
+"""The CMVAE service. This module holds what launchers and evaluators need without importing torch."""
+
+from pathlib import Path
+
+#: The shipped CMVAE (docs/encoder.md): every command's encoder when none is given.
+DEFAULT_CHECKPOINT = Path(__file__).parent / "models" / "cmvae.pt"
+
 #: The CMVAE's inference engines (encoder_service.inference), here so that launchers can check a choice without torch.
 ENGINES = ("torch", "onnx")
 

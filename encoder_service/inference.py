@@ -5,16 +5,10 @@ figures), in eval mode under ``torch.inference_mode`` with channels_last
 input. ``decode_state`` turns latents back into (d, theta, psi) for
 diagnostics and the eval views.
 
-TorchScript or eager: measured on this project's 2-core CPU (torch 2.15, an
-untrained encoder, 30 timed calls after 5 warm-up calls, two repeats),
-eager mode took 0.86 ms per call at batch 1 and 4.6-5.2 ms at batch 32;
-``torch.jit.trace`` took 0.51 ms and 4.2 ms, and trace + ``torch.jit.freeze``
-(batch-norm folded into constants) 0.46 ms and 4.0-4.1 ms. At batch 1 the
-encoder's time is mostly Python dispatch between its small layers, which
-tracing removes, so the frozen trace is kept (1.9x at batch 1, about 1.2x at
-batch 32). torch marks ``jit.trace`` deprecated; should tracing fail or
-disappear, the encoder falls back to eager mode with a logged warning and
-stays correct, only slower.
+The torch engine runs a frozen TorchScript trace: at batch 1 the encoder's time is mostly Python dispatch
+between its small layers, which tracing removes (docs/benchmarks.md, the encoder's frozen trace). torch marks
+``jit.trace`` deprecated; should tracing fail or disappear, the encoder falls back to eager mode with a logged
+warning and stays correct, only slower.
 
 ``engine="onnx"`` runs the same encoder under onnxruntime instead (exported in memory at load, CPU only): faster
 (docs/benchmarks.md), latents within 1e-4 of torch's (tested), and batch-invariant (a frame's latent is bit for
@@ -32,12 +26,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from encoder_service import ENGINES
-from encoder_service.model import IMAGE_SHAPE, denormalise_labels, images_to_tensor, load_model
+from encoder_service import DEFAULT_CHECKPOINT, ENGINES
+from encoder_service.model import denormalise_labels, images_to_tensor, load_model
+from services.messages import IMAGE_SHAPE
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CHECKPOINT = Path(__file__).parent / "models" / "cmvae.pt"
 Encoder = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 

@@ -22,8 +22,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from services.geometry import ALPHA_DEG
+from services.messages import IMAGE_SHAPE as IMAGE_SHAPE  # re-exported: encoder_service.data reads it here
 
-IMAGE_SHAPE = (64, 64, 3)
 LABEL_NAMES = ("d", "theta", "psi")
 #: Physical range of each label (d metres, theta and psi degrees); each maps linearly onto [-1, 1].
 LABEL_RANGES = np.array([[2.0, 10.0], [-ALPHA_DEG, ALPHA_DEG], [-180.0, 180.0]], dtype=np.float64)

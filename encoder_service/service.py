@@ -35,7 +35,16 @@ import zenoh
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from services.keys import GROUPS, Keys
 from services.lifecycle import serve_until_signalled
-from services.messages import BadMessage, BatchItem, BatchMsg, ErrorMsg, LatentMsg, ObservationMsg, stamp_of
+from services.messages import (
+    IMAGE_SHAPE,
+    BadMessage,
+    BatchItem,
+    BatchMsg,
+    ErrorMsg,
+    LatentMsg,
+    ObservationMsg,
+    stamp_of,
+)
 from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce, declare_about
 from services.results import file_sha256
@@ -43,7 +52,6 @@ from services.session import open_session
 from services.settings import NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings
 
 log = logging.getLogger(__name__)
-IMAGE_SHAPE = (64, 64, 3)
 
 
 @dataclass

@@ -32,6 +32,15 @@ RUNNING_MEANS = ("A", "D", "S_D", "S_A")  # per-step terms whose episode mean is
 
 
 @dataclass
+class LiveSettings:
+    """`swimm eval`'s live view (the flags ``--live-*``)."""
+
+    port: int = -1  # serve the live view on this port (0: any free port; -1: no live view)
+    host: str = "127.0.0.1"
+    env: list[str] = field(default_factory=list)  # also show envs others drive, e.g. train/0 (needs a live view)
+
+
+@dataclass
 class _Source:
     row: dict[str, Any] = field(default_factory=dict)
     image: np.ndarray | None = None

@@ -19,22 +19,29 @@ condition), ``episodes.csv`` (one row per episode: the per-episode returns an in
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from eval_service.sweep import play_plan
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import label_errors
+from eval_service.engine import (
+    EvaluationSettings,
+    cmvae_in_use,
+    contenders,
+    load_policies,
+    play_plan,
+    run_provenance,
+    with_policy_encoder,
+)
 from learner_service.task import episode_seed
 from services.results import write_result
 from sim_service.noise import PRESETS, NoiseSettings
 from sim_service.settings import WorldSettings
 from sim_service.splits import Split, resolve_splits
-
-if TYPE_CHECKING:
-    from eval_service.command import EvalCommandSettings
 
 log = logging.getLogger(__name__)
 
@@ -48,37 +55,41 @@ SUITE_COLUMNS = ("label", "condition", "mean_return", "std_return", "A", "D", "A
 ENCODER_COLUMNS = ("condition", "frames", "d_mae_m", "theta_mae_deg", "psi_mae_deg", "d_bias_m")
 
 
-def suite_conditions(settings: EvalCommandSettings) -> list[Split]:
+@dataclass
+class SuiteSettings:
+    """What a suite plays (the flags ``--suite-*``; ``--suite`` itself turns it on)."""
+
+    splits: list[str] = field(default_factory=lambda: ["all"])  # which splits (sim_service.splits), or all
+    frames: int = 200  # reset frames per condition the CMVAE reads for its d/theta/psi errors (0: none)
+
+
+def suite_conditions(suite: SuiteSettings) -> list[Split]:
     """The references, then the chosen splits, in play order."""
-    return [*REFERENCES, *resolve_splits(list(settings.suite_splits))]
+    return [*REFERENCES, *resolve_splits(list(suite.splits))]
 
 
-def check_suite(settings: EvalCommandSettings) -> None:
+def check_suite(suite: SuiteSettings) -> None:
     """Refuse a suite that could only fail later, naming the setting."""
-    suite_conditions(settings)
-    if settings.sweep or settings.watch or settings.recording:
-        raise ValueError("--suite is a run of its own: it takes no --sweep, --watch or --recording")
-    if settings.suite_frames < 0:
-        raise ValueError(f"--suite-frames must be >= 0 (0: no encoder check), got {settings.suite_frames}")
+    suite_conditions(suite)
+    if suite.frames < 0:
+        raise ValueError(f"--suite-frames must be >= 0 (0: no encoder check), got {suite.frames}")
 
 
-def run_suite(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
+def run_suite(settings: EvaluationSettings, suite: SuiteSettings, out: Path) -> pd.DataFrame:
     """Play every contender in every condition, read each condition's frames with the CMVAE; write the folder."""
-    from eval_service.command import contenders, load_policies, run_provenance, with_policy_encoder  # lazily: a cycle
-
     settings = with_policy_encoder(settings)
-    conditions = suite_conditions(settings)
+    conditions = suite_conditions(suite)
     entries = contenders(settings)
     policies = load_policies(settings, entries)
     plan = [({"condition": split.name}, split.reset_options()) for split in conditions]
     rows, episodes, wall_s = play_plan(settings, entries, policies, plan, desc="suite")
     table = pd.DataFrame(rows, columns=list(SUITE_COLUMNS))
-    encoder = encoder_errors(settings, conditions)
+    encoder = encoder_errors(settings, conditions, suite.frames)
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "suite.csv", index=False)
     encoder.to_csv(out / "encoder.csv", index=False)
     pd.DataFrame(episodes).to_csv(out / "episodes.csv", index=False)
-    about = run_provenance(settings, entries)
+    about = run_provenance(settings, entries, cmvae_reads=suite.frames > 0)
     record = {"rows": rows, "encoder": encoder.to_dict("records"), "episodes": episodes, "wall_s": wall_s,
               "conditions": [{"name": s.name, "about": s.about, **s.reset_options()} for s in conditions],
               "contenders": [vars(entry) for entry in entries]}  # fmt: skip
@@ -92,25 +103,17 @@ def run_suite(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
     return table
 
 
-def encoder_checkpoint(settings: EvalCommandSettings) -> str:
-    from encoder_service.inference import DEFAULT_CHECKPOINT
-
-    return settings.encoder_checkpoint or str(DEFAULT_CHECKPOINT)
-
-
-def encoder_errors(settings: EvalCommandSettings, conditions: list[Split]) -> pd.DataFrame:
-    """MAE of the CMVAE's d, theta and psi on ``--suite-frames`` reset frames of each condition (and d's mean
-    signed error: unseen water has pulled distance readings one way)."""
-    if settings.suite_frames == 0:
+def encoder_errors(settings: EvaluationSettings, conditions: list[Split], count: int) -> pd.DataFrame:
+    """MAE of the CMVAE's d, theta and psi on ``count`` reset frames of each condition (and d's mean signed
+    error: unseen water has pulled distance readings one way)."""
+    if count == 0:
         return pd.DataFrame(columns=list(ENCODER_COLUMNS))
-    from encoder_service.inference import LatentEncoder
-    from encoder_service.model import label_errors
-    from sim_service.dataset import labels_and_pose
+    from sim_service.dataset import labels_and_pose  # MuJoCo: not in the torch image, which attaches only
     from sim_service.world import World
 
-    encoder = LatentEncoder(encoder_checkpoint(settings))
+    encoder = LatentEncoder(cmvae_in_use(settings))
     world = World(WorldSettings())
-    seeds = [episode_seed(settings.seed, frame) for frame in range(1, settings.suite_frames + 1)]
+    seeds = [episode_seed(settings.seed, frame) for frame in range(1, count + 1)]
     rows = []
     try:
         for split in conditions:

@@ -29,25 +29,25 @@ import dataclasses
 import logging
 import math
 import sys
-import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Literal
 
 import pandas as pd
 from matplotlib.figure import Figure
-from tqdm import tqdm
 
-from learner_service.evaluation import play_episodes
-from learner_service.metrics import summarise
+from eval_service.engine import (
+    EvaluationSettings,
+    contenders,
+    load_policies,
+    play_plan,
+    run_provenance,
+    with_policy_encoder,
+)
 from services.results import write_result
 from services.settings import to_dict
 from sim_service.noise import EFFECTS, PRESETS, scaled
 from sim_service.settings import WorldSettings
-
-if TYPE_CHECKING:
-    from eval_service.command import EvalCommandSettings
-    from learner_service.evaluation import Contender
-    from learner_service.registry import Policy
 
 log = logging.getLogger(__name__)
 
@@ -59,35 +59,45 @@ SWEEP_COLUMNS = ("label", "effects", "severity", "mean_return", "std_return", "A
                  "S_A", "violations", "episodes")  # fmt: skip
 
 
-def check_sweep(settings: EvalCommandSettings) -> None:
+@dataclass
+class SweepSettings:
+    """What a sweep plays (the flags ``--sweep-*``; ``--sweep`` itself turns it on)."""
+
+    preset: str = "harsh"  # the preset whose effects the sweep scales (severity 1 = the preset)
+    severities: list[float] = field(default_factory=lambda: [0.0, 0.5, 1.0, 1.5, 2.0])  # x preset; 0 = clean
+    effects: list[str] = field(default_factory=lambda: [ALL_EFFECTS, *EFFECTS])  # each alone, and all together
+    kind: Literal["noise", "latency"] = "noise"  # noise: effects x severities; latency: delays, control rates
+    delays_ms: list[float] = field(default_factory=lambda: [0.0, 40.0, 80.0, 120.0, 160.0, 200.0, 300.0])
+    rates_hz: list[float] = field(default_factory=lambda: [50.0, 25.0, 10.0])  # latency sweep: control rates
+
+
+def check_sweep(plan: SweepSettings) -> None:
     """Refuse a sweep that could only fail later, naming the setting."""
-    if settings.sweep_kind not in SWEEP_KINDS:
-        raise ValueError(f"--sweep-kind must be one of {', '.join(SWEEP_KINDS)}, got {settings.sweep_kind!r}")
-    if settings.sweep_kind == "latency":
-        latency_steps(settings)
-    if settings.sweep_preset not in PRESETS or settings.sweep_preset == "off":
+    if plan.kind not in SWEEP_KINDS:
+        raise ValueError(f"--sweep-kind must be one of {', '.join(SWEEP_KINDS)}, got {plan.kind!r}")
+    if plan.kind == "latency":
+        latency_steps(plan)
+    if plan.preset not in PRESETS or plan.preset == "off":
         choices = ", ".join(name for name in PRESETS if name != "off")
-        raise ValueError(f"--sweep-preset must be one of {choices}, got {settings.sweep_preset!r}")
-    unknown = [name for name in settings.sweep_effects if name != ALL_EFFECTS and name not in EFFECTS]
-    if unknown or not settings.sweep_effects:
-        raise ValueError(f"--sweep-effects takes {ALL_EFFECTS} and {', '.join(EFFECTS)}; got {settings.sweep_effects}")
-    if not settings.sweep_severities or any(s < 0 for s in settings.sweep_severities):
-        raise ValueError(f"--sweep-severities must be numbers >= 0, got {settings.sweep_severities}")
-    if settings.watch:
-        raise ValueError("--sweep and --watch are two different runs: give one")
+        raise ValueError(f"--sweep-preset must be one of {choices}, got {plan.preset!r}")
+    unknown = [name for name in plan.effects if name != ALL_EFFECTS and name not in EFFECTS]
+    if unknown or not plan.effects:
+        raise ValueError(f"--sweep-effects takes {ALL_EFFECTS} and {', '.join(EFFECTS)}; got {plan.effects}")
+    if not plan.severities or any(s < 0 for s in plan.severities):
+        raise ValueError(f"--sweep-severities must be numbers >= 0, got {plan.severities}")
 
 
-def latency_steps(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str, int]]]:
+def latency_steps(plan: SweepSettings) -> list[tuple[str, float, dict[str, int]]]:
     """(``delay`` ms or ``rate`` Hz, value, latency settings as a reset's map) of a latency sweep, checked."""
     step_ms = 1000 * WorldSettings().physics_dt  # the sims' default step
-    if not settings.sweep_delays_ms and not settings.sweep_rates_hz:
+    if not plan.delays_ms and not plan.rates_hz:
         raise ValueError("a latency sweep needs --sweep-delays-ms or --sweep-rates-hz")
     played: list[tuple[str, float, dict[str, int]]] = []
-    for ms in settings.sweep_delays_ms:
+    for ms in plan.delays_ms:
         if ms < 0:
             raise ValueError(f"--sweep-delays-ms must be >= 0, got {ms}")
         played.append((DELAY, ms, {"action_delay": round(ms / step_ms)}))
-    for hz in settings.sweep_rates_hz:
+    for hz in plan.rates_hz:
         period = round(1000 / (hz * step_ms)) if hz > 0 else 0
         if period < 1 or not math.isclose(period * hz * step_ms, 1000, rel_tol=1e-6):
             raise ValueError(f"--sweep-rates-hz must divide the sim's {1000 / step_ms:g} Hz (50, 25, 10...), got {hz}")
@@ -95,17 +105,17 @@ def latency_steps(settings: EvalCommandSettings) -> list[tuple[str, float, dict[
     return played
 
 
-def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str, Any]]]:
+def conditions(plan: SweepSettings) -> list[tuple[str, float, dict[str, Any]]]:
     """(group, severity, reset options) in play order. Noise: severity 0 once, as ``none``; latency: each
     condition alone (the others at none)."""
-    if settings.sweep_kind == "latency":
-        return [(group, value, {"latency": latency}) for group, value, latency in latency_steps(settings)]
-    preset = PRESETS[settings.sweep_preset]
+    if plan.kind == "latency":
+        return [(group, value, {"latency": latency}) for group, value, latency in latency_steps(plan)]
+    preset = PRESETS[plan.preset]
     played: list[tuple[str, float, dict[str, Any]]] = []
-    severities = sorted(set(settings.sweep_severities))
+    severities = sorted(set(plan.severities))
     if 0.0 in severities:
         played.append(("none", 0.0, {"noise": dataclasses.asdict(scaled(preset, 0.0))}))
-    for group in settings.sweep_effects:
+    for group in plan.effects:
         effects = EFFECTS if group == ALL_EFFECTS else (group,)
         for severity in severities:
             if severity > 0:
@@ -113,61 +123,23 @@ def conditions(settings: EvalCommandSettings) -> list[tuple[str, float, dict[str
     return played
 
 
-def play_plan(
-    settings: EvalCommandSettings,
-    entries: list[Contender],
-    policies: dict[str, Policy],
-    plan: list[tuple[dict[str, Any], dict[str, Any]]],
-    desc: str,
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]], float]:
-    """Every contender's episodes in every condition of ``plan`` ((columns naming it, reset options)), on one env.
-
-    Returns one row per contender and condition (its columns, Table 12, the share of episodes with a violation),
-    one row per episode, and the wall time. The sweep and the suite (eval_service.suite) share it.
-    """
-    from eval_service.command import evaluation_env  # command imports this module lazily
-
-    rows: list[dict[str, Any]] = []
-    episodes: list[dict[str, Any]] = []
-    started = time.perf_counter()
-    total = len(plan) * len(entries) * settings.episodes * settings.steps
-    with evaluation_env(settings) as env, tqdm(total=total, desc=desc, unit="step", unit_scale=True,
-                                               disable=not settings.progress_bar, file=sys.stderr,
-                                               mininterval=1.0) as bar:  # fmt: skip
-        for columns, options in plan:
-            for entry in entries:
-                bar.set_postfix(**columns, label=entry.label)
-                played = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed,
-                                       options, on_step=lambda *_: bar.update(1))  # fmt: skip
-                summary = summarise(played)
-                violations = sum(bool(r["left_view"] or r["distance_exceeded"] or r["collided"]) for r in played)
-                rows.append({"label": entry.label, **columns, **summary, "violations": violations / len(played)})
-                episodes += [{"label": entry.label, **columns, **r} for r in played]
-                log.info("%s, %s: return %.0f, violations in %d of %d episodes", entry.label,
-                         " ".join(str(value) for value in columns.values()), summary["mean_return"], violations,
-                         len(played))  # fmt: skip
-    return rows, episodes, time.perf_counter() - started
-
-
-def sweep(settings: EvalCommandSettings, out: Path) -> pd.DataFrame:
+def sweep(settings: EvaluationSettings, plan: SweepSettings, out: Path) -> pd.DataFrame:
     """Play every contender in every condition; write the run folder; returns the per-condition table."""
-    from eval_service.command import contenders, load_policies, run_provenance, with_policy_encoder  # lazily: a cycle
-
     settings = with_policy_encoder(settings)
     entries = contenders(settings)
     policies = load_policies(settings, entries)
-    plan = [({"effects": group, "severity": severity}, options) for group, severity, options in conditions(settings)]
-    rows, episodes, wall_s = play_plan(settings, entries, policies, plan, desc="sweep")
+    played = [({"effects": group, "severity": severity}, options) for group, severity, options in conditions(plan)]
+    rows, episodes, wall_s = play_plan(settings, entries, policies, played, desc="sweep")
     table = pd.DataFrame(rows, columns=list(SWEEP_COLUMNS))
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "sweep.csv", index=False)
     pd.DataFrame(episodes).to_csv(out / "episodes.csv", index=False)
-    record = {"rows": rows, "preset": dataclasses.asdict(PRESETS[settings.sweep_preset]),
+    record = {"rows": rows, "preset": dataclasses.asdict(PRESETS[plan.preset]),
               "contenders": [vars(entry) for entry in entries], "wall_s": wall_s,
               "settings": to_dict(settings), "argv": sys.argv}  # fmt: skip
     write_result(out / "sweep.json", record, run_provenance(settings, entries))
     if settings.figures:
-        sweep_figure(table, settings.sweep_preset, kind=settings.sweep_kind).savefig(out / "sweep.png", dpi=100)
+        sweep_figure(table, plan.preset, kind=plan.kind).savefig(out / "sweep.png", dpi=100)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
     print(f"run folder: {out}")
     return table

@@ -25,6 +25,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from eval_service.engine import EvaluationSettings, evaluate
 from eval_service.live import LiveFeed
 from eval_service.publish import ResultPublisher
 from learner_service.evaluation import Contender
@@ -85,17 +86,17 @@ class BestModelWatcher:
         return (self.run_dir / RUN_FINISHED).is_file()
 
 
-def watch(settings: Any, run_dir: Path, out: Path, feed: LiveFeed | None, publisher: ResultPublisher | None,
+def watch(settings: EvaluationSettings, run_dir: Path, out: Path, feed: LiveFeed | None,
+          publisher: ResultPublisher | None, interval_s: float = 5.0,
           stop: threading.Event | None = None) -> int:  # fmt: skip
-    """Evaluate each new best model until the run finishes (or ``stop`` is set); returns how many were scored."""
-    from eval_service.command import evaluate  # the command module imports this one lazily
-
+    """Evaluate each new best model until the run finishes (or ``stop`` is set), looking every ``interval_s``;
+    returns how many were scored."""
     if not run_dir.is_dir():
         raise FileNotFoundError(f"nothing to watch: {run_dir} is not a run folder of `swimm learn`")
     stop = stop or _stop_on_signals()
     watcher = BestModelWatcher(run_dir, out / "checkpoints")
     scored = 0
-    log.info("watching %s for new best models (every %.1f s)", run_dir, settings.watch_interval_s)
+    log.info("watching %s for new best models (every %.1f s)", run_dir, interval_s)
     while not stop.is_set():
         finished = watcher.finished  # read before polling, so the last model saved before result.json is scored
         found = watcher.poll()
@@ -114,7 +115,7 @@ def watch(settings: Any, run_dir: Path, out: Path, feed: LiveFeed | None, publis
         elif finished:
             log.info("%s finished training; %d best models scored", run_dir, scored)
             break
-        stop.wait(settings.watch_interval_s)
+        stop.wait(interval_s)
     return scored
 
 

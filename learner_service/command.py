@@ -25,12 +25,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
+import torch
 import yaml
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.utils import configure_logger
 from tqdm.contrib.logging import logging_redirect_tqdm
 
+from encoder_service import DEFAULT_CHECKPOINT
+from learner_service.averaging import ActorAverage
 from learner_service.callbacks import (
     EVALUATIONS_CSV,
     CheckpointCallback,
@@ -40,10 +44,12 @@ from learner_service.callbacks import (
     WallClockLimit,
 )
 from learner_service.checkpoints import load_for_resume, save_model
+from learner_service.demonstrations import demonstrate, resume_cloning
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.episodic import episodic_schedule
 from learner_service.identity import encoder_for, policy_identity, require_live_encoders, stamp
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
+from learner_service.plots import plot_training, read_monitor
 from learner_service.progress import (
     FINAL_MODEL,
     LIVE_MODEL,
@@ -62,6 +68,7 @@ from learner_service.registry import (
     resolve_algorithm,
     training_callbacks,
 )
+from learner_service.smoothness import keep_smooth
 from learner_service.task import TaskSettings
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
@@ -174,8 +181,7 @@ class Training:
                 self.progress.evaluated(*evaluation)
             session = None
             if s.backend == "zenoh":
-                from encoder_service.inference import DEFAULT_CHECKPOINT
-                from services.metrics import MetricsPublisher
+                from services.metrics import MetricsPublisher  # zenoh only for the distributed backend
                 from services.presence import process_ident
                 from services.session import open_session
 
@@ -216,8 +222,6 @@ class Training:
     def build_model(self, env: Any) -> Any:
         s = self.settings
         if s.threads > 0:
-            import torch
-
             torch.set_num_threads(s.threads)
         tensorboard = str(self.run_dir / "tensorboard")
         if s.resume:
@@ -233,8 +237,6 @@ class Training:
 
         A resumed run must go on with the encoder it started on; another one is refused before training.
         """
-        from encoder_service.inference import DEFAULT_CHECKPOINT
-
         s = self.settings
         encoder = s.encoder_checkpoint or DEFAULT_CHECKPOINT
         if s.resume and s.obs == "cmvae":
@@ -250,22 +252,16 @@ class Training:
         # The run's logger now rather than inside learn(): the demonstrations' critic warm-up records its losses too.
         model.set_logger(configure_logger(model.verbose, model.tensorboard_log, tb_log_name, not s.resume))
         if s.demo.steps:
-            from learner_service.demonstrations import demonstrate, resume_cloning
-
             if s.resume:
                 resume_cloning(model, s.demo, s.seed, Path(s.resume), self.run_dir)
             else:
                 teacher = load_policy(s.demo.teacher, s.encoder_checkpoint or None, gains=s.scripted)
                 demonstrate(model, env, s.demo, s.seed, self.run_dir, teacher, self.progress)
         if s.smooth.enabled:
-            from learner_service.smoothness import keep_smooth
-
             keep_smooth(model, s.smooth, s.seed)
             log.info("actor updates keep CAPS smoothness terms: %s", s.smooth)
         average = None
         if s.actor_average:
-            from learner_service.averaging import ActorAverage
-
             average = ActorAverage(model, s.actor_average)
             log.info("evaluations and the final model average the actor over ~%d updates", s.actor_average)
         acting = average.swapped_in if average is not None else nullcontext  # the weights evaluations and saves use
@@ -341,10 +337,6 @@ class Training:
 
     def plot_summary(self) -> None:
         """summary.png from the monitor CSV; a run that finished no episode has nothing to plot (logged)."""
-        import pandas as pd
-
-        from learner_service.plots import plot_training, read_monitor
-
         monitors = self.monitor_files()
         try:
             episodes = read_monitor(monitors)

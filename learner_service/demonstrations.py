@@ -11,11 +11,9 @@ tracker plays ``steps`` env steps on the training envs, and what it did is used 
   (behaviour cloning), so its first episodes already follow the dolphin;
 - an off-policy learner's critic then trains alone on that buffer for ``critic_steps`` gradient steps, the
   actor held still. Otherwise the first actor updates follow a random critic and undo the cloning within an
-  episode or two (measured: after 30k demonstration steps and cloning, SAC's first 110 training episodes lost
-  the dolphin after 90 steps on average);
+  episode or two;
 - with ``bc_weight`` > 0, every later actor update keeps that cloning loss (:func:`keep_cloning`), since the
-  warmed-up critic's action gradient can still lead the actor away from the tracker (measured: 64 updates took a
-  cloned policy from a return of 2217 to -2272 on one episode; with weight 50 it stayed at 2476).
+  warmed-up critic's action gradient can still lead the actor away from the tracker.
 
 Then the learner trains as usual. Ground truth is used at training time only, like the reward; the trained
 policy acts on its observation alone. The observations and clean actions are saved in the run folder
@@ -24,11 +22,9 @@ tracker again (:func:`resume_cloning`).
 
 The actions taken carry Gaussian noise (``noise``, default 0.3) while the regression targets are the tracker's
 clean actions. Without it the observation's ActPrev (the last ten actions) predicts the next action almost
-exactly, and the cloned policy learns to repeat its last action instead of reading the latent: measured on the
-in-process cmvae env (seed 97, 6000 demonstration steps, 30 epochs), noise 0.1 fitted the actions to an MSE of
-0.0009 yet lost the dolphin (return 386 over 1500 steps, 19 m away at the end); noise 0.3 (9000 steps) fitted to
-0.0039 and tracked (return 1197 over 1500 steps, 4.9 m and 0.6 degrees off at the end). The noise also spreads
-the buffer's actions around the tracker's, which the critic needs to rank actions.
+exactly, and the cloned policy learns to repeat its last action instead of reading the latent. The noise also
+spreads the buffer's actions around the tracker's, which the critic needs to rank actions. docs/benchmarks.md
+(demonstrations) has the measurements behind each of these choices.
 """
 
 from __future__ import annotations

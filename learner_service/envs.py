@@ -23,8 +23,11 @@ from typing import Any
 import gymnasium as gym
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
 
+from encoder_service import DEFAULT_CHECKPOINT
+from encoder_service.inference import LatentEncoder
 from learner_service.learn_settings import Backend
 from learner_service.task import TaskSettings
+from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
 
@@ -52,8 +55,6 @@ def shared_encoder(task: TaskSettings, encoder: Any = None, checkpoint: str | Pa
     """
     if task.obs != "cmvae" or encoder is not None:
         return encoder
-    from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder  # torch only when latents are needed
-
     return LatentEncoder(checkpoint or DEFAULT_CHECKPOINT)
 
 
@@ -73,8 +74,7 @@ def make_env(
         from learner_service.proxy_env import ProxyEnv  # zenoh only when the backend needs it
 
         return ProxyEnv(task, _require_proxy(proxy), env_id, base_seed, session=session)
-    from learner_service.inprocess_env import TrackingEnv
-    from sim_service.settings import WorldSettings
+    from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only
 
     world = WorldSettings(render=task.obs in IMAGE_MODES)
     return TrackingEnv(task, world, base_seed=base_seed, encoder=shared_encoder(task, encoder))
@@ -101,7 +101,7 @@ def make_vec_env(
     check_backend(backend)
     ids = env_ids(n_envs)
     if backend == "zenoh":
-        from learner_service.proxy_env import ProxyVecEnv
+        from learner_service.proxy_env import ProxyVecEnv  # zenoh only when the backend needs it
 
         proxy = _require_proxy(proxy)
         if len(proxy.envs) != n_envs:

@@ -27,6 +27,9 @@ from typing import Any
 import numpy as np
 import torch
 
+from encoder_service import DEFAULT_CHECKPOINT
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import load_model
 from learner_service.identity import encoder_for
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
@@ -103,8 +106,7 @@ def contract(settings: ExportSettings, policy_path: Path, encoder_path: Path, ta
 
 def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: int, seed: int) -> dict[str, np.ndarray]:
     """Play the model deterministically in-process for ``frames`` steps: every frame, ActPrev and chosen action."""
-    from encoder_service.inference import LatentEncoder
-    from learner_service.inprocess_env import TrackingEnv
+    from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only
 
     seen: list[np.ndarray] = []
 
@@ -132,8 +134,6 @@ def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: i
 
 def torch_latency_ms(model: Any, encoder_path: Path, recorded: dict[str, np.ndarray]) -> float:
     """The Python path's time per frame on the same frames: the CMVAE encoder, then the model's predict."""
-    from encoder_service.inference import LatentEncoder
-
     encoder = LatentEncoder(encoder_path)
     started = time.perf_counter()
     for frame, history in zip(recorded["frame"], recorded["action_history"], strict=True):
@@ -144,7 +144,7 @@ def torch_latency_ms(model: Any, encoder_path: Path, recorded: dict[str, np.ndar
 
 def verify(path: Path, recorded: dict[str, np.ndarray], tolerance: float) -> dict[str, float]:
     """Run the ONNX file under onnxruntime on recorded frames; the largest action difference and the latency."""
-    import onnxruntime
+    import onnxruntime  # the export extra: only where a file is checked
 
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     started = time.perf_counter()
@@ -159,9 +159,6 @@ def verify(path: Path, recorded: dict[str, np.ndarray], tolerance: float) -> dic
 
 
 def run(settings: ExportSettings) -> int:
-    from encoder_service.inference import DEFAULT_CHECKPOINT
-    from encoder_service.model import load_model
-
     if settings.check_frames < 1 or settings.tolerance <= 0:
         raise ValueError("check_frames must be >= 1 and tolerance > 0")
     if settings.threads > 0:
@@ -194,7 +191,7 @@ def run(settings: ExportSettings) -> int:
                               dynamo=False)  # fmt: skip
     finally:
         torch.distributions.Distribution.set_default_validate_args(__debug__)  # torch's default
-    import onnx
+    import onnx  # the export extra: only where a file is written
 
     onnx_model = onnx.load(str(partial))
     for key, value in contract(settings, policy_path, encoder_path, task).items():

@@ -42,7 +42,7 @@ from learner_service.task import (
     TrackingTask,
     episode_seed,
 )
-from services.control import ControlError
+from services.control import CLAIMANT_ROLES, ControlError
 from services.keys import CHANNELS, Keys, check_chunk
 from services.messages import refused_as_unclaimed
 from services.presence import Roster, announce
@@ -50,8 +50,6 @@ from services.session import open_session
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
-
-CLAIMANT_ROLES = ("learner", "eval")  # the roles whose liveliness the sim watches to lapse claims
 
 
 @dataclass(frozen=True)

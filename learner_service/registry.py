@@ -35,6 +35,8 @@ from stable_baselines3.common.noise import (
 )
 from stable_baselines3.common.utils import LinearSchedule
 
+from encoder_service import DEFAULT_CHECKPOINT
+from encoder_service.inference import LatentEncoder
 from learner_service.episodic import episodic_callbacks, vectorised_kwargs
 from learner_service.identity import read_identity
 from learner_service.learn_settings import TrackerGains
@@ -264,8 +266,6 @@ def load_policy(
     if algo == SCRIPTED:
         return ScriptedTracker(gains or TrackerGains())
     if algo == LATENT_SCRIPTED:
-        from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder  # torch only when asked for
-
         encoder = LatentEncoder(checkpoint or DEFAULT_CHECKPOINT)
         return LatentTracker(encoder.decode_state, encoder.n_z, gains)
     cls, _ = resolve_algorithm(algo)

@@ -22,6 +22,7 @@ import numpy as np
 
 from learner_service.learn_settings import ObsMode, RewardVersion
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D, quat_to_euler, relative_geometry
+from services.messages import IMAGE_SHAPE
 from services.telemetry import Telemetry
 
 ACTION_SIZE = 2  # (surge, yaw): the training curriculum's action
@@ -29,7 +30,6 @@ LATENT_SIZE = 10  # n_z of the CMVAE
 LATENCY_OPTION = "latency"  # env.reset(options={"latency": {settings}}): camera and control delays from that episode
 NOISE_OPTION = "noise"  # env.reset(options={"noise": True | False | {settings}}): the image noise from that episode
 SCENE_OPTION = "scene"  # env.reset(options={"scene": {settings}}): the world's scenery from that episode on
-IMAGE_SHAPE = (64, 64, 3)
 STATE_SIZE = 12  # rover pos, rover roll/pitch/yaw, target pos, target roll/pitch/yaw
 REWARD_K = 1.0  # the SPEC's k: curvature of both penalties
 

@@ -52,6 +52,7 @@ from services import cli
 from services import settings as settings_mod
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
+from services.low_latency import check_low_latency_group
 from services.presence import Roster
 from services.procs import ProcessGroup, Service, zenoh_flags
 from services.session import open_session
@@ -66,12 +67,10 @@ from services.settings import (
     check_ranges,
     to_dict,
 )
-from sim_service.responder import SimSettings, check_low_latency_group
+from sim_service.responder import SimSettings
 
 log = logging.getLogger(__name__)
 
-#: encoder_service.inference.DEFAULT_CHECKPOINT, found without importing torch into this process.
-SHIPPED_CMVAE = Path(encoder_service.__file__).parent / "models" / "cmvae.pt"
 WATCH_PERIOD_S = 0.5
 
 
@@ -129,7 +128,7 @@ def encoder_checkpoint(learn: LearnCommandSettings) -> Path | None:
     """The CMVAE the encoders load (None when the observation mode needs no encoder); fails clearly if absent."""
     if learn.obs != "cmvae":
         return None
-    path = Path(learn.encoder_checkpoint) if learn.encoder_checkpoint else SHIPPED_CMVAE
+    path = Path(learn.encoder_checkpoint) if learn.encoder_checkpoint else encoder_service.DEFAULT_CHECKPOINT
     if not path.is_file():
         raise FileNotFoundError(
             f"the CMVAE checkpoint {path} does not exist. Train one (`swimm dataset`, then `swimm train-encoder`) "

@@ -19,7 +19,7 @@ class OnnxPolicy:
     """Frame in, (surge, yaw) out; the history the file feeds back is kept here and cleared by ``reset``."""
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
-        import onnxruntime
+        import onnxruntime  # the pilot extra: loaded only when a policy is
 
         if not Path(path).is_file():
             raise ContractError(f"no policy file at {path}; make one with `swimm export --out {path}`")

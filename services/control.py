@@ -16,6 +16,7 @@ from services.messages import BadMessage, encode_reply, encode_request, unpack
 
 log = logging.getLogger(__name__)
 MATCH_POLL_S = 0.005  # how often request() checks whether a responder is reachable yet
+CLAIMANT_ROLES = ("learner", "eval")  # the roles whose liveliness the sim watches to lapse claims
 
 
 class ControlError(RuntimeError):

@@ -122,7 +122,3 @@ class Keys:
         if len(parts) < 3 or parts[0] not in CHANNELS:
             raise ValueError(f"{key!r} is not a step key of namespace {self.namespace!r}")
         return parts[0], parts[1]
-
-    @staticmethod
-    def last_chunk(key: str) -> str:
-        return key.rsplit("/", 1)[-1]

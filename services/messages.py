@@ -24,6 +24,7 @@ PROTOCOL_VERSION = 1
 #: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)
+IMAGE_SHAPE = (64, 64, 3)  # the camera frame (H, W, RGB) the encoder reads and image policies observe
 DIRECT_ROUTE = "direct"  # observation goes straight to the learner, no encoder
 #: The words of a sim's refusal to drive an env nobody holds: a learner that reads them knows the sim lost its claim
 #: (it restarted) and claims the env again.

@@ -1,16 +1,13 @@
 """A lock-step worker's inbox, which can poll for the next message before sleeping on it.
 
 A lock-step process spends most of its time waiting for the other side's message. Blocked on its inbox it
-sleeps, and the message then wakes it on a cold CPU: on the 2-core development box a World step costs 0.51 ms
-after a 2 ms sleep against 0.36 ms back to back, and each hop adds the wake-up of a sleeping thread. Polling for
-a few milliseconds before blocking keeps the process awake for the reply it is about to get; the sim's one-env
-round trip gets about 25% faster when both sides poll (docs/benchmarks.md).
+sleeps, and the message then wakes it on a cold CPU, after the wake-up of a sleeping thread. Polling for a few
+milliseconds before blocking keeps the process awake for the reply it is about to get.
 
-The price is a busy core while waiting, so polling is a setting, off by default: it pays where each process
-has a core of its own (one env served to one learner), not where the sim, the encoders and a training learner
-share two cores, since a poller then takes CPU from the very process it waits for. Even idle, once its poll
-time has run out, a poller looks for work every millisecond: an idle `swimm sim --poll-ms 2` used 3% of a
-core, and three of them beside a busy lock-step pair on two cores made its round trip 11 to 18% longer.
+The price is a busy core while waiting (and, idle, a look for work every millisecond), so polling is a setting,
+off by default: it pays where each process has a core of its own (one env served to one learner), not where the
+sim, the encoders and a training learner share two cores, since a poller then takes CPU from the very process
+it waits for. docs/benchmarks.md (polling) has the gains and the costs measured.
 
 A message handed over by a Python callback needs the GIL on the Zenoh thread that received it, and a poller
 keeps taking the GIL back. :class:`Inbox` lets a polling worker read Zenoh's own FIFO channels instead, so
@@ -32,8 +29,7 @@ T = TypeVar("T")
 
 #: The GIL switch interval of a process that polls. A thread that puts into the Inbox's queue (a query's
 #: callback, a timer) needs the GIL, which the poller keeps taking back; at Python's default interval (5 ms) it
-#: can wait that long. Measured with `swimm bench sim` (when actions still came through callbacks): 20 us gave
-#: the fastest round trips, 100 us and 5 us slower ones.
+#: can wait that long. 20 us gave the fastest round trips (docs/benchmarks.md, polling).
 POLLING_SWITCH_INTERVAL_S = 2e-5
 
 

@@ -29,6 +29,9 @@ from typing import Any, Literal
 
 import numpy as np
 import zenoh
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.writer import Writer
 
 from services.lifecycle import stop_on_signals
 from services.messages import BadMessage, ObservationMsg
@@ -89,8 +92,6 @@ class McapRecorder:
     """Writes samples to one MCAP file from a single thread (the mcap writer is not thread-safe)."""
 
     def __init__(self, path: Path, namespace: str, images: bool) -> None:
-        from mcap.writer import Writer
-
         self._file = path.open("wb")
         self.writer = Writer(self._file)
         self.writer.start(profile="", library="swimm")
@@ -187,9 +188,6 @@ def record(settings: RecordSettings, stop: threading.Event) -> dict[str, Any]:
 
 def recorded_namespace(path: str | Path) -> str:
     """The namespace a recording was made in; a file that is not a swimm MCAP recording is refused by name."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
     try:
         with open(path, "rb") as handle:
             for record in make_reader(handle).iter_metadata():
@@ -202,8 +200,6 @@ def recorded_namespace(path: str | Path) -> str:
 
 def recorded_samples(path: str | Path) -> list[tuple[str, bytes, int]]:
     """(key, payload, log time ns) of every wire-format message of a recording, in log-time order."""
-    from mcap.reader import make_reader
-
     with open(path, "rb") as handle:
         return [(channel.topic, message.data, message.log_time)
                 for _, channel, message in make_reader(handle).iter_messages(log_time_order=True)

@@ -24,6 +24,12 @@ class RouterSettings:
     low_latency: bool = False  # lock-step Zenoh, as ZenohSettings.low_latency: with the clients and peers that ask too
     zenoh_threads: NonNegInt = 0  # Zenoh's worker threads; 0: Zenoh's pools (on one thread, cut links were seen late)
 
+    def zenoh(self) -> ZenohSettings:
+        """The session settings the router opens with: router mode, connecting only where told to."""
+        return ZenohSettings(mode="router", connect=self.connect, listen=self.listen, zenoh_config=self.zenoh_config,
+                             startup_timeout_s=10.0, low_latency=self.low_latency,
+                             zenoh_threads=self.zenoh_threads)  # fmt: skip
+
 
 class Router:
     def __init__(self, settings: RouterSettings) -> None:
@@ -31,16 +37,7 @@ class Router:
         self._ready = threading.Event()
 
     def start(self) -> None:
-        zenoh_settings = ZenohSettings(
-            mode="router",
-            connect=self.settings.connect,
-            listen=self.settings.listen,
-            zenoh_config=self.settings.zenoh_config,
-            startup_timeout_s=10.0,
-            low_latency=self.settings.low_latency,
-            zenoh_threads=self.settings.zenoh_threads,
-        )
-        self.session = open_session(zenoh_settings, role="router")
+        self.session = open_session(self.settings.zenoh(), role="router")
         log.info("router %s up", self.session.zid())
 
     def stop(self) -> None:

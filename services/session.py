@@ -29,8 +29,8 @@ log = logging.getLogger(__name__)
 PEER_LISTEN = "tcp/127.0.0.1:0"  # a peer's own listener when none is given: any free loopback port
 #: The largest message a low-latency session may send. That transport does not fragment: a message must fit
 #: one 49,152-byte batch with its headers, and one that does not is lost together with the link's later
-#: messages (zenoh 1.10, measured: 49,130 bytes arrive, 49,150 do not). Services that send large messages
-#: check theirs against this before they start.
+#: messages (docs/benchmarks.md, the low-latency transport). Services that send large messages check theirs
+#: against this before they start.
 LOW_LATENCY_MAX_MESSAGE_BYTES = 48_000
 #: Zenoh reads its runtimes' thread pools from this environment variable when a process opens its first session.
 ZENOH_RUNTIME_VARIABLE = "ZENOH_RUNTIME"
@@ -81,14 +81,12 @@ def use_low_latency_transport(config: zenoh.Config) -> None:
     """Ask for Zenoh's low-latency transport on every link whose other end asks for it too.
 
     The standard transport hands each message to a batching task on another thread; the low-latency one
-    writes it to the socket from the sending thread, which takes a thread hand-over off each hop: up to a
-    fifth more lock-step steps a second (docs/benchmarks.md). It cannot fragment (:data:`LOW_LATENCY_MAX_MESSAGE_BYTES`)
-    and does not keep QoS priorities, which Zenoh requires to be switched off with it. Two such peers that
-    dial each other at the same moment can break both links for good (seen in about one start in ten), so
-    only the peer with the greater Zenoh id dials the other. Shared memory is switched off too: Zenoh puts
-    messages over 3 KB between processes of one machine into it by default, and for a 12.8 KB observation
-    over this transport that made the lock-step round trip slower (median 0.727 against 0.642 ms over eight
-    pairs of runs; with the standard transport it made no difference).
+    writes it to the socket from the sending thread, which takes a thread hand-over off each hop. It cannot
+    fragment (:data:`LOW_LATENCY_MAX_MESSAGE_BYTES`) and does not keep QoS priorities, which Zenoh requires to
+    be switched off with it. Two such peers that dial each other at the same moment can break both links for
+    good, so only the peer with the greater Zenoh id dials the other. Shared memory (Zenoh's default for
+    messages over 3 KB between processes of one machine) is switched off too: over this transport it made the
+    observation's round trip slower. docs/benchmarks.md (the low-latency transport) has the numbers.
     """
     config.insert_json5("transport/unicast/lowlatency", "true")
     config.insert_json5("transport/unicast/qos/enabled", "false")
@@ -180,9 +178,3 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
                     settings.startup_timeout_s, describe_endpoints(config), attempt, zenoh_reason(exc))  # fmt: skip
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
-
-
-def router_settings(
-    listen: list[str], namespace: str = "swimm/default", zenoh_config: str | None = None
-) -> ZenohSettings:
-    return ZenohSettings(mode="router", connect=[], listen=listen, namespace=namespace, zenoh_config=zenoh_config)

@@ -8,7 +8,8 @@ Naming: field ``max_wait_ms`` is flag ``--max-wait-ms`` and variable
 ``SWIMM_MAX_WAIT_MS``. A nested dataclass field ``noise`` contributes
 ``--noise-fog`` / ``SWIMM_NOISE_FOG``, unless the field is marked
 ``metadata={"flatten": True}`` (used for the Zenoh settings every command
-shares), in which case its fields keep their own names (``--connect``).
+shares), in which case its fields keep their own names (``--connect``), or ``metadata={"stem": "sweep"}``, in
+which case they take that stem instead of the field's name (a group ``sweep_plan`` of ``--sweep-preset``...).
 A field marked ``metadata={"positional": True}`` is an optional positional
 argument instead of a flag (``swimm bench sim``). ``--help`` describes a flag by
 ``metadata={"help": ...}`` or else by the comment at the end of the field's line, so the comment
@@ -107,7 +108,7 @@ def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "") -> list[_Leaf
         kind = hints[f.name]
         name = f"{stem}{f.name}"
         if dataclasses.is_dataclass(kind):
-            sub_stem = stem if f.metadata.get("flatten") else f"{name}_"
+            sub_stem = stem if f.metadata.get("flatten") else f"{stem}{f.metadata.get('stem', f.name)}_"
             leaves.extend(_leaves(kind, (*path, f.name), sub_stem))
         else:
             leaves.append(_Leaf((*path, f.name), name, kind, getattr(instance_defaults, f.name)))
@@ -151,14 +152,20 @@ _FIELD_COMMENT = re.compile(r"^\s+(\w+)\s*:[^#]*#\s*(.+?)\s*$")
 
 @functools.cache
 def field_comments(cls: type) -> dict[str, str]:
-    """The trailing ``# comment`` of each one-line field of a dataclass, by field name ({} without source)."""
-    try:
-        source = inspect.getsource(cls)
-    except (OSError, TypeError):
-        return {}
+    """The trailing ``# comment`` of each one-line field of a dataclass and the dataclasses it extends, by field
+    name ({} without source)."""
     names = {f.name for f in dataclasses.fields(cls)}
-    found = (_FIELD_COMMENT.match(line) for line in source.splitlines())
-    return {m.group(1): m.group(2) for m in found if m and m.group(1) in names}
+    comments: dict[str, str] = {}
+    for declaring in reversed(cls.__mro__):  # a subclass's comment on a field wins over its base's
+        if not dataclasses.is_dataclass(declaring):
+            continue
+        try:
+            source = inspect.getsource(declaring)
+        except (OSError, TypeError):
+            continue
+        found = (_FIELD_COMMENT.match(line) for line in source.splitlines())
+        comments |= {m.group(1): m.group(2) for m in found if m and m.group(1) in names}
+    return comments
 
 
 def _owner(cls: type, path: tuple[str, ...]) -> type:
@@ -205,7 +212,7 @@ def add_arguments(parser: argparse.ArgumentParser, cls: type, recipe: str | Path
 
 
 def field_metadata(cls: type, path: tuple[str, ...]) -> typing.Mapping[str, Any]:
-    """The dataclass field metadata of a leaf (``flatten``, ``positional``, ``help``)."""
+    """The dataclass field metadata of a leaf (``flatten``, ``stem``, ``positional``, ``help``)."""
     return {f.name: f.metadata for f in dataclasses.fields(_owner(cls, path))}[path[-1]]
 
 

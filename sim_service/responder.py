@@ -11,7 +11,6 @@ action, when nothing else waits, the worker prepares that env's next step
 from __future__ import annotations
 
 import logging
-import math
 import os
 import queue
 import threading
@@ -21,8 +20,10 @@ from dataclasses import dataclass, field
 import zenoh
 
 from services import control
+from services.control import CLAIMANT_ROLES
 from services.keys import Keys
 from services.lifecycle import serve_until_signalled
+from services.low_latency import largest_low_latency_image_size, low_latency_group_problem, observation_bytes
 from services.messages import (
     DIRECT_ROUTE,
     ActionMsg,
@@ -46,10 +47,6 @@ from sim_service.settings import WorldSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
-CLAIMANT_ROLES = ("learner", "eval")
-#: Room allowed for what an observation carries besides its image (stamps, telemetry, field names): 505 to
-#: 523 bytes encoded, measured.
-OBSERVATION_OVERHEAD_BYTES = 2048
 
 
 @dataclass
@@ -74,44 +71,6 @@ class _Request:
     query: zenoh.Query | None = None
     gone: set[str] = field(default_factory=set)
     received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
-
-
-def observation_bytes(image_size: int) -> int:
-    """The most an observation of ``image_size`` px takes encoded: its RGB image and the room for the rest."""
-    return 3 * image_size**2 + OBSERVATION_OVERHEAD_BYTES
-
-
-def largest_low_latency_image_size() -> int:
-    """The largest square RGB image whose observation a low-latency session can send."""
-    return math.isqrt((LOW_LATENCY_MAX_MESSAGE_BYTES - OBSERVATION_OVERHEAD_BYTES) // 3)
-
-
-def largest_low_latency_group(image_size: int) -> int:
-    """The most observations of ``image_size`` px that one low-latency message (a group's reply) can carry."""
-    return LOW_LATENCY_MAX_MESSAGE_BYTES // observation_bytes(image_size)
-
-
-def low_latency_group_problem(group_size: int, image_size: int) -> str | None:
-    """Why a group of ``group_size`` observations cannot cross a low-latency session as one message, or None.
-
-    That transport cannot fragment: a larger message is lost without an error on either side.
-    """
-    largest = largest_low_latency_group(image_size)
-    if group_size <= largest:
-        return None
-    size = group_size * observation_bytes(image_size)
-    return (
-        f"a group of {group_size} observations of {image_size} px takes up to {size} bytes, more than the "
-        f"{LOW_LATENCY_MAX_MESSAGE_BYTES} that --low-latency sends in one message: use "
-        f"--group-size {largest} or less, or leave --low-latency off"
-    )
-
-
-def check_low_latency_group(group_size: int, image_size: int) -> int:
-    """Refuse a ``group_size`` too large for one low-latency message; the largest group that fits."""
-    if problem := low_latency_group_problem(group_size, image_size):
-        raise ValueError(problem)
-    return largest_low_latency_group(image_size)
 
 
 def check_fits_low_latency(settings: SimSettings) -> None:

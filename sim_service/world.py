@@ -46,7 +46,6 @@ from sim_service.camera import CameraFrustum
 from sim_service.dolphin import DolphinBehaviour
 from sim_service.latency import LatencyLine, LatencySettings
 from sim_service.noise import NOISY_PRESET, ImageNoise, NoiseSettings, draw_episode_noise
-from sim_service.rotations import euler_to_matrix
 from sim_service.rover import RoverDynamics
 from sim_service.scenery import SceneSettings, draw_episode_scene
 from sim_service.scenery_model import Scenery, build_model
@@ -86,10 +85,6 @@ def use_render_threads(threads: int) -> None:
     """
     if threads >= 0:
         os.environ["LP_NUM_THREADS"] = str(threads)
-
-
-def yaw_matrix(yaw: float) -> np.ndarray:
-    return euler_to_matrix(0.0, 0.0, yaw)
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from bench.layout import default_layout
-from sim_service.responder import largest_low_latency_group
+from services.low_latency import largest_low_latency_group
 from sim_service.settings import WorldSettings
 
 

@@ -21,10 +21,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from eval_service import command, sweep, watch
+from eval_service import command, engine, sweep, watch
 from eval_service.attach import NoEvalEnv, free_env_ids
-from eval_service.command import SHIPPED_POLICY, EvalCommandSettings, contenders, evaluate
+from eval_service.command import EvalCommandSettings
+from eval_service.engine import contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
+from eval_service.sweep import SweepSettings
+from learner_service.export import SHIPPED_POLICY
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.registry import make_model
@@ -201,7 +204,7 @@ def test_watch_scores_each_new_best_model_once_and_stops_when_training_ends(tmp_
     (run / watch.RUN_FINISHED).write_text("{}")
     given = settings(tmp_path, obs="cmvae", episodes=1, steps=20, watch=str(run), watch_interval_s=0.05)
     out = tmp_path / "watched"
-    scored = watch.watch(given, run, out, None, None, stop=threading.Event())
+    scored = watch.watch(given, run, out, None, None, interval_s=0.05, stop=threading.Event())
     assert scored == 1
     table = pd.read_csv(out / watch.WATCH_TABLE)
     assert table["num_timesteps"].tolist() == [1234]
@@ -250,9 +253,9 @@ def test_watcher_keeps_a_copy_only_when_its_hash_is_the_one_the_score_gives(tmp_
 def test_each_noise_choice_renders_the_same_episode_through_its_noise_in_process(tmp_path) -> None:
     frames, applied = {}, {}
     for choice in ("keep", "off", "on", "murky", "harsh"):
-        with command.evaluation_env(settings(tmp_path, noise=choice), render=True) as env:
+        with engine.evaluation_env(settings(tmp_path, noise=choice), render=True) as env:
             frame = tap_frames(env)
-            option = command.noise_option(choice)
+            option = engine.noise_option(choice)
             env.reset(seed=113, options=None if option is None else {"noise": option})
             env.step(np.zeros(2, np.float32))
             frames[choice], applied[choice] = frame().astype(np.int16), env.world.noise_settings
@@ -266,9 +269,9 @@ def test_each_noise_choice_renders_the_same_episode_through_its_noise_in_process
 
 def test_a_sweep_plays_every_condition_once_and_writes_its_table_and_figure(tmp_path) -> None:
     given = settings(tmp_path, obs="cmvae", algo=["sac", "scripted"], checkpoint=[str(SHIPPED_POLICY)], episodes=1,
-                     steps=40, sweep=True, figures=True, sweep_severities=[0.0, 1.0, 2.0],
-                     sweep_effects=["all", "fog"])  # fmt: skip
-    table = sweep.sweep(given, Path(given.out))
+                     steps=40, sweep=True, figures=True,
+                     sweep_plan=SweepSettings(severities=[0.0, 1.0, 2.0], effects=["all", "fog"]))  # fmt: skip
+    table = sweep.sweep(given, given.sweep_plan, Path(given.out))
     conditions = [("none", 0.0), ("all", 1.0), ("all", 2.0), ("fog", 1.0), ("fog", 2.0)]
     for label in ("sac", "scripted"):
         rows = table[table["label"] == label]
@@ -285,9 +288,9 @@ def test_a_sweep_plays_every_condition_once_and_writes_its_table_and_figure(tmp_
 
 
 def test_a_latency_sweep_delays_and_holds_what_the_policy_commands(tmp_path) -> None:
-    given = settings(tmp_path, algo=["scripted"], episodes=1, steps=60, sweep=True, figures=True,
-                     sweep_kind="latency", sweep_delays_ms=[0.0, 160.0], sweep_rates_hz=[50.0, 10.0])  # fmt: skip
-    table = sweep.sweep(given, Path(given.out))
+    plan = SweepSettings(kind="latency", delays_ms=[0.0, 160.0], rates_hz=[50.0, 10.0])
+    given = settings(tmp_path, algo=["scripted"], episodes=1, steps=60, sweep=True, figures=True, sweep_plan=plan)
+    table = sweep.sweep(given, plan, Path(given.out))
     assert list(zip(table["effects"], table["severity"], strict=True)) == [
         ("delay", 0.0),
         ("delay", 160.0),
@@ -302,9 +305,9 @@ def test_a_latency_sweep_delays_and_holds_what_the_policy_commands(tmp_path) -> 
 
 
 def test_eval_latency_flags_reach_the_world_and_default_to_leaving_it(tmp_path) -> None:
-    assert command.reset_options(settings(tmp_path)) == {}
+    assert engine.reset_options(settings(tmp_path)) == {}
     delayed = settings(tmp_path, latency=LatencySettings(observation_delay=4), noise="murky")
-    assert command.reset_options(delayed) == {
+    assert engine.reset_options(delayed) == {
         "noise": {"preset": "murky"},
         "latency": {"observation_delay": 4, "action_delay": 0, "control_period": 1, "randomise": False},
     }
@@ -313,14 +316,15 @@ def test_eval_latency_flags_reach_the_world_and_default_to_leaving_it(tmp_path) 
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"sweep_kind": "weather"}, "--sweep-kind must be one of noise, latency"),
-        ({"sweep_kind": "latency", "sweep_rates_hz": [30.0]}, "--sweep-rates-hz must divide the sim's 50 Hz"),
-        ({"sweep_kind": "latency", "sweep_delays_ms": [-20.0]}, "--sweep-delays-ms must be >= 0"),
-        ({"sweep_kind": "latency", "sweep_delays_ms": [], "sweep_rates_hz": []}, "needs --sweep-delays-ms"),
+        ({"sweep_plan": SweepSettings(kind="weather")}, "--sweep-kind must be one of noise, latency"),  # type: ignore[arg-type]
+        ({"sweep_plan": SweepSettings(kind="latency", rates_hz=[30.0])}, "--sweep-rates-hz must divide the sim's 50"),
+        ({"sweep_plan": SweepSettings(kind="latency", delays_ms=[-20.0])}, "--sweep-delays-ms must be >= 0"),
+        ({"sweep_plan": SweepSettings(kind="latency", delays_ms=[], rates_hz=[])}, "needs --sweep-delays-ms"),
         ({"latency": LatencySettings(control_period=0)}, "control_period >= 1"),
-        ({"sweep_preset": "fish"}, "--sweep-preset"),
-        ({"sweep_effects": ["smoke"]}, "--sweep-effects"),
-        ({"sweep_severities": [-1.0]}, "--sweep-severities"),
+        ({"sweep_plan": SweepSettings(preset="fish")}, "--sweep-preset"),
+        ({"sweep_plan": SweepSettings(effects=["smoke"])}, "--sweep-effects"),
+        ({"sweep_plan": SweepSettings(severities=[-1.0])}, "--sweep-severities"),
+        ({"watch": "runs/x"}, "--sweep and --watch are two different runs"),
         ({"noise": "soup"}, "--noise must be one of keep, off, on, murky, harsh"),
     ],
 )
@@ -337,8 +341,8 @@ def test_the_camera_only_scripted_tracker_follows_from_the_latent_alone(tmp_path
     camera, truth = summaries["scripted-camera"], summaries["scripted"]
     assert camera["A'"] == camera["D'"] == camera["C'"] == 0.0
     assert camera["mean_return"] > 0.8 * truth["mean_return"] and camera["mean_return"] != truth["mean_return"]
-    tracker = command.load_policies(given, command.contenders(given))["scripted-camera"]
+    tracker = engine.load_policies(given, engine.contenders(given))["scripted-camera"]
     with pytest.raises(ValueError, match="cmvae observations"):
         tracker.act({"image": np.zeros((64, 64, 3), np.uint8)}, {})
     with pytest.raises(ValueError, match="needs --obs cmvae"):
-        command.load_policies(replace(given, obs="state"), command.contenders(given))
+        engine.load_policies(replace(given, obs="state"), engine.contenders(given))

@@ -12,12 +12,11 @@ import os
 import re
 import shutil
 import subprocess
-from pathlib import Path
 
 import matplotlib.image
 import pytest
 
-from eval_service.command import EvalCommandSettings, evaluate
+from eval_service.engine import EvaluationSettings, evaluate
 from eval_service.live import LiveFeed, LiveView
 
 pytestmark = pytest.mark.slow
@@ -43,10 +42,10 @@ def cell(dom: str, ident: str) -> str:
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (apt-get install chromium)")
 def test_live_view_in_headless_chromium(tmp_path) -> None:
     feed = LiveFeed()
-    given = EvalCommandSettings(backend="inprocess", obs="state", episodes=1, steps=150, seed=113,
-                                progress_bar=False, figures=False, out=str(tmp_path / "eval"))  # fmt: skip
+    given = EvaluationSettings(backend="inprocess", obs="state", episodes=1, steps=150, seed=113, progress_bar=False,
+                               figures=False)  # fmt: skip
     with LiveView(feed) as view:
-        evaluate(given, Path(given.out), feed=feed)
+        evaluate(given, tmp_path / "eval", feed=feed)
         (source,) = feed.sources()
         state = feed.state(source)
         dom = chromium(view.url, "--dump-dom").stdout

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eval_service.command import SHIPPED_POLICY, EvalCommandSettings, evaluate
+from eval_service.engine import EvaluationSettings, evaluate
+from learner_service.export import SHIPPED_POLICY
 from learner_service.registry import load_policy
 
 STEPS = 400
@@ -24,9 +25,9 @@ pytestmark = pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="no shipped
 
 
 def test_the_shipped_policy_follows_the_dolphin_from_the_camera_alone(tmp_path) -> None:
-    given = EvalCommandSettings(backend="inprocess", obs="cmvae", algo=["scripted", "sac"], episodes=1, steps=STEPS,
-                                seed=113, progress_bar=False, figures=False, out=str(tmp_path))  # fmt: skip
-    summaries = evaluate(given, Path(given.out))
+    given = EvaluationSettings(backend="inprocess", obs="cmvae", algo=["scripted", "sac"], episodes=1, steps=STEPS,
+                               seed=113, progress_bar=False, figures=False)  # fmt: skip
+    summaries = evaluate(given, tmp_path)
     shipped, baseline = summaries["sac"], summaries["scripted"]
     assert shipped["A'"] == shipped["D'"] == shipped["C'"] == 0.0  # kept it in view, in the band, no contact
     assert shipped["mean_return"] > 0.6 * STEPS

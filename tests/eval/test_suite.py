@@ -13,7 +13,7 @@ import pytest
 
 from eval_service import command
 from eval_service.command import EvalCommandSettings
-from eval_service.suite import REFERENCES, run_suite
+from eval_service.suite import REFERENCES, SuiteSettings, run_suite
 from services.results import file_sha256
 from sim_service.splits import SPLITS
 
@@ -23,14 +23,14 @@ SPLIT_NAMES = ["tannin", "dark", "shoals"]
 def settings(tmp_path: Path, **overrides) -> EvalCommandSettings:
     base = EvalCommandSettings(backend="inprocess", obs="state", algo=["scripted"], episodes=2, steps=30, seed=131,
                                progress_bar=False, figures=True, out=str(tmp_path / "suite"), suite=True,
-                               suite_splits=SPLIT_NAMES, suite_frames=6)  # fmt: skip
+                               suite_plan=SuiteSettings(splits=SPLIT_NAMES, frames=6))  # fmt: skip
     return replace(base, **overrides)
 
 
 def test_a_suite_plays_every_condition_and_reads_each_with_the_encoder(tmp_path) -> None:
     given = settings(tmp_path)
     out = Path(given.out)
-    table = run_suite(given, out)
+    table = run_suite(given, given.suite_plan, out)
     conditions = [split.name for split in REFERENCES] + SPLIT_NAMES
     assert list(table["condition"]) == conditions and set(table["label"]) == {"scripted"}
     episodes = pd.read_csv(out / "episodes.csv")
@@ -64,8 +64,8 @@ def test_a_suite_plays_every_condition_and_reads_each_with_the_encoder(tmp_path)
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
-        ({"suite_splits": ["lagoon"]}, "unknown split lagoon"),
-        ({"suite_frames": -1}, "--suite-frames must be >= 0"),
+        ({"suite_plan": SuiteSettings(splits=["lagoon"])}, "unknown split lagoon"),
+        ({"suite_plan": SuiteSettings(splits=SPLIT_NAMES, frames=-1)}, "--suite-frames must be >= 0"),
         ({"sweep": True}, "--suite is a run of its own"),
     ],
 )

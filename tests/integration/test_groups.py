@@ -28,8 +28,8 @@ from learner_service.inprocess_env import TrackingEnv
 from learner_service.link import StepRefused
 from learner_service.proxy_env import ProxySettings, ProxyVecEnv
 from learner_service.task import TaskSettings
+from services.low_latency import largest_low_latency_group
 from services.messages import BatchMsg, LatentMsg
-from sim_service.responder import largest_low_latency_group
 from sim_service.settings import WorldSettings
 from tests.integration.conftest import start_sim
 

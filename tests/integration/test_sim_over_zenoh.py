@@ -13,9 +13,9 @@ import pytest
 import zenoh
 
 from learner_service.link import StepRefused
+from services.low_latency import largest_low_latency_image_size
 from services.messages import DIRECT_ROUTE, MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg, ObservationMsg
 from services.procs import free_tcp_port, wait_for_port
-from sim_service.responder import largest_low_latency_image_size
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 from tests.integration.conftest import start_sim

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from eval_service.command import EvalCommandSettings, with_policy_encoder
+from eval_service.engine import EvaluationSettings, with_policy_encoder
 from learner_service.command import Training
 from learner_service.export import ExportSettings
 from learner_service.export import run as export
@@ -40,7 +40,7 @@ def test_a_mismatched_pair_is_refused_naming_both_files() -> None:
 
 
 def test_eval_takes_the_policys_encoder_and_refuses_another(tmp_path) -> None:
-    given = EvalCommandSettings(checkpoint=[str(MODELS / "sac_cmvae_latency.zip")], algo=["sac", "scripted-camera"])
+    given = EvaluationSettings(checkpoint=[str(MODELS / "sac_cmvae_latency.zip")], algo=["sac", "scripted-camera"])
     assert Path(with_policy_encoder(given).encoder_checkpoint) == ENCODERS / "cmvae_mixture.pt"
     with pytest.raises(ValueError, match="cmvae_mixture.pt"):
         with_policy_encoder(replace(given, encoder_checkpoint=str(ENCODERS / "cmvae.pt")))

@@ -8,21 +8,10 @@ import dataclasses
 import pytest
 
 from learner_service.up import UpSettings, group_size_for, largest_whole_group, run
-from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
-from sim_service.responder import largest_low_latency_group, low_latency_group_problem, observation_bytes
+from services.low_latency import largest_low_latency_group
 from sim_service.settings import WorldSettings
 
 IMAGE_SIZE = WorldSettings().image_size
-
-
-def test_the_largest_low_latency_group_is_the_most_observations_one_message_holds() -> None:
-    largest = largest_low_latency_group(IMAGE_SIZE)
-    assert largest * observation_bytes(IMAGE_SIZE) <= LOW_LATENCY_MAX_MESSAGE_BYTES
-    assert (largest + 1) * observation_bytes(IMAGE_SIZE) > LOW_LATENCY_MAX_MESSAGE_BYTES
-    assert low_latency_group_problem(largest, IMAGE_SIZE) is None
-    problem = low_latency_group_problem(largest + 1, IMAGE_SIZE)
-    assert f"--group-size {largest} or less" in problem and "--low-latency" in problem
-    assert largest_low_latency_group(IMAGE_SIZE // 2) > largest  # smaller frames, bigger groups
 
 
 @pytest.mark.parametrize(("share", "largest", "whole"), [(4, 4, 4), (4, 3, 2), (6, 3, 3), (6, 5, 3), (5, 3, 1)])

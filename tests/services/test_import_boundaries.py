@@ -37,7 +37,8 @@ SIDES = {
     ),
     "shared core (neither)": (
         {"torch", "mujoco", "stable_baselines3", "gymnasium", "cv2"},
-        ["services.settings", "services.session", "services.messages", "services.geometry", "services.presence"],
+        ["services.settings", "services.session", "services.messages", "services.geometry", "services.presence",
+         "services.low_latency"],
     ),
 }  # fmt: skip
 

@@ -105,11 +105,6 @@ def test_parse_env_key_refuses_keys_outside_the_step_pipeline(key):
         KEYS.parse_env_key(key)
 
 
-def test_last_chunk_is_the_id_after_the_last_slash():
-    assert Keys.last_chunk(KEYS.live("encoder", "enc-7")) == "enc-7"
-    assert Keys.last_chunk(KEYS.obs("train", "0", "direct")) == "direct"
-
-
 def test_group_keys_stay_apart_from_env_keys_and_reach_their_encoder():
     group_inbox = zenoh.KeyExpr(KEYS.encoder_group_inbox("enc-1"))
     env_inbox = zenoh.KeyExpr(KEYS.encoder_inbox("enc-1"))

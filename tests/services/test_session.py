@@ -13,7 +13,8 @@ import time
 import pytest
 import zenoh
 
-from services.session import PEER_LISTEN, StartupTimeout, build_config, endpoints, open_session, router_settings
+from services.router import RouterSettings
+from services.session import PEER_LISTEN, StartupTimeout, build_config, endpoints, open_session
 from services.settings import LOCAL_ROUTER, ZenohSettings
 
 
@@ -132,8 +133,8 @@ def test_a_negative_thread_count_is_refused_by_name():
 
 
 def test_router_config_listens_and_connects_nowhere():
-    settings = router_settings(["tcp/0.0.0.0:7447"], namespace="swimm/lab")
-    assert (settings.mode, settings.connect, settings.namespace) == ("router", [], "swimm/lab")
+    settings = RouterSettings(listen=["tcp/0.0.0.0:7447"]).zenoh()  # what `swimm router` opens
+    assert (settings.mode, settings.connect) == ("router", [])
     config = build_config(settings)
     assert json.loads(config.get_json("mode")) == "router"
     assert json.loads(config.get_json("listen/endpoints")) == ["tcp/0.0.0.0:7447"]
@@ -152,12 +153,12 @@ def test_without_flags_a_config_files_endpoints_hold_and_without_either_the_loca
     router_file.write_text('{ listen: { endpoints: ["tls/0.0.0.0:7447"] } }')
     client_file = tmp_path / "client.json5"
     client_file.write_text('{ connect: { endpoints: ["tls/router.lan:7447"] } }')
-    site_router = build_config(router_settings([], zenoh_config=str(router_file)))
+    site_router = build_config(RouterSettings(zenoh_config=str(router_file)).zenoh())
     assert endpoints(site_router, "listen") == ["tls/0.0.0.0:7447"]
     assert endpoints(build_config(ZenohSettings(zenoh_config=str(client_file)))) == ["tls/router.lan:7447"]
-    assert endpoints(build_config(router_settings([])), "listen") == [LOCAL_ROUTER]
+    assert endpoints(build_config(RouterSettings().zenoh()), "listen") == [LOCAL_ROUTER]
     assert endpoints(build_config(ZenohSettings())) == [LOCAL_ROUTER]
-    assert endpoints(build_config(router_settings([]))) == []  # a router connects to no one unless told
+    assert endpoints(build_config(RouterSettings().zenoh())) == []  # a router connects to no one unless told
 
 
 def test_a_missing_zenoh_config_file_fails_at_once_naming_the_file(tmp_path):

@@ -80,6 +80,29 @@ def test_nested_fields_are_prefixed_and_flattened_fields_keep_their_names():
     assert (loaded.zenoh.namespace, loaded.zenoh.mode) == ("swimm/lab", "peer")
 
 
+@dataclasses.dataclass
+class Switched:
+    """A mode switch beside its settings group, whose flags share the switch's name (``--sweep-preset``)."""
+
+    sweep: bool = False
+    sweep_plan: Noise = dataclasses.field(default_factory=Noise, metadata={"stem": "sweep"})
+
+
+def test_a_group_with_a_stem_takes_its_flags_names_from_the_stem(tmp_path):
+    parser = argparse.ArgumentParser()
+    settings_mod.add_arguments(parser, Switched)
+    flags = set(re.findall(r"--[a-z][a-z0-9-]*", parser.format_help()))
+    assert {"--sweep", "--sweep-fog", "--sweep-blur"} <= flags
+    assert not any(flag.startswith("--sweep-plan") for flag in flags)
+    loaded = settings_mod.load(Switched, parser.parse_args(["--sweep", "--sweep-fog", "0.5"]), None, {})
+    assert (loaded.sweep, loaded.sweep_plan.fog) == (True, 0.5)
+    flat, nested = tmp_path / "flat.yaml", tmp_path / "nested.yaml"
+    flat.write_text("sweep_blur: true\n")
+    nested.write_text("sweep_plan: {blur: true}\n")
+    for config in (flat, nested):
+        assert settings_mod.load(Switched, None, config, {"SWIMM_SWEEP_FOG": "0.25"}).sweep_plan == Noise(0.25, True)
+
+
 def test_yaml_accepts_nested_maps_and_flat_names(tmp_path):
     nested = tmp_path / "nested.yaml"
     nested.write_text("noise: {fog: 0.3, blur: true}\nzenoh: {namespace: swimm/a}\n")
