@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
+from learner_service.identity import require_live_encoders
 from learner_service.proxy_env import ClaimRefused, ProxyEnv, ProxySettings
 from learner_service.task import TaskSettings
 from services.control import survey
@@ -79,14 +80,18 @@ def attached_eval_env(
     wait_s: float = 10.0,
     step_timeout_s: float = 2.0,
     max_retries: int = 10,
+    encoder: str | None = None,
 ) -> Iterator[ProxyEnv]:
     """A claimed eval env of a live sim as a ProxyEnv; released (and its session closed) on exit.
 
-    Envs that another evaluator claims between the survey and our claim are skipped for the next free one.
+    Envs that another evaluator claims between the survey and our claim are skipped for the next free one. With
+    ``encoder`` (the CMVAE the policies read), every live encoder must run it.
     """
     keys = Keys(zenoh.namespace)
     session = open_session(zenoh, role="eval")
     try:
+        if encoder is not None:
+            require_live_encoders(session, keys, encoder, f"this evaluation (encoder {encoder})", wait_s)
         candidates = free_env_ids(discover_eval_envs(session, keys, wait_s), zenoh)
         proxy = ProxySettings(zenoh, channel=EVAL_CHANNEL, envs=tuple(candidates), step_timeout_s=step_timeout_s,
                               max_retries=max_retries, role="eval")  # fmt: skip

@@ -186,8 +186,9 @@ def evaluation_env(settings: EvaluationSettings, render: bool = False) -> Iterat
     """A claimed eval env of a live sim, or an in-process TrackingEnv (rendering when ``render`` asks for frames)."""
     task = task_settings(settings)
     if settings.backend == "zenoh":
+        encoder = cmvae_in_use(settings) if settings.obs == "cmvae" else None
         with attached_eval_env(task, settings.zenoh, settings.seed, settings.attach_timeout_s,
-                               settings.step_timeout_s, settings.max_retries) as env:  # fmt: skip
+                               settings.step_timeout_s, settings.max_retries, encoder) as env:  # fmt: skip
             yield env
         return
     from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only

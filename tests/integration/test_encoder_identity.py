@@ -33,3 +33,23 @@ def test_a_run_on_another_cmvae_than_the_live_encoders_is_refused_naming_both(
     accepted = learn(zenoh_router, namespace, tmp_path / "accepted", "--encoder-checkpoint", ROBUST)
     assert accepted.returncode == 0, accepted.stderr[-2000:]
     assert "every live encoder" in accepted.stderr
+
+
+def evaluate(endpoint: str, namespace: str, out, *flags: str) -> subprocess.CompletedProcess:
+    argv = [sys.executable, "-m", "services.cli", "eval", "--obs", "cmvae", "--algo", "scripted-camera",
+            "--connect", endpoint, "--namespace", namespace, "--episodes", "1", "--steps", "20",
+            "--out", str(out), "--no-figures", "--no-progress-bar", *flags]  # fmt: skip
+    return subprocess.run(argv, capture_output=True, text=True, timeout=240)
+
+
+def test_an_evaluation_on_another_cmvae_than_the_live_encoders_is_refused(
+    group, zenoh_router: str, namespace: str, tmp_path
+) -> None:
+    start_sim(group, zenoh_router, namespace)
+    group.start("encoder", "encoder", "--connect", zenoh_router, "--namespace", namespace, "--checkpoint", ROBUST)
+    refused = evaluate(zenoh_router, namespace, tmp_path / "refused")
+    assert refused.returncode != 0
+    assert "this evaluation" in refused.stderr and ROBUST in refused.stderr, refused.stderr
+    accepted = evaluate(zenoh_router, namespace, tmp_path / "accepted", "--encoder-checkpoint", ROBUST)
+    assert accepted.returncode == 0, accepted.stderr[-2000:]
+    assert (tmp_path / "accepted" / "summary.json").is_file()
