@@ -97,8 +97,10 @@ def run(settings: BenchSettings) -> int:
 
 def report(result: dict, as_json: bool) -> int:
     """One JSON object, or a two-column table of the top-level keys (nested tables: ``--json``)."""
-    if as_json:  # a benchmark's JSON is what gets committed: it says what made it (services.results)
-        sys.stdout.write(json.dumps({PROVENANCE_KEY: provenance(), **result}) + "\n")
+    if as_json:  # a benchmark's JSON is what gets committed: it says what made it and on how fast a host
+        sim = importlib.import_module(BENCHMARKS["sim"])  # as the benchmarks: MuJoCo only once one runs
+        about = provenance(host_world_steps_per_s=sim.host_world_steps_per_s())
+        sys.stdout.write(json.dumps({PROVENANCE_KEY: about, **result}) + "\n")
         return 0
     table = {key: value for key, value in result.items() if key not in ("runs", "settings", "how")}
     width = max(len(k) for k in table)

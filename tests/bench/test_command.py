@@ -59,7 +59,8 @@ def test_a_ceiling_asked_of_another_benchmark_is_refused_before_anything_runs() 
 
 
 def test_a_json_report_says_what_made_it(capsys) -> None:
-    """Committed benchmark JSON carries its provenance: the command, the commit, the host."""
+    """Committed benchmark JSON carries its provenance: the command, the commit, the host and its speed (the
+    in-process World steps/s measured in the same run, beside which every speed figure is read)."""
     from bench.command import report
     from services.results import PROVENANCE_KEY
 
@@ -67,3 +68,4 @@ def test_a_json_report_says_what_made_it(capsys) -> None:
     printed = json.loads(capsys.readouterr().out)
     assert printed["ratio"] == 0.5
     assert printed[PROVENANCE_KEY]["host"]["cores"] >= 1 and len(printed[PROVENANCE_KEY]["git"]["commit"]) == 40
+    assert 50 < printed[PROVENANCE_KEY]["host_world_steps_per_s"] < 50_000  # a real World stepped, 64x64 frames
