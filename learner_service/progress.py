@@ -113,6 +113,7 @@ class RunProgress:
         self.bar = bar
         self.numbers: dict[str, Any] = {"num_timesteps": 0, "total_timesteps": total_timesteps}
         self.phase, self.done, self.total = "training", 0, total_timesteps
+        self.entered: list[str] = []  # every phase entered, in order: a watcher polling less often misses none
         self.evaluation: tuple[int, float] | None = None
         self._lock = threading.Lock()
         self._written = 0.0
@@ -123,6 +124,7 @@ class RunProgress:
             raise ValueError(f"unknown phase {phase!r}; one of {', '.join(PHASES)}")
         with self._lock:
             self.phase, self.done, self.total = phase, done, total
+            self.entered.append(phase)
         self._show(force=True)
 
     def advance(self, done: int) -> None:
@@ -144,9 +146,11 @@ class RunProgress:
             self.evaluation = (num_timesteps, mean_return)
 
     def snapshot(self) -> dict[str, Any]:
-        """Training's numbers, the phase (``phase``, ``phase_done``, ``phase_total``) and the latest evaluation."""
+        """Training's numbers, the phase (``phase``, ``phase_done``, ``phase_total``), the phases entered so far
+        (``phases_entered``) and the latest evaluation."""
         with self._lock:
-            snap = self.numbers | {"phase": self.phase, "phase_done": self.done, "phase_total": self.total}
+            snap = self.numbers | {"phase": self.phase, "phase_done": self.done, "phase_total": self.total,
+                                   "phases_entered": list(self.entered)}  # fmt: skip
             if self.evaluation is not None:
                 snap["eval_timesteps"], snap["eval_return"] = self.evaluation
             return snap

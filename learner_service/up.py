@@ -279,7 +279,7 @@ class LocalSystem:
         interactive = sys.stderr.isatty()
         bar = PhaseBar(disable=not interactive)
         next_line = time.monotonic() + self.learn.log_interval_s
-        phase = None
+        phase, logged = None, 0  # the phase last shown, and how many of the phases entered have a line
         try:
             with logging_redirect_tqdm():
                 while learner.alive:
@@ -291,6 +291,11 @@ class LocalSystem:
                     if progress is not None:
                         bar.show(progress)
                         # No bar: a line at each new phase and every --log-interval-s.
+                        entered = progress.get("phases_entered", [])
+                        if not interactive:  # a phase begun and ended between two polls still gets its line
+                            for missed in entered[logged:-1]:
+                                log.info("learner: %s (begun and ended between two looks)", missed)
+                        logged = max(logged, len(entered))
                         if not interactive and (progress.get("phase") != phase or time.monotonic() >= next_line):
                             next_line = time.monotonic() + self.learn.log_interval_s
                             phase = progress.get("phase")

@@ -233,3 +233,6 @@ def test_the_bar_names_each_phase_in_order_with_its_own_count(tmp_path: Path, mo
     assert "epoch" in first["cloning"] and "update" in first["critic warm-up"] and "episode" in first["evaluation"]
     progress = json.loads((tmp_path / "run" / "progress.json").read_text())
     assert progress["phase"] == "training" and progress["finished"] and progress["eval_timesteps"] >= 100
+    # every phase entered stays in progress.json, so a launcher polling less often than phases change misses none
+    entered = progress["phases_entered"]
+    assert [phase for index, phase in enumerate(entered) if index == 0 or entered[index - 1] != phase] == order
