@@ -14,6 +14,7 @@ from collections.abc import Callable, Iterator
 import pytest
 import zenoh
 
+from services.process import DEFAULT_RENDER_THREADS, ProcessSettings, configure_process
 from services.procs import ProcessGroup, Service, free_tcp_port
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -23,6 +24,13 @@ os.environ["MUJOCO_GL"] = "egl"
 
 #: How long a test waits for its router or a session to appear before failing, in seconds.
 STARTUP_TIMEOUT_S = 20.0
+
+
+@pytest.fixture(scope="session", autouse=True)
+def render_threads_of_the_test_process() -> None:
+    """The test process renders Worlds as `swimm sim` does: Mesa on the stepping thread (LP_NUM_THREADS=0), set
+    once, as an entry point sets it (services/process.py), before any test makes a GL context."""
+    configure_process(ProcessSettings(render_threads=DEFAULT_RENDER_THREADS), role="tests")
 
 
 @pytest.fixture
