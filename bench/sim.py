@@ -254,7 +254,8 @@ def alternate(
 
 @contextmanager
 def switch_interval(seconds: float) -> Iterator[None]:
-    """Run a block with the GIL switch interval its way of serving uses (a polling link shortens it)."""
+    """Run a block with the GIL switch interval its way of serving uses: a polling process runs with the one its
+    entry point sets (services/process.py), a blocking one with Python's."""
     before = sys.getswitchinterval()
     sys.setswitchinterval(seconds)
     try:

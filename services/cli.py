@@ -31,6 +31,7 @@ class Command:
     default_config: str = ""  # a settings file beside the packages, read when no --config is given
     check: str = ""  # "module:function" refusing bad settings before the command starts anything (exit 2)
     renders: bool = False  # may render a World whose settings are not its own (in-process envs): LP_NUM_THREADS
+    answers: bool = False  # its output is its answer: the process settings' line only at DEBUG
 
 
 COMMANDS: dict[str, Command] = {
@@ -86,6 +87,7 @@ COMMANDS: dict[str, Command] = {
         "services.status:run",
         "who is live in a namespace, and doing what",
         check="services.status:check",
+        answers=True,
     ),
     "pilot": Command(
         "pilot_service.pilot:PilotSettings", "pilot_service.pilot:run", "fly ArduSub from a video stream (ONNX policy)"
@@ -171,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
         if spec.check:
             _resolve(spec.check)(settings)
         # Process-wide settings (switch interval, ZENOH_RUNTIME, LP_NUM_THREADS): here, once, never in library code.
-        configure_process(ProcessSettings.of(settings, renders=spec.renders), role=args.command)
+        level = logging.DEBUG if spec.answers else logging.INFO
+        configure_process(ProcessSettings.of(settings, renders=spec.renders), role=args.command, level=level)
     except (ValueError, FileNotFoundError) as exc:  # the user's to change: said once, and never retried
         log.error("%s refused its settings: %s", args.command, exc)
         return settings_mod.SETTINGS_EXIT_CODE

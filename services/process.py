@@ -6,9 +6,14 @@ first thing that reads it:
 - the GIL switch interval (``sys.setswitchinterval``), shortened when the process polls an inbox
   (services/polling.py: a polling worker keeps taking the GIL back from the threads that hand it messages);
 - ``ZENOH_RUNTIME``, Zenoh's thread pools, which Zenoh reads when the process opens its first session
-  (services/session.py, ``--zenoh-threads``);
+  (services/session.py, ``--zenoh-threads``), so a later session shares whatever the first one found. By default
+  each of Zenoh's five runtimes has its own pool, and one received message wakes two or three of their threads;
+  on two cores they preempt the lock-step worker that steps the World, and each wake-up costs CPU the pipeline
+  needs (docs/benchmarks.md, one Zenoh thread). A positive ``zenoh_threads`` hands all five to one pool;
 - ``LP_NUM_THREADS``, Mesa llvmpipe's rasteriser threads, which Mesa reads when the process makes its first GL
-  context (sim_service/world.py, ``render_threads``).
+  context (sim_service/world.py, ``render_threads``). By default it starts one per core; a 64 px frame is too
+  small to share out, so 0 (draw on the calling thread) renders twice as fast on a CPU (0.17 against 0.39 ms
+  per frame on 2 cores). A GPU's EGL driver ignores the variable.
 
 Library code (links, responders, sessions, the World) never sets them: `swimm`'s main (services/cli.py) calls
 :func:`configure_process` with :meth:`ProcessSettings.of` its command's settings before the command runs, and any
@@ -94,8 +99,9 @@ def _set_variable(name: str, value: str) -> None:
     os.environ[name] = value
 
 
-def configure_process(process: ProcessSettings, role: str = "process") -> list[str]:
-    """Set the process-wide settings ``process`` asks for, and say so in one INFO line; returns what was set.
+def configure_process(process: ProcessSettings, role: str = "process", level: int = logging.INFO) -> list[str]:
+    """Set the process-wide settings ``process`` asks for, and say so in one line (at ``level``: a command whose
+    output is its answer says it only at DEBUG); returns what was set.
 
     Call it once, from the entry point, before the process opens a Zenoh session or renders. Refuses (ValueError)
     a negative poll time or thread count, naming its flag.
@@ -125,7 +131,7 @@ def configure_process(process: ProcessSettings, role: str = "process") -> list[s
         why = "Mesa draws on the rendering thread: faster for small frames" if process.render_threads == 0 else ""
         done.append(f"{RENDER_THREADS_VARIABLE}={process.render_threads} (render_threads{'; ' + why if why else ''})")
     if done:
-        log.info("%s process settings: %s", role, "; ".join(done))
+        log.log(level, "%s process settings: %s", role, "; ".join(done))
     return done
 
 
