@@ -52,6 +52,7 @@ from learner_service.up import sim_shares
 from services.keys import Keys
 from services.polling import POLLING_SWITCH_INTERVAL_S
 from services.presence import Roster, announce
+from services.process import DEFAULT_RENDER_THREADS, ProcessSettings, child_environment, configure_process
 from services.procs import ProcessGroup, Service, zenoh_flags
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -253,7 +254,8 @@ def alternate(
 
 @contextmanager
 def switch_interval(seconds: float) -> Iterator[None]:
-    """Run a block with the GIL switch interval its way of serving uses (a polling link shortens it)."""
+    """Run a block with the GIL switch interval its way of serving uses: a polling process runs with the one its
+    entry point sets (services/process.py), a blocking one with Python's."""
     before = sys.getswitchinterval()
     sys.setswitchinterval(seconds)
     try:
@@ -276,7 +278,7 @@ def run_learner(way: Way, endpoint: str, steps: int, rounds: int, sim: Service) 
     """:func:`measure_way` in a learner process of its own (`python -m bench.sim`), stepping ``sim``."""
     command = [sys.executable, "-m", "bench.sim", way.name, endpoint, str(steps), str(rounds)]
     timeout_s = LEARNER_START_S + LEARNER_S_PER_STEP * (steps + WARMUP_STEPS)
-    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s)
+    done = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s, env=child_environment())
     if done.returncode != 0:
         raise RuntimeError(f"the {way.name} learner failed:\n{done.stderr[-3000:]}\nits sim's log:\n{sim.log_tail()}")
     return {name: Tally(**fields) for name, fields in json.loads(done.stdout).items()}
@@ -376,6 +378,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("steps", type=int)
     parser.add_argument("rounds", type=int)
     args = parser.parse_args(argv)
+    # An entry point of its own: Zenoh's threads and Mesa's as a swimm process's defaults. The switch interval is
+    # not set here: switch_interval gives each way's steps the one its link runs with.
+    configure_process(
+        ProcessSettings(zenoh_threads=ZenohSettings().zenoh_threads, render_threads=DEFAULT_RENDER_THREADS),
+        role="bench learner",
+    )
     tallies = measure_way(WAYS_BY_NAME[args.way], args.endpoint, args.steps, args.rounds)
     sys.stdout.write(json.dumps({name: vars(tally) for name, tally in tallies.items()}) + "\n")
 

@@ -17,7 +17,7 @@ import zenoh
 from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, await_reply, decode_reply
 from services.keys import GROUPS, Keys
 from services.messages import DIRECT_ROUTE, BadMessage, BatchItem, BatchMsg
-from services.polling import Inbox, prepare_to_poll
+from services.polling import Inbox, poll_seconds
 from services.presence import choose_route
 
 log = logging.getLogger(__name__)
@@ -43,7 +43,7 @@ class GroupLink:
         self.siblings: tuple[str, ...] = ()
         self.retries = 0
         self.duplicates_dropped = 0
-        self._replies: Inbox[BatchMsg | None] = Inbox(prepare_to_poll(poll_ms))
+        self._replies: Inbox[BatchMsg | None] = Inbox(poll_seconds(poll_ms))
         if self.encoded:
             reply_key = keys.group_latent(self.channel, group)
         else:

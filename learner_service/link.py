@@ -35,7 +35,7 @@ from services.messages import (
     LatentMsg,
     ObservationMsg,
 )
-from services.polling import Inbox, prepare_to_poll
+from services.polling import Inbox, poll_seconds
 from services.presence import Roster, choose_route, member_ident
 from services.telemetry import Telemetry
 
@@ -122,7 +122,7 @@ class RemoteEnvLink:
         self.encoders = encoders
         self.step_timeout_s = step_timeout_s
         self.max_retries = max_retries
-        self._poll_s = prepare_to_poll(poll_ms)  # services/polling.py: when polling pays
+        self._poll_s = poll_seconds(poll_ms)  # services/polling.py: when polling pays
         self.claimed = False  # set by a granted claim; only then does close() release
         self.siblings: tuple[str, ...] = ()  # set by a vector env: its envs' frames spread evenly over the encoders
         self.ep = 0

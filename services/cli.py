@@ -18,6 +18,7 @@ from typing import Any
 from services import settings as settings_mod
 from services.lifecycle import stop_when_launcher_exits
 from services.logs import setup_logging
+from services.process import ProcessSettings, configure_process
 
 log = logging.getLogger(__name__)
 
@@ -29,6 +30,8 @@ class Command:
     help: str
     default_config: str = ""  # a settings file beside the packages, read when no --config is given
     check: str = ""  # "module:function" refusing bad settings before the command starts anything (exit 2)
+    renders: bool = False  # may render a World whose settings are not its own (in-process envs): LP_NUM_THREADS
+    answers: bool = False  # its output is its answer: the process settings' line only at DEBUG
 
 
 COMMANDS: dict[str, Command] = {
@@ -47,12 +50,14 @@ COMMANDS: dict[str, Command] = {
         "learner_service.command:run",
         "train a learner",
         check="learner_service.command:check",
+        renders=True,
     ),
     "eval": Command(
         "eval_service.command:EvalCommandSettings",
         "eval_service.command:run",
         "evaluate checkpoints",
         check="eval_service.command:check",
+        renders=True,
     ),
     "dataset": Command("sim_service.dataset:DatasetSettings", "sim_service.dataset:run", "write a CMVAE dataset"),
     "train-encoder": Command(
@@ -68,6 +73,7 @@ COMMANDS: dict[str, Command] = {
         "learner_service.export:ExportSettings",
         "learner_service.export:run",
         "a policy as one ONNX file, frame to action",
+        renders=True,
     ),
     "up": Command(
         "learner_service.up:UpSettings",
@@ -81,6 +87,7 @@ COMMANDS: dict[str, Command] = {
         "services.status:run",
         "who is live in a namespace, and doing what",
         check="services.status:check",
+        answers=True,
     ),
     "pilot": Command(
         "pilot_service.pilot:PilotSettings", "pilot_service.pilot:run", "fly ArduSub from a video stream (ONNX policy)"
@@ -92,7 +99,10 @@ COMMANDS: dict[str, Command] = {
         "services.record:ReplaySettings", "services.record:run_replay", "publish an MCAP recording back into its keys"
     ),
     "bench": Command(
-        "bench.command:BenchSettings", "bench.command:run", "run a benchmark: sim | encoder | train | learn"
+        "bench.command:BenchSettings",
+        "bench.command:run",
+        "run a benchmark: sim | encoder | train | learn",
+        renders=True,
     ),
 }
 
@@ -162,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
         settings = settings_mod.load(_resolve(spec.settings), args, config_file(args.command, args.config))
         if spec.check:
             _resolve(spec.check)(settings)
+        # Process-wide settings (switch interval, ZENOH_RUNTIME, LP_NUM_THREADS): here, once, never in library code.
+        level = logging.DEBUG if spec.answers else logging.INFO
+        configure_process(ProcessSettings.of(settings, renders=spec.renders), role=args.command, level=level)
     except (ValueError, FileNotFoundError) as exc:  # the user's to change: said once, and never retried
         log.error("%s refused its settings: %s", args.command, exc)
         return settings_mod.SETTINGS_EXIT_CODE

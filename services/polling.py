@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import os
 import queue
-import sys
 import time
 from collections.abc import Callable
 from typing import Generic, TypeVar
@@ -29,16 +28,16 @@ T = TypeVar("T")
 
 #: The GIL switch interval of a process that polls. A thread that puts into the Inbox's queue (a query's
 #: callback, a timer) needs the GIL, which the poller keeps taking back; at Python's default interval (5 ms) it
-#: can wait that long. 20 us gave the fastest round trips (docs/benchmarks.md, polling).
+#: can wait that long. 20 us gave the fastest round trips (docs/benchmarks.md, polling). It is the process's:
+#: its entry point sets it when its settings poll (services/process.py, ``configure_process``), not the inbox.
 POLLING_SWITCH_INTERVAL_S = 2e-5
 
 
-def prepare_to_poll(poll_ms: float) -> float:
-    """Check ``poll_ms``, shorten the switch interval when it is positive; returns the poll time in seconds."""
+def poll_seconds(poll_ms: float) -> float:
+    """Check ``poll_ms`` and return it in seconds. A positive one pays only with the process's switch interval
+    shortened to :data:`POLLING_SWITCH_INTERVAL_S`, which the entry point does (services/process.py)."""
     if poll_ms < 0:
         raise ValueError(f"poll_ms must be >= 0 (0: block at once), got {poll_ms}")
-    if poll_ms > 0:
-        sys.setswitchinterval(min(sys.getswitchinterval(), POLLING_SWITCH_INTERVAL_S))
     return poll_ms / 1e3
 
 

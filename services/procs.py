@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from services.lifecycle import LAUNCHER_PID_ENV
+from services.process import child_environment
 from services.settings import SETTINGS_EXIT_CODE
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,9 @@ class ProcessGroup:
                     service.restarts)  # fmt: skip
 
     def _spawn(self, argv: Sequence[str], log_path: Path) -> subprocess.Popen:
-        env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **self.env,
+        # child_environment: without the process-wide settings this process set for itself (services/process.py);
+        # each child sets its own from its flags.
+        env = {**child_environment(), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"), **self.env,
                LAUNCHER_PID_ENV: str(os.getpid())}  # fmt: skip
         with open(log_path, "ab") as log_file:
             return subprocess.Popen(

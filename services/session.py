@@ -15,11 +15,8 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import re
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import zenoh
 
@@ -32,17 +29,6 @@ PEER_LISTEN = "tcp/127.0.0.1:0"  # a peer's own listener when none is given: any
 #: messages (docs/benchmarks.md, the low-latency transport). Services that send large messages check theirs
 #: against this before they start.
 LOW_LATENCY_MAX_MESSAGE_BYTES = 48_000
-#: Zenoh reads its runtimes' thread pools from this environment variable when a process opens its first session.
-ZENOH_RUNTIME_VARIABLE = "ZENOH_RUNTIME"
-
-
-def zenoh_runtime(threads: int) -> str:
-    """The ``ZENOH_RUNTIME`` that hands Zenoh's five runtimes (application, acceptor, tx, rx, network) over to one
-    pool of ``threads`` worker threads."""
-    return (
-        f"(app: (worker_threads: {threads}), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
-        "net: (handover: app))"
-    )
 
 
 class StartupTimeout(RuntimeError):
@@ -96,31 +82,6 @@ def use_low_latency_transport(config: zenoh.Config) -> None:
     )
 
 
-@contextmanager
-def zenoh_threads(threads: int) -> Iterator[None]:
-    """Open a process's first session with Zenoh's runtimes on one pool of ``threads`` worker threads (0: Zenoh's
-    own pools, one per runtime).
-
-    By default each of Zenoh's runtimes has its own pool, and one received message wakes two or three of
-    their threads (the one that reads the socket, and others the scheduler wakes to share the work). On two
-    cores those threads preempt the lock-step worker that is stepping the World, and each wake-up costs CPU
-    the pipeline needs (docs/benchmarks.md, one Zenoh thread). Zenoh reads the setting once, when the process
-    opens its first session, so a later session shares whatever the first one chose; a ``ZENOH_RUNTIME``
-    already in the environment is left alone. It is set only while the session opens, so the processes this
-    one starts do not inherit it.
-    """
-    if threads < 0:
-        raise ValueError(f"--zenoh-threads must be >= 0 (0: Zenoh's pool per runtime), got {threads}")
-    if threads == 0 or ZENOH_RUNTIME_VARIABLE in os.environ:
-        yield
-        return
-    os.environ[ZENOH_RUNTIME_VARIABLE] = zenoh_runtime(threads)
-    try:
-        yield
-    finally:
-        del os.environ[ZENOH_RUNTIME_VARIABLE]
-
-
 def endpoints(config: zenoh.Config, direction: str = "connect") -> list[str] | dict[str, list[str]]:
     """The endpoints a config will ``connect`` to or ``listen`` on (a list, or a map per mode), for messages."""
     return json.loads(config.get_json(f"{direction}/endpoints"))
@@ -143,7 +104,14 @@ def zenoh_reason(exc: Exception) -> str:
 
 
 def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Session:
-    """Open a session, retrying with back-off until ``settings.startup_timeout_s``."""
+    """Open a session, retrying with back-off until ``settings.startup_timeout_s``.
+
+    ``settings.zenoh_threads`` is the process's, not the session's: Zenoh reads its thread pools once, when the
+    process opens its first session, from ``ZENOH_RUNTIME``, which the entry point sets
+    (services/process.py, :func:`~services.process.configure_process`). Here it is only checked.
+    """
+    if settings.zenoh_threads < 0:
+        raise ValueError(f"--zenoh-threads must be >= 0 (0: Zenoh's pool per runtime), got {settings.zenoh_threads}")
     try:
         config = build_config(settings)  # a bad config file is the user's to fix: fail at once, not after retries
     except zenoh.ZError as exc:
@@ -154,8 +122,7 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
     while True:
         attempt += 1
         try:
-            with zenoh_threads(settings.zenoh_threads):
-                session = zenoh.open(config)
+            session = zenoh.open(config)
             log.info(
                 "%s joined Zenoh as %s (connect=%s listen=%s%s)",
                 role,

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from services.geometry import relative_geometry
+from services.process import DEFAULT_RENDER_THREADS, ProcessSettings, configure_process
 from sim_service.scenery import SceneSettings
 from sim_service.world import World
 
@@ -74,6 +75,7 @@ def main() -> None:
     parser.add_argument("--scene", default="", help="a scenery preset: plain rows over rows in it, not noise")
     parser.add_argument("--pairs", type=int, default=2, help="with --scene: pairs of rows, each on new seeds")
     args = parser.parse_args()
+    configure_process(ProcessSettings(render_threads=DEFAULT_RENDER_THREADS), role="contact sheet")  # LP_NUM_THREADS
     sheet = (
         scenery_sheet(args.count, args.seed, args.scene, args.pairs)
         if args.scene

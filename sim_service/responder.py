@@ -35,7 +35,7 @@ from services.messages import (
     unpack,
 )
 from services.metrics import Metrics, MetricsPublisher
-from services.polling import Inbox, prepare_to_poll
+from services.polling import Inbox, poll_seconds
 from services.presence import Roster, announce, live_now
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES, open_session
 from services.settings import NonNegInt, ZenohSettings, check_ranges
@@ -99,7 +99,7 @@ class SimResponder:
         self.keys = Keys(settings.zenoh.namespace)
         self.ident = settings.ident or f"sim-{os.getpid()}"
         self.metrics = Metrics()
-        self._inbox: Inbox[_Request | None] = Inbox(prepare_to_poll(settings.poll_ms))
+        self._inbox: Inbox[_Request | None] = Inbox(poll_seconds(settings.poll_ms))
         self._stop = threading.Event()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._envs: list[LockstepEnv] = []

@@ -14,6 +14,7 @@ class WorldSettings:
     image_size: int = 64  # square RGB frames for the encoder
     render: bool = True  # False: telemetry only (state observations, physics tests)
     render_scale: int = 1  # render at image_size * scale and downscale with OpenCV (anti-aliasing)
+    # The process's, not the World's: its entry point sets LP_NUM_THREADS from it (services/process.py).
     render_threads: int = 0  # Mesa llvmpipe threads (LP_NUM_THREADS): 0 draws on the stepping thread, -1 Mesa default
     physics_dt: float = 0.02  # seconds per step: one action per physics step (lock-step)
     noise: NoiseSettings = field(default_factory=NoiseSettings)  # image noise, all off by default (--noise-* flags)

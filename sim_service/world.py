@@ -30,7 +30,6 @@ import dataclasses
 import importlib
 import importlib.util
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -73,18 +72,6 @@ def load_triton_before_rendering() -> None:
     """
     if importlib.util.find_spec("triton") is not None:
         importlib.import_module("triton")
-
-
-def use_render_threads(threads: int) -> None:
-    """Tell Mesa's software rasteriser (llvmpipe) how many threads to draw with; -1 leaves its default.
-
-    Mesa reads ``LP_NUM_THREADS`` once, when a process makes its first GL context, and by default starts one
-    rasteriser thread per core. A 64 px frame is too small to share out: handing it to those threads and
-    waiting for them costs more than drawing it, so 0 (draw on the calling thread) renders twice as fast on
-    a CPU (0.17 against 0.39 ms per frame measured on 2 cores). A GPU's EGL driver ignores the variable.
-    """
-    if threads >= 0:
-        os.environ["LP_NUM_THREADS"] = str(threads)
 
 
 @dataclass(frozen=True)
@@ -141,7 +128,8 @@ class World:
 
     def _make_renderer(self) -> mujoco.Renderer:
         load_triton_before_rendering()
-        use_render_threads(self.settings.render_threads)
+        # settings.render_threads reaches Mesa as LP_NUM_THREADS, read at the process's first GL context: the
+        # entry point sets it from the process's settings (services/process.py, configure_process), not the World.
         pixels = self.settings.image_size * self.settings.render_scale
         self.model.vis.global_.offwidth = max(pixels, 1)
         self.model.vis.global_.offheight = max(pixels, 1)

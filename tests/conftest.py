@@ -8,12 +8,15 @@ namespace of its own, so tests never hear each other's traffic.
 from __future__ import annotations
 
 import os
+import sys
 import uuid
 from collections.abc import Callable, Iterator
 
 import pytest
 import zenoh
 
+from services import process
+from services.process import DEFAULT_RENDER_THREADS, ProcessSettings, configure_process
 from services.procs import ProcessGroup, Service, free_tcp_port
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -23,6 +26,32 @@ os.environ["MUJOCO_GL"] = "egl"
 
 #: How long a test waits for its router or a session to appear before failing, in seconds.
 STARTUP_TIMEOUT_S = 20.0
+
+
+@pytest.fixture(scope="session", autouse=True)
+def render_threads_of_the_test_process() -> None:
+    """The test process renders Worlds as `swimm sim` does: Mesa on the stepping thread (LP_NUM_THREADS=0), set
+    once, as an entry point sets it (services/process.py), before any test makes a GL context."""
+    configure_process(ProcessSettings(render_threads=DEFAULT_RENDER_THREADS), role="tests")
+
+
+@pytest.fixture(autouse=True)
+def process_settings_restored() -> Iterator[None]:
+    """What a test's in-process `swimm` main (or configure_process) set for the process is undone after it, so
+    the processes later tests start see the test process's own environment."""
+    variables = (process.ZENOH_RUNTIME_VARIABLE, process.RENDER_THREADS_VARIABLE)
+    environment = {name: os.environ.get(name) for name in variables}
+    before = dict(process._ENVIRONMENT_BEFORE)
+    switch_interval = sys.getswitchinterval()
+    yield
+    for name, value in environment.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    process._ENVIRONMENT_BEFORE.clear()
+    process._ENVIRONMENT_BEFORE.update(before)
+    sys.setswitchinterval(switch_interval)
 
 
 @pytest.fixture

@@ -1,6 +1,6 @@
 """services/polling.py: an Inbox hands over items put by other threads and Zenoh samples (from a real router)
-in order, blocking, while polling or napping after it; its timeout holds; and the switch interval changes
-only when polling is asked for."""
+in order, blocking, while polling or napping after it; its timeout holds; and building one leaves the switch
+interval alone (the entry point sets it: tests/services/test_process.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ import time
 import pytest
 import zenoh
 
-from services.polling import NAP_MAX_S, POLLING_SWITCH_INTERVAL_S, Inbox, prepare_to_poll
+from services.polling import NAP_MAX_S, POLLING_SWITCH_INTERVAL_S, Inbox, poll_seconds
+from services.process import ProcessSettings, configure_process
 
 #: Blocking, and polling for 20 ms before napping.
 INBOX_POLL_S = pytest.mark.parametrize("poll_s", [0.0, 0.02], ids=["blocking", "polling"])
@@ -36,12 +37,16 @@ def test_an_item_put_by_another_thread_is_taken(poll_s: float, delay_s: float) -
         inbox.get(timeout=0.0)
 
 
-def test_polling_shortens_the_switch_interval_and_blocking_leaves_it() -> None:
+def test_a_polling_inbox_leaves_the_switch_interval_to_the_entry_point() -> None:
     default = sys.getswitchinterval()
     try:
-        assert prepare_to_poll(0.0) == 0.0
-        assert sys.getswitchinterval() == default
-        assert prepare_to_poll(2.0) == pytest.approx(0.002)
+        assert poll_seconds(0.0) == 0.0
+        assert poll_seconds(2.0) == pytest.approx(0.002)
+        Inbox(poll_seconds(2.0))
+        assert sys.getswitchinterval() == default  # no side effect of library code
+        configure_process(ProcessSettings(poll_ms=0.0))
+        assert sys.getswitchinterval() == default  # blocking leaves it
+        configure_process(ProcessSettings(poll_ms=2.0))
         assert sys.getswitchinterval() == pytest.approx(POLLING_SWITCH_INTERVAL_S)
     finally:
         sys.setswitchinterval(default)
@@ -49,7 +54,9 @@ def test_polling_shortens_the_switch_interval_and_blocking_leaves_it() -> None:
 
 def test_a_negative_poll_time_is_refused() -> None:
     with pytest.raises(ValueError, match="poll_ms must be >= 0"):
-        prepare_to_poll(-1.0)
+        poll_seconds(-1.0)
+    with pytest.raises(ValueError, match="poll_ms must be >= 0"):
+        configure_process(ProcessSettings(poll_ms=-1.0))
 
 
 def open_inbox(session: zenoh.Session, poll_s: float, key: str) -> tuple[Inbox[str], zenoh.Subscriber]:

@@ -86,11 +86,13 @@ def test_low_latency_asks_for_that_transport_without_qos_or_shared_memory_and_le
 
 
 ZENOH_THREADS_OF_A_PROCESS = """
-import glob, json, os, re, sys, time
+import glob, json, os, re, subprocess, sys, time
+from services.process import ProcessSettings, child_environment, configure_process
 from services.session import open_session
 from services.settings import ZenohSettings
 
 endpoint, threads = sys.argv[1], int(sys.argv[2])
+configure_process(ProcessSettings.of(ZenohSettings(zenoh_threads=threads)))  # as an entry point does
 listener = open_session(ZenohSettings(mode="peer", listen=[endpoint], zenoh_threads=threads))
 dialler = open_session(ZenohSettings(mode="peer", connect=[endpoint], zenoh_threads=threads))
 received = []
@@ -101,7 +103,9 @@ while not received and time.monotonic() < deadline:  # until a message has cross
     time.sleep(0.05)
 names = [open(task + "/comm").read().strip() for task in glob.glob("/proc/self/task/*")]
 pools = sorted({name.split("-")[0] for name in names if re.fullmatch(r"(app|acc|tx|rx|net)-[0-9]+", name)})
-print(json.dumps({"received": bool(received), "pools": pools, "passed_on": "ZENOH_RUNTIME" in os.environ}))
+child = subprocess.run([sys.executable, "-c", "import os; print('ZENOH_RUNTIME' in os.environ)"],
+                       env=child_environment(), capture_output=True, text=True, check=True)
+print(json.dumps({"received": bool(received), "pools": pools, "passed_on": child.stdout.strip() == "True"}))
 subscriber.undeclare()
 dialler.close()
 listener.close()
@@ -111,7 +115,8 @@ listener.close()
 @pytest.mark.parametrize("threads", [1, 0])
 def test_zenoh_runs_on_the_threads_asked_for_and_does_not_pass_them_on(free_port, threads):
     """Zenoh's threads, by name: one pool ('app') for every runtime, or with 0 a pool per runtime; and
-    the environment variable that chose it is gone again, so the processes this one starts choose for themselves."""
+    the environment variable that chose it (set by the process's entry point) is not in the environment of the
+    processes it starts, so they choose for themselves."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     environment = {key: value for key, value in os.environ.items() if key != "ZENOH_RUNTIME"}
     done = subprocess.run(
