@@ -14,11 +14,16 @@ pytestmark = pytest.mark.slow
 ROBUST = "encoder_service/models/cmvae_robust.pt"
 
 
-def learn(endpoint: str, namespace: str, run_dir, *flags: str) -> subprocess.CompletedProcess:
-    argv = [sys.executable, "-m", "services.cli", "learn", "--backend", "zenoh", "--obs", "cmvae", "--algo", "sac",
-            "--connect", endpoint, "--namespace", namespace, "--steps", "64", "--no-eval-enabled",
-            "--run-dir", str(run_dir), "--no-progress-bar", *flags]  # fmt: skip
+def swimm(command: str, endpoint: str, namespace: str, *flags: str) -> subprocess.CompletedProcess:
+    """A real `swimm <command>` on the cmvae observation against the test's router and namespace."""
+    argv = [sys.executable, "-m", "services.cli", command, "--obs", "cmvae", "--connect", endpoint,
+            "--namespace", namespace, "--no-progress-bar", *flags]  # fmt: skip
     return subprocess.run(argv, capture_output=True, text=True, timeout=240)
+
+
+def learn(endpoint: str, namespace: str, run_dir, *flags: str) -> subprocess.CompletedProcess:
+    return swimm("learn", endpoint, namespace, "--backend", "zenoh", "--algo", "sac", "--steps", "64",
+                 "--no-eval-enabled", "--run-dir", str(run_dir), *flags)  # fmt: skip
 
 
 def test_a_run_on_another_cmvae_than_the_live_encoders_is_refused_naming_both(
@@ -36,10 +41,8 @@ def test_a_run_on_another_cmvae_than_the_live_encoders_is_refused_naming_both(
 
 
 def evaluate(endpoint: str, namespace: str, out, *flags: str) -> subprocess.CompletedProcess:
-    argv = [sys.executable, "-m", "services.cli", "eval", "--obs", "cmvae", "--algo", "scripted-camera",
-            "--connect", endpoint, "--namespace", namespace, "--episodes", "1", "--steps", "20",
-            "--out", str(out), "--no-figures", "--no-progress-bar", *flags]  # fmt: skip
-    return subprocess.run(argv, capture_output=True, text=True, timeout=240)
+    return swimm("eval", endpoint, namespace, "--algo", "scripted-camera", "--episodes", "1", "--steps", "20",
+                 "--out", str(out), "--no-figures", *flags)  # fmt: skip
 
 
 def test_an_evaluation_on_another_cmvae_than_the_live_encoders_is_refused(
