@@ -20,7 +20,8 @@ HAZE_MAX = 0.5  # blend toward a random colour by U[0, max]: backscatter of any 
 NOISE_STD_MAX = 12.0  # Gaussian pixel noise, std U[0, max]
 BLUR_SIGMA_MAX = 1.2  # Gaussian blur, sigma U[0, max] pixels, on half of the jittered frames
 BANDS_MAX = 4  # translucent bands per banded frame, 1 to max
-BAND_WIDTH = (0.03, 0.3)  # band width, a share of the frame's width U[lo, hi]
+BAND_WIDTH = (0.03, 0.5)  # band width where it crosses its centre, a share of the frame's width U[lo, hi]
+BAND_SPREAD_MAX = 3.0  # a band widens by up to this many times its width per frame width along it: a wedge
 BAND_ALPHA_MAX = 0.5  # a band's peak opacity U[0.1, max]: the dolphin still shows through
 
 
@@ -49,9 +50,9 @@ def _jitter_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def bands(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
     """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them carry translucent straight bands.
 
-    Each band crosses the frame at any angle in a random colour and fades along its length, as light shafts, kelp
-    or a passing shadow would: structure that is not the dolphin and that the sim's training scenery draws only
-    in a narrow range of angles and strengths.
+    Each band crosses the frame at any angle in a random colour, fades along its length and may widen along it
+    into a wedge, as light shafts under a low sun, kelp or a passing shadow would: structure that is not the
+    dolphin and that the sim's training scenery draws only in a narrow range of angles, widths and strengths.
     """
     out = images.copy()
     for index in np.flatnonzero(rng.random(len(images)) < share):
@@ -68,7 +69,9 @@ def _bands_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         centre_x, centre_y = rng.uniform(0, width), rng.uniform(0, height)
         across = (cols - centre_x) * np.sin(angle) - (rows - centre_y) * np.cos(angle)
         along = ((cols - centre_x) * np.cos(angle) + (rows - centre_y) * np.sin(angle)) / width
-        half_width = rng.uniform(*BAND_WIDTH) * width / 2
+        half_width = (
+            rng.uniform(*BAND_WIDTH) * width / 2 * np.clip(1.0 + rng.uniform(0, BAND_SPREAD_MAX) * along, 0, None)
+        )
         inside = np.clip(half_width - np.abs(across) + 0.5, 0.0, 1.0)  # a one-pixel soft edge
         fade = np.clip(0.5 + rng.uniform(-1.5, 1.5) * along, 0.0, 1.0)
         alpha = (rng.uniform(0.1, BAND_ALPHA_MAX) * inside * fade)[..., None]
