@@ -9,8 +9,10 @@ episodes in-process on seeds the training never evaluated on (``final_seed``). T
 - ``runs/<algo>-<seed>/``: the run folder of `swimm up` (``evaluations.csv`` with steps and wall seconds),
   ``final-eval/`` and ``best-eval/`` (episodes.csv, summary.json);
 - ``evaluations.csv``: every run's evaluations in one table (algo, seed, steps, wall minutes, return);
-- ``summary.json``: per algorithm the seeds, final returns, IQM with its 95% bootstrap interval
-  (:mod:`bench.scores`), best evaluation, the best model's return, and wall minutes and steps to each return threshold;
+- ``summary.json``: per algorithm the seeds, final returns and each final episode's, IQM with its 95% bootstrap
+  interval (:mod:`bench.scores`), how many seeds reach each return threshold, best evaluation, the best model's
+  return, and wall minutes and steps to each threshold; with the provenance of every result file
+  (services.results: command, commit, encoder hash, seeds, host);
 - ``learn.png``: mean return across seeds against env steps and against wall minutes, with 95% bootstrap bands.
 
 A run whose ``final-eval/summary.json`` exists is not trained again, and one whose training ran to its budget
@@ -37,12 +39,14 @@ from tqdm import tqdm
 from bench.learn_merge import merge
 from bench.learn_settings import SUMMARY, LearnBenchSettings
 from bench.scores import bootstrap_ci, curve_band, first_reaching, iqm
+from encoder_service import DEFAULT_CHECKPOINT
 from eval_service.engine import EvaluationSettings, evaluate
 from learner_service import up
 from learner_service.command import RESULT_FILE
 from learner_service.command import check as check_learner
 from learner_service.learn_settings import EvalSettings, LearnCommandSettings
 from learner_service.progress import BEST_MODEL, EVALUATIONS_CSV, FINAL_MODEL
+from services.results import provenance, write_result
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -197,6 +201,8 @@ def summarise(
             "final_iqm": round(float(iqm(finals_of)), 1) if seeds else None,
             "final_iqm_ci95": [round(value, 1) for value in interval] if interval else None,
             "final_metrics": [finals[(algo, seed)]["metrics"] for seed in seeds],
+            "final_episode_returns": [finals[(algo, seed)].get("returns") for seed in seeds],
+            "seeds_reaching": {f"{t:g}": sum(value >= t for value in finals_of) for t in settings.thresholds},
             "best_eval_returns": [round(float(run["mean_return"].max()), 1) for run in runs],
             "best_model_returns": [round(bests[(algo, seed)]["mean_return"], 1) if (algo, seed) in (bests or {})
                                    else None for seed in seeds],
@@ -213,7 +219,8 @@ def summarise(
         "how": "final_returns: each seed's final model, mean of final_episodes deterministic episodes (seed "
         "final_seed); IQM and its 95% percentile bootstrap over seeds; minutes_to / steps_to: the first "
         "training evaluation (eval_episodes episodes, seed 113) at or above the return, null if never; "
-        "best_model_returns: the best model of those evaluations on the final episodes",
+        "best_model_returns: the best model of those evaluations on the final episodes; seeds_reaching: how "
+        "many seeds' final returns are at or above each threshold; final_episode_returns: each seed's episodes",
     }
 
 
@@ -246,7 +253,7 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
     """Train what is missing, evaluate it, write the results folder; returns the summary."""
     settings.check()
     if settings.merge:
-        return write_results(Path(settings.out), *merge(settings))
+        return write_results(Path(settings.out), *merge(settings), provenance(seeds=settings.seeds))
     layout.check()
     for algo in settings.algos:  # a learner's mistake (hyperparams, smoothing) refused before the first run
         check_learner(learn_settings(settings, algo, settings.seeds[0], layout))
@@ -273,14 +280,18 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
         log.info("%s seed %d: final return %.1f, best model %.1f", algo, seed, finals[(algo, seed)]["mean_return"],
                  bests[(algo, seed)]["mean_return"])  # fmt: skip
     evaluations = collect(settings)
-    return write_results(out, summarise(settings, evaluations, finals, layout, bests), evaluations)
+    about = provenance({"encoder": settings.encoder_checkpoint or DEFAULT_CHECKPOINT}, seeds=settings.seeds)
+    return write_results(out, summarise(settings, evaluations, finals, layout, bests), evaluations, about)
 
 
-def write_results(out: Path, summary: dict[str, Any], evaluations: pd.DataFrame) -> dict[str, Any]:
-    """The results folder: the summary, every evaluation in one table and the learning curves; returns the summary."""
+def write_results(
+    out: Path, summary: dict[str, Any], evaluations: pd.DataFrame, about: dict[str, Any]
+) -> dict[str, Any]:
+    """The results folder: the summary (with its provenance ``about``), every evaluation in one table and the
+    learning curves; returns the summary."""
     out.mkdir(parents=True, exist_ok=True)
     evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
-    (out / SUMMARY).write_text(json.dumps(summary, indent=2) + "\n")
+    write_result(out / SUMMARY, summary, about)
     if not evaluations.empty:
         learning_figure(evaluations).savefig(out / FIGURE, dpi=110)
     log.info("results in %s (%s, %s, %s)", out, SUMMARY, EVALUATIONS_CSV, FIGURE)

@@ -63,13 +63,15 @@ def test_summary_has_the_documented_shape() -> None:
             for run, seed in ((first, 97), (second, 101))
         ]
     )
-    finals = {("sac", 97): {"mean_return": 2450.0, "metrics": {"S_D": 0.1}},
-              ("sac", 101): {"mean_return": 1400.0, "metrics": {"S_D": 0.2}}}  # fmt: skip
+    finals = {("sac", 97): {"mean_return": 2450.0, "returns": [2400.0, 2500.0], "metrics": {"S_D": 0.1}},
+              ("sac", 101): {"mean_return": 1400.0, "returns": [1300.0, 1500.0], "metrics": {"S_D": 0.2}}}  # fmt: skip
     bests = {("sac", 97): {"mean_return": 2480.0, "metrics": {}}}  # seed 101's best model not evaluated
     sac = summarise(settings, evaluations, finals, bests=bests)["algos"]["sac"]
     assert sac["best_model_returns"] == [2480.0, None]
     assert sac["seeds"] == [97, 101] and sac["final_returns"] == [2450.0, 1400.0]
     assert sac["final_iqm"] == pytest.approx(1925.0)
+    assert sac["final_episode_returns"] == [[2400.0, 2500.0], [1300.0, 1500.0]]
+    assert sac["seeds_reaching"] == {"2000": 1, "2400": 1}
     assert sac["minutes_to"] == {"2000": [2.0, None], "2400": [3.0, None]}
     assert sac["steps_to"]["2000"] == [20.0, None]
     assert sac["best_eval_returns"] == [2500.0, 1500.0] and sac["steps"] == [30, 25]

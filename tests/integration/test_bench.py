@@ -18,6 +18,8 @@ import time
 import pandas as pd
 import pytest
 
+from services.results import PROVENANCE_KEY
+
 pytestmark = pytest.mark.slow
 
 
@@ -119,6 +121,7 @@ def test_bench_learn_trains_seeds_over_real_processes_and_resumes(tmp_path) -> N
         episodes = pd.read_csv(out / "runs" / f"sac-{seed}" / "final-eval" / "episodes.csv")
         assert len(episodes) == 2 and (episodes["steps"] == 40).all()
         assert final == pytest.approx(episodes["return"].mean(), abs=0.05)
+    assert [len(returns) for returns in sac["final_episode_returns"]] == [2, 2]  # an interval over episodes later
     for seed, best in zip(sac["seeds"], sac["best_model_returns"], strict=True):  # the best model, same episodes
         episodes = pd.read_csv(out / "runs" / f"sac-{seed}" / "best-eval" / "episodes.csv")
         assert len(episodes) == 2 and best == pytest.approx(episodes["return"].mean(), abs=0.05)
@@ -127,7 +130,10 @@ def test_bench_learn_trains_seeds_over_real_processes_and_resumes(tmp_path) -> N
     assert set(evaluations["seed"]) == {97, 101} and (evaluations["num_timesteps"] >= 100).all()
     assert (evaluations["wall_min"] > 0).all()
     assert (out / "learn.png").read_bytes()[:4] == b"\x89PNG"
-    assert json.loads((out / "summary.json").read_text())["algos"] == summary["algos"]
+    written = json.loads((out / "summary.json").read_text())
+    assert written["algos"] == summary["algos"]
+    about = written[PROVENANCE_KEY]
+    assert about["seeds"] == [97, 101] and about["models"]["encoder"]["sha256"] and about["git"]["commit"]
 
     started = time.monotonic()
     again = bench(*args, timeout_s=300)
