@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
 
-from learner_service.identity import require_live_encoders
+from learner_service.live_encoders import require_live_encoders
 from learner_service.proxy_env import ClaimRefused, ProxyEnv, ProxySettings
 from learner_service.task import TaskSettings
 from services.control import survey

@@ -47,8 +47,9 @@ from learner_service.checkpoints import load_for_resume, save_model
 from learner_service.demonstrations import demonstrate, resume_cloning
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.episodic import episodic_schedule
-from learner_service.identity import encoder_for, policy_identity, require_live_encoders, stamp
+from learner_service.identity import encoder_for, policy_identity, stamp
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
+from learner_service.live_encoders import require_live_encoders
 from learner_service.plots import plot_training, read_monitor
 from learner_service.progress import (
     FINAL_MODEL,

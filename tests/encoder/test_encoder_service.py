@@ -23,7 +23,7 @@ from encoder_service.inference import DEFAULT_CHECKPOINT as SHIPPED_CMVAE
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
-from learner_service.identity import check_live_encoders
+from learner_service.live_encoders import check_live_encoders
 from services.keys import Keys
 from services.messages import PROTOCOL_VERSION, ErrorMsg, LatentMsg, ObservationMsg, image_to_fields
 from services.presence import Roster, ask_about

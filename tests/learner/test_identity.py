@@ -6,6 +6,8 @@ Real SB3 checkpoints (the shipped ones, and a model trained here), real CMVAE fi
 from __future__ import annotations
 
 import shutil
+import subprocess
+import sys
 import zipfile
 from dataclasses import replace
 from pathlib import Path
@@ -97,3 +99,10 @@ def test_eval_refuses_a_zip_that_is_no_model_with_its_path(tmp_path) -> None:
         archive.writestr("a.txt", "holiday")
     with pytest.raises(ValueError, match=f"{other} is not a policy checkpoint: expected a stable-baselines3 model"):
         load_policy("sac", other)
+
+
+def test_reading_a_policys_encoder_needs_no_zenoh() -> None:
+    """export and pilot only read a checkpoint; the Zenoh half of the check lives in learner_service.live_encoders."""
+    probe = "import sys, learner_service.identity; print('zenoh' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO_ROOT, check=True)
+    assert result.stdout.strip() == "False"
