@@ -18,6 +18,7 @@ import pytest
 from encoder_service.data import CMVAEDataset
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import label_errors
+from tests.fingerprints import check_pairing
 
 DOCUMENTED = Path(__file__).resolve().parents[2] / "docs" / "encoder" / "metrics.json"
 TOLERANCE = {"d_m": 0.06, "theta_deg": 0.25, "psi_deg": 8.0}
@@ -32,7 +33,6 @@ def _mae(encoder: LatentEncoder, folder: Path) -> dict[str, float]:
     return dict(zip(("d_m", "theta_deg", "psi_deg"), (float(e) for e in errors), strict=True))
 
 
-@pytest.mark.skipif(not DEFAULT_CHECKPOINT.is_file(), reason="no shipped CMVAE in this checkout")
 def test_the_shipped_cmvae_scores_its_documented_errors_on_fresh_frames(tmp_path: Path) -> None:
     from sim_service.dataset import write_dataset
 
@@ -61,8 +61,6 @@ def test_a_noise_robust_cmvae_scores_its_documented_errors_on_fresh_clean_and_mu
     from sim_service.noise import NoiseSettings
     from sim_service.settings import WorldSettings
 
-    if not checkpoint.is_file():
-        pytest.skip(f"no {checkpoint.name} in this checkout")
     documented = json.loads(ROBUST[checkpoint].read_text())
     assert Path(documented["checkpoint"]).name == checkpoint.name and documented["dataset_seed"] == 5
     encoder = LatentEncoder(checkpoint)
@@ -114,18 +112,11 @@ def _identity_frames(out: Path) -> Path:
     return write_dataset(out, count=IDENTITY_FRAMES, seed=IDENTITY_SEED, progress=False)
 
 
-def reads_as(readings: np.ndarray, name: str) -> bool:
-    """Whether readings match the shipped CMVAE ``name``'s measured ones within READING_TOLERANCE on every frame."""
-    expected = np.asarray(READINGS[name])
-    allowed = np.array(list(READING_TOLERANCE.values()))
-    return readings.shape == expected.shape and bool(np.all(np.abs(readings - expected) <= allowed))
-
-
 @pytest.fixture(scope="module")
 def shipped_readings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.ndarray]:
     """Every shipped CMVAE's readings on the same freshly rendered fixed-seed frames."""
     folder = _identity_frames(tmp_path_factory.mktemp("identity") / "frames")
-    return {name: _readings(path, folder) for name in SHIPPED if (path := DEFAULT_CHECKPOINT.with_name(name)).is_file()}
+    return {name: _readings(DEFAULT_CHECKPOINT.with_name(name), folder) for name in SHIPPED}
 
 
 @pytest.mark.parametrize("candidate", SHIPPED)
@@ -133,11 +124,7 @@ def shipped_readings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, np.n
 def test_a_shipped_cmvae_reads_its_measured_readings_and_no_other_shipped_cmvae_does(
     shipped_readings: dict[str, np.ndarray], expected: str, candidate: str
 ) -> None:
-    if candidate not in shipped_readings:
-        pytest.skip(f"no {candidate} in this checkout")
-    assert reads_as(shipped_readings[candidate], expected) == (candidate == expected), (
-        f"{candidate} read {np.round(shipped_readings[candidate], 4).tolist()}; {expected} reads {READINGS[expected]}"
-    )
+    check_pairing(shipped_readings, READINGS, list(READING_TOLERANCE.values()), candidate, expected)
 
 
 if __name__ == "__main__":  # measures READINGS on the checked-out models

@@ -18,10 +18,9 @@ import pytest
 from eval_service.engine import EvaluationSettings, evaluate
 from learner_service.export import SHIPPED_POLICY
 from learner_service.registry import load_policy
+from tests.fingerprints import check_pairing
 
 STEPS = 400
-
-pytestmark = pytest.mark.skipif(not SHIPPED_POLICY.is_file(), reason="no shipped policy in this checkout")
 
 
 def test_the_shipped_policy_follows_the_dolphin_from_the_camera_alone(tmp_path) -> None:
@@ -71,16 +70,10 @@ def _actions(checkpoint: Path) -> np.ndarray:
     return policy.act(obs, {}).astype(np.float64)
 
 
-def acts_as(actions: np.ndarray, name: str) -> bool:
-    """Whether actions match the shipped policy ``name``'s measured ones within ACTION_TOLERANCE."""
-    expected = np.asarray(ACTIONS[name])
-    return actions.shape == expected.shape and bool(np.all(np.abs(actions - expected) <= ACTION_TOLERANCE))
-
-
 @pytest.fixture(scope="module")
 def shipped_actions() -> dict[str, np.ndarray]:
     models = SHIPPED_POLICY.parent
-    return {name: _actions(models / name) for name in SHIPPED if (models / name).is_file()}
+    return {name: _actions(models / name) for name in SHIPPED}
 
 
 @pytest.mark.parametrize("candidate", SHIPPED)
@@ -88,11 +81,7 @@ def shipped_actions() -> dict[str, np.ndarray]:
 def test_a_shipped_policy_takes_its_measured_actions_and_no_other_shipped_policy_does(
     shipped_actions: dict[str, np.ndarray], expected: str, candidate: str
 ) -> None:
-    if candidate not in shipped_actions:
-        pytest.skip(f"no {candidate} in this checkout")
-    assert acts_as(shipped_actions[candidate], expected) == (candidate == expected), (
-        f"{candidate} acted {np.round(shipped_actions[candidate], 4).tolist()}; {expected} acts {ACTIONS[expected]}"
-    )
+    check_pairing(shipped_actions, ACTIONS, ACTION_TOLERANCE, candidate, expected)
 
 
 if __name__ == "__main__":  # measures ACTIONS on the checked-out policies
