@@ -13,6 +13,12 @@ Behaviour (numbers from the SPEC where it gives them):
   looks smooth; a waypoint is redrawn within +-10 m of the rover on arrival;
 * banks into turns (roll proportional to turn rate) and undulates: body pitch
   and two tail joints (peduncle, flukes) oscillate with a phase lag.
+
+That is the ``planar`` motion, the paper's and the default: the dolphin stays at
+the depth it was placed at. The ``3d`` motion (:class:`DolphinSettings`) adds a
+depth to each waypoint, drawn within a depth band, pitches the dolphin into
+climbs and dives toward it at a limited pitch and pitch rate, and sends it up
+to breathe every minute or two (docs/physics.md).
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim_service.rotations import clamp, euler_to_matrix, matrix_to_quat
+from sim_service.settings import DolphinSettings, Motion
 
 #: Pivot offsets along the body's -x axis (metres), matching assets/world.xml.
 TAIL_PIVOT = 0.78  # body centre -> peduncle joint
@@ -43,6 +50,18 @@ class DolphinParams:
     peduncle_deg: float = 18.0
     fluke_deg: float = 30.0
     fluke_lag_rad: float = 1.2
+    # The 3d motion's depth band, for the body's centre (z up, surface at 0): at the ceiling its back and blowhole
+    # break the surface; the floor keeps the 0.88 m tall body clear of the varied seabed (relief up to -9.5 m).
+    ceiling_z: float = -0.3
+    floor_z: float = -8.0
+    waypoint_z_range: tuple[float, float] = (-8.0, -1.0)  # depths of ordinary waypoints
+    # Issue 46's figure for bottlenose climbs and dives, about 30 to 45 degrees of pitch: we take 40, so at 0.5 to
+    # 1 m/s it climbs or dives at up to 0.32 to 0.64 m/s.
+    max_climb_deg: float = 40.0
+    climb_gain_deg_per_m: float = 10.0  # wished climb angle per metre of depth still to go
+    max_climb_rate_deg_per_step: float = 0.4  # 20 deg/s: climbs and dives start and level off over about 2 s
+    surfacing_interval_s: tuple[float, float] = (50.0, 100.0)  # breath to heading up again: with the climb, 1-2 min
+    surfacing_aim_above_m: float = 1.0  # aims this far above the ceiling, so it arrives climbing, not creeping up
 
 
 @dataclass
@@ -53,6 +72,9 @@ class DolphinState:
     turn_rate: float  # deg per step, + = counter-clockwise seen from above
     phase: float  # tail-beat phase in cycles, [0, 1)
     waypoint: np.ndarray  # world (x, y)
+    waypoint_z: float = 0.0  # the waypoint's depth (3d motion)
+    climb: float = 0.0  # rad, the swim's angle above the horizontal (3d motion; the body pitches nose-up by it)
+    surfacing_in_s: float = math.inf  # time until it heads up to breathe; <= 0 while it does (3d motion)
 
 
 @dataclass(frozen=True)
@@ -68,8 +90,10 @@ class PartPose:
 
 
 class DolphinBehaviour:
-    def __init__(self, params: DolphinParams | None = None) -> None:
+    def __init__(self, params: DolphinParams | None = None, motion: Motion = "planar") -> None:
+        DolphinSettings(motion).check()
         self.params = params or DolphinParams()
+        self.three_d = motion == "3d"
         self.state: DolphinState | None = None
 
     def reset(
@@ -86,10 +110,17 @@ class DolphinBehaviour:
             np.array(position, dtype=float), float(yaw), speed, float(turn_rate), float(phase) % 1.0, np.zeros(2)
         )
         self._new_waypoint(rng, rover_xy)
+        if self.three_d:
+            self._draw_next_surfacing(rng)
 
     def _new_waypoint(self, rng: np.random.Generator, rover_xy: np.ndarray) -> None:
         r = self.params.waypoint_radius
         self.state.waypoint = np.asarray(rover_xy[:2], dtype=float) + rng.uniform(-r, r, size=2)
+        if self.three_d:  # drawn after (x, y), so the planar motion's draws stay as they were
+            self.state.waypoint_z = float(rng.uniform(*self.params.waypoint_z_range))
+
+    def _draw_next_surfacing(self, rng: np.random.Generator) -> None:
+        self.state.surfacing_in_s = float(rng.uniform(*self.params.surfacing_interval_s))
 
     def step(self, dt: float, rng: np.random.Generator, rover_xy: np.ndarray) -> None:
         p, s = self.params, self.state
@@ -103,12 +134,42 @@ class DolphinBehaviour:
         eased = s.turn_rate + clamp(wish - s.turn_rate, -ease, ease)
         s.turn_rate = clamp(eased, -p.max_turn_deg_per_step, p.max_turn_deg_per_step)
         s.yaw = _wrap(s.yaw + math.radians(s.turn_rate))
-        s.position[:2] += s.speed * dt * np.array([math.cos(s.yaw), math.sin(s.yaw)])
+        if self.three_d:
+            s.surfacing_in_s -= dt
+            self._pitch_toward(self._target_z())
+        s.position[:2] += s.speed * math.cos(s.climb) * dt * np.array([math.cos(s.yaw), math.sin(s.yaw)])
+        if self.three_d:
+            self._change_depth(dt, rng)
         s.phase = (s.phase + p.beat_hz_per_mps * s.speed * dt) % 1.0
 
     @property
+    def surfacing(self) -> bool:
+        """Whether the dolphin is heading up to breathe (3d motion)."""
+        return self.state.surfacing_in_s <= 0
+
+    def _target_z(self) -> float:
+        p = self.params
+        return p.ceiling_z + p.surfacing_aim_above_m if self.surfacing else self.state.waypoint_z
+
+    def _pitch_toward(self, target_z: float) -> None:
+        """Turn the climb angle toward one proportional to the depth still to go, within the pitch and its rate."""
+        p, s = self.params, self.state
+        wish = clamp(p.climb_gain_deg_per_m * (target_z - s.position[2]), -p.max_climb_deg, p.max_climb_deg)
+        rate = p.max_climb_rate_deg_per_step
+        s.climb += math.radians(clamp(wish - math.degrees(s.climb), -rate, rate))
+
+    def _change_depth(self, dt: float, rng: np.random.Generator) -> None:
+        """Climb or dive along the swim's angle, kept in the depth band; a breath at the ceiling ends a surfacing."""
+        p, s = self.params, self.state
+        s.position[2] = clamp(s.position[2] + s.speed * math.sin(s.climb) * dt, p.floor_z, p.ceiling_z)
+        if self.surfacing and s.position[2] >= p.ceiling_z:
+            self._draw_next_surfacing(rng)
+
+    @property
     def forward(self) -> np.ndarray:
-        return np.array([math.cos(self.state.yaw), math.sin(self.state.yaw), 0.0])
+        s = self.state
+        horizontal = math.cos(s.climb)
+        return np.array([horizontal * math.cos(s.yaw), horizontal * math.sin(s.yaw), math.sin(s.climb)])
 
     @property
     def velocity(self) -> np.ndarray:
@@ -117,7 +178,7 @@ class DolphinBehaviour:
     def body_rotation(self) -> np.ndarray:
         p, s = self.params, self.state
         roll = -math.radians(p.bank_deg_at_max_turn) * s.turn_rate / p.max_turn_deg_per_step
-        pitch = math.radians(p.body_pitch_deg) * math.sin(2 * math.pi * s.phase)
+        pitch = math.radians(p.body_pitch_deg) * math.sin(2 * math.pi * s.phase) - s.climb  # + pitch: nose down
         return euler_to_matrix(roll, pitch, s.yaw)
 
     def part_poses(self) -> tuple[PartPose, PartPose, PartPose]:

@@ -2,11 +2,27 @@
 
 from __future__ import annotations
 
+import typing
 from dataclasses import dataclass, field
+from typing import Literal
 
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.scenery import SceneSettings
+
+Motion = Literal["planar", "3d"]
+MOTIONS: tuple[str, ...] = typing.get_args(Motion)
+
+
+@dataclass
+class DolphinSettings:
+    """How the dolphin swims; simple field types so `services.settings` turns them into ``--dolphin-*`` flags."""
+
+    motion: Motion = "planar"  # planar: the paper's, at one depth; 3d: climbs, dives and surfacing in a depth band
+
+    def check(self) -> None:
+        if self.motion not in MOTIONS:
+            raise ValueError(f"unknown dolphin motion {self.motion!r}; choose one of {', '.join(MOTIONS)}")
 
 
 @dataclass
@@ -22,3 +38,4 @@ class WorldSettings:
     scene: SceneSettings = field(
         default_factory=SceneSettings
     )  # the world's scenery, plain by default (--scene-* flags)
+    dolphin: DolphinSettings = field(default_factory=DolphinSettings)  # how the target swims (--dolphin-* flags)

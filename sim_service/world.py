@@ -98,7 +98,7 @@ class World:
         self.model.opt.timestep = self.settings.physics_dt
         self.data = mujoco.MjData(self.model)
         self.rover = RoverDynamics()
-        self.dolphin = DolphinBehaviour()
+        self.dolphin = DolphinBehaviour(motion=self.settings.dolphin.motion)
         self.rng = np.random.default_rng(0)
         self._rover_body = self.model.body("rover").id
         rover_geom = self.model.geom("rover_hull").id
