@@ -4,12 +4,14 @@ On-disk format (version 1), a directory::
 
     meta.json                  {"format": "swimm-cmvae-dataset", "version": 1, "count", "seed",
                                 "image_shape", "shard_size", "label_names", "pose_names", "shards",
-                                "ranges", "world"}
+                                "paired", "ranges", "world", "masks"}
     shard-00000.images.npy     uint8   (n, 64, 64, 3) RGB
     shard-00000.labels.npy     float32 (n, 3): d (m), theta (signed azimuth, deg, + = left), psi (deg)
     shard-00000.poses.npy      float32 (n, 12): see POSE_NAMES
     shard-00000.clean.npy      uint8   (n, 64, 64, 3): paired datasets only (``"paired": true``), the same
                                frames before image noise, the target a denoising encoder reconstructs
+    shard-00000.masks.npy      bool    (n, 64, 64): datasets written with ``masks`` (``"masks": true``), which
+                               pixels show the dolphin (MuJoCo's segmentation render of the same pose)
     ...
 
 Each shard is written through a memory map as it is filled and meta.json
@@ -70,6 +72,7 @@ class DatasetSettings:
     shard_size: int = 4096
     workers: int = 1  # processes rendering shards in parallel; the bytes do not depend on it
     paired: bool = False  # also keep each noisy frame's clean render (needs noise on, e.g. --noise-preset harsh)
+    masks: bool = False  # also write which pixels show the dolphin, for the encoder's mask head (train --mask-weight)
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
 
 
@@ -105,6 +108,7 @@ def _write_shard(
     n: int,
     seed: int,
     paired: bool,
+    masks: bool,
     world: World,
     ranges: SamplingRanges,
     bar: tqdm | None,
@@ -119,11 +123,16 @@ def _write_shard(
     if paired:
         clean = np.lib.format.open_memmap(out / f"{name}.clean.npy", "w+", np.uint8, (n, size, size, 3))
         arrays.append(clean)
+    if masks:
+        target_masks = np.lib.format.open_memmap(out / f"{name}.masks.npy", "w+", np.bool_, (n, size, size))
+        arrays.append(target_masks)
     for j in range(n):
         telemetry, image = sample_pose(world, np.random.default_rng([seed, start + j]), ranges)
         images[j] = image
         if paired:
             clean[j] = world.clean_frame
+        if masks:
+            target_masks[j] = world.target_mask()  # the pose just placed; noise never moves pixels
         labels[j], poses[j] = labels_and_pose(telemetry)
         if bar is not None:
             bar.update(1)
@@ -134,11 +143,11 @@ def _write_shard(
 
 def _shard_in_worker(job: tuple) -> tuple[str, int]:
     """Process-pool entry point: each worker process builds its own World (and GL context) once."""
-    out, index, start, n, seed, paired, settings, ranges = job
+    out, index, start, n, seed, paired, masks, settings, ranges = job
     global _worker_world
     if _worker_world is None:
         _worker_world = World(settings)
-    return _write_shard(out, index, start, n, seed, paired, _worker_world, ranges, None), n
+    return _write_shard(out, index, start, n, seed, paired, masks, _worker_world, ranges, None), n
 
 
 _worker_world: World | None = None
@@ -154,11 +163,13 @@ def write_dataset(
     progress: bool = True,
     workers: int = 1,
     paired: bool = False,
+    masks: bool = False,
 ) -> Path:
     """Render ``count`` labelled frames into ``out_dir`` (see the module docstring); returns the directory.
 
     With ``workers > 1`` shards are rendered by that many processes; per-sample seeds make the
-    bytes identical to a single-process run. ``paired`` keeps each frame's clean render too.
+    bytes identical to a single-process run. ``paired`` keeps each frame's clean render too, ``masks`` the
+    dolphin's pixels.
     """
     if count <= 0 or shard_size <= 0 or workers <= 0:
         raise ValueError(f"count, shard_size and workers must be positive (got {count}, {shard_size}, {workers})")
@@ -171,14 +182,14 @@ def write_dataset(
     out.mkdir(parents=True, exist_ok=True)
     ranges = ranges or SamplingRanges()
     jobs = [
-        (out, index, start, min(shard_size, count - start), seed, paired, settings, ranges)
+        (out, index, start, min(shard_size, count - start), seed, paired, masks, settings, ranges)
         for index, start in enumerate(range(0, count, shard_size))
     ]
     with tqdm(total=count, desc=f"dataset {out.name}", unit="img", disable=not progress) as bar:
         if workers == 1:
             world = World(settings)
             try:
-                shards = [_write_shard(*job[:6], world, ranges, bar) for job in jobs]
+                shards = [_write_shard(*job[:7], world, ranges, bar) for job in jobs]
             finally:
                 world.close()
         else:
@@ -201,6 +212,8 @@ def write_dataset(
         "ranges": asdict(ranges),
         "world": asdict(settings),
     }
+    if masks:  # recorded only when on, so a dataset without masks is byte for byte what it was before the flag
+        meta["masks"] = True
     (out / "meta.json").write_text(json.dumps(meta, indent=2))
     log.info("wrote %d images in %d shards to %s", count, len(shards), out)
     return out
@@ -209,6 +222,6 @@ def write_dataset(
 def run(settings: DatasetSettings) -> int:
     write_dataset(
         settings.out, settings.count, settings.seed, settings.shard_size, settings.world, workers=settings.workers,
-        paired=settings.paired,
+        paired=settings.paired, masks=settings.masks,
     )  # fmt: skip
     return 0
