@@ -37,6 +37,7 @@ class Batch:
     labels: np.ndarray  # float32 (B, 3): d m, theta deg (signed azimuth), psi deg
     indices: np.ndarray  # int64 (B,): dataset rows, to pair a frame with its twin in another dataset
     clean: np.ndarray | None = None  # uint8 (B, 64, 64, 3): paired datasets' frames before noise, else None
+    masks: np.ndarray | None = None  # bool (B, 64, 64): the dolphin's pixels, datasets written with --masks, else None
 
 
 class CMVAEDataset:
@@ -48,12 +49,15 @@ class CMVAEDataset:
         self._images: list[np.ndarray] = []
         self._labels: list[np.ndarray] = []
         self._clean: list[np.ndarray] = []
+        self._masks: list[np.ndarray] = []
         for shard in self.meta["shards"]:
             images, labels = _open_shard(self.root, shard)
             self._images.append(images)
             self._labels.append(labels)
             if self.paired:
                 self._clean.append(_open_clean(self.root, shard, len(images)))
+            if self.has_masks:
+                self._masks.append(_open_masks(self.root, shard, len(images)))
         sizes = [len(images) for images in self._images]
         if sum(sizes) != self.meta["count"]:
             raise DatasetFormatError(
@@ -73,6 +77,11 @@ class CMVAEDataset:
     def paired(self) -> bool:
         """True when each (noisy) frame has its clean render beside it (`swimm dataset --paired`)."""
         return bool(self.meta.get("paired", False))
+
+    @property
+    def has_masks(self) -> bool:
+        """True when each frame has the dolphin's pixels beside it (`swimm dataset --masks`)."""
+        return bool(self.meta.get("masks", False))
 
     def read_labels(self, indices: np.ndarray) -> np.ndarray:
         """Labels of rows ``indices`` only (no image reads), float32 (len, 3)."""
@@ -110,6 +119,7 @@ class CMVAEDataset:
         images = np.empty((len(indices), *IMAGE_SHAPE), dtype=np.uint8)
         labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
         clean = np.empty_like(images) if self.paired else None
+        masks = np.empty(images.shape[:3], dtype=bool) if self.has_masks else None
         order = np.argsort(indices, kind="stable")
         shard_of = np.searchsorted(self._starts, indices[order], side="right") - 1
         for shard in np.unique(shard_of):
@@ -119,7 +129,9 @@ class CMVAEDataset:
             labels[positions] = self._labels[shard][rows]
             if clean is not None:
                 clean[positions] = self._clean[shard][rows]
-        return Batch(images=images, labels=labels, indices=indices, clean=clean)
+            if masks is not None:
+                masks[positions] = self._masks[shard][rows]
+        return Batch(images=images, labels=labels, indices=indices, clean=clean, masks=masks)
 
 
 class DatasetUnion:
@@ -152,6 +164,11 @@ class DatasetUnion:
     def paired(self) -> bool:
         return self.parts[0].paired
 
+    @property
+    def has_masks(self) -> bool:
+        """True when every folder has masks: a batch's masks are all there or all absent."""
+        return all(part.has_masks for part in self.parts)
+
     def _by_part(self, indices: np.ndarray) -> Iterator[tuple[CMVAEDataset, np.ndarray, np.ndarray]]:
         """(part, positions in ``indices``, the part's own rows) for each part that ``indices`` touch."""
         indices = np.asarray(indices, dtype=np.int64)
@@ -179,15 +196,29 @@ class DatasetUnion:
         images = np.empty((len(indices), *IMAGE_SHAPE), dtype=np.uint8)
         labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
         clean = np.empty_like(images) if self.paired else None
+        masks = np.empty(images.shape[:3], dtype=bool) if self.has_masks else None
         for part, positions, rows in self._by_part(indices):
             batch = part.read(rows)
             images[positions], labels[positions] = batch.images, batch.labels
             if clean is not None:
                 clean[positions] = batch.clean
-        return Batch(images=images, labels=labels, indices=indices, clean=clean)
+            if masks is not None:
+                masks[positions] = batch.masks
+        return Batch(images=images, labels=labels, indices=indices, clean=clean, masks=masks)
 
 
 AnyDataset = CMVAEDataset | DatasetUnion
+
+
+def require_masks(dataset: AnyDataset, wanted_by: str) -> None:
+    """Refuse, naming each folder without masks and how to write them, when ``wanted_by`` (a flag) needs masks."""
+    parts = dataset.parts if isinstance(dataset, DatasetUnion) else [dataset]
+    missing = [str(part.root) for part in parts if not part.has_masks]
+    if missing:
+        raise DatasetFormatError(
+            f"{wanted_by} needs the dolphin's masks, but {', '.join(missing)} holds none: "
+            f"write the dataset again with `swimm dataset --masks`"
+        )
 
 
 def open_datasets(roots: str | list[str]) -> AnyDataset:
@@ -251,6 +282,17 @@ def _open_clean(root: Path, shard: str, count: int) -> np.ndarray:
         shape = ", ".join(map(str, IMAGE_SHAPE))
         raise DatasetFormatError(f"{path}: expected uint8 ({count}, {shape}), got {clean.dtype} {clean.shape}")
     return clean
+
+
+def _open_masks(root: Path, shard: str, count: int) -> np.ndarray:
+    path = root / f"{shard}.masks.npy"
+    if not path.is_file():
+        raise DatasetFormatError(f"meta.json says the dataset has masks, but shard file {path} is missing")
+    masks = np.load(path, mmap_mode="r")
+    if masks.dtype != np.bool_ or masks.shape != (count, *IMAGE_SHAPE[:2]):
+        shape = ", ".join(map(str, IMAGE_SHAPE[:2]))
+        raise DatasetFormatError(f"{path}: expected bool ({count}, {shape}), got {masks.dtype} {masks.shape}")
+    return masks
 
 
 def split_indices(count: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -28,12 +28,15 @@ class ExportEncoderSettings:
 
 
 def export_checkpoint(source: str | Path, destination: str | Path) -> Path:
-    """Write ``source``'s weights as float16, with its config and metrics, and nothing needed only to resume."""
+    """Write ``source``'s weights as float16, with its config and metrics, and nothing needed only to resume or train
+    (a mask head is dropped)."""
     checkpoint = read_checkpoint(source)
     kept = {key: checkpoint[key] for key in ("format", "version", "config", "epoch", "val_loss", "metrics")}
+    kept["config"] = {**checkpoint["config"], "mask_head": False}  # a training aid: nothing downstream reads it
     kept["state_dict"] = {
         name: tensor.half() if tensor.is_floating_point() else tensor
         for name, tensor in checkpoint["state_dict"].items()
+        if not name.startswith("mask_head.")
     }
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)

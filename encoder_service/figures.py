@@ -71,3 +71,11 @@ def drift_bars(drift: np.ndarray, path: Path) -> Path:
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def mask_overlay(frames: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Frames (N, 64, 64, 3) uint8 with a grid of dolphin probabilities (N, k, k) in [0, 1] tinted red over them."""
+    scale = frames.shape[1] // cells.shape[1]
+    alpha = 0.6 * np.repeat(np.repeat(cells, scale, axis=1), scale, axis=2)[..., None]
+    red = np.array([255.0, 0.0, 0.0])
+    return ((1.0 - alpha) * frames + alpha * red).round().astype(np.uint8)

@@ -117,6 +117,10 @@ class WhiteBalance(nn.Module):
         return intensity * (self.target / mean) * 2.0 - 1.0
 
 
+#: Layers of ``ImageEncoder.features`` up to the first residual block: their 8x8 map is what the mask head reads.
+MASK_TAP = 3
+
+
 class ImageEncoder(nn.Module):
     """q(z | image): 64x64x3 -> (mu, logvar), each (N, n_z)."""
 
@@ -145,8 +149,37 @@ class ImageEncoder(nn.Module):
         self.n_z = n_z
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        stats = self.head(self.features(self.normalise(images)))
+        return self._split(self.head(self.features(self.normalise(images))))
+
+    def with_feature_map(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(mu, logvar) as ``forward`` gives them, plus the 8x8 map after the first residual block (N, 32, 8, 8)."""
+        feature_map = self.features[:MASK_TAP](self.normalise(images))
+        return *self._split(self.head(self.features[MASK_TAP:](feature_map))), feature_map
+
+    def _split(self, stats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return stats[:, : self.n_z], stats[:, self.n_z :]
+
+
+class MaskHead(nn.Module):
+    """Where the dolphin is: the encoder's 8x8 feature map -> mask logits (N, 8, 8), a training aid only.
+
+    Its loss asks the encoder's early features to find the animal rather than the scene around it; the
+    latent and the inference path (``ImageEncoder.forward``) never see it.
+    """
+
+    SIZE = 8
+
+    def __init__(self, channels: int = 32) -> None:
+        super().__init__()
+        self.layers = nn.Sequential(
+            nn.ReLU(),  # not in place: the map also feeds the encoder's next block
+            nn.Conv2d(channels, channels, 3, padding=1),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(channels, 1, 1),
+        )
+
+    def forward(self, feature_map: torch.Tensor) -> torch.Tensor:
+        return self.layers(feature_map)[:, 0]
 
 
 class ImageDecoder(nn.Module):
@@ -190,12 +223,13 @@ class CMVAEOutput:
     z: torch.Tensor  # (N, n_z): a sample in training, mu in eval
     image: torch.Tensor  # (N, 3, 64, 64) in [-1, 1]
     state: torch.Tensor  # (N, 3) normalised (d, theta, psi)
+    mask: torch.Tensor | None = None  # (N, 8, 8) mask logits, models with a mask head only
 
 
 class CMVAE(nn.Module):
     """Image encoder, image decoder and the three state decoders, trained jointly."""
 
-    def __init__(self, n_z: int = 10, input_norm: str = "none") -> None:
+    def __init__(self, n_z: int = 10, input_norm: str = "none", mask_head: bool = False) -> None:
         super().__init__()
         if n_z < len(LABEL_NAMES):
             raise ValueError(f"n_z must be at least {len(LABEL_NAMES)} (one latent per label), got {n_z}")
@@ -204,9 +238,18 @@ class CMVAE(nn.Module):
         self.encoder = ImageEncoder(n_z, input_norm)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in LABEL_NAMES)
+        # made last, so a model without it draws every other weight as before the head existed
+        self.mask_head = MaskHead() if mask_head else None
 
     def encode(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.encoder(images)
+
+    def encode_with_mask(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """(mu, logvar) and the mask head's logits (N, 8, 8), or None for a model without a head."""
+        if self.mask_head is None:
+            return *self.encode(images), None
+        mu, logvar, feature_map = self.encoder.with_feature_map(images)
+        return mu, logvar, self.mask_head(feature_map)
 
     def decode_image(self, z: torch.Tensor) -> torch.Tensor:
         return self.image_decoder(z)
@@ -217,10 +260,10 @@ class CMVAE(nn.Module):
 
     def forward(self, images: torch.Tensor, sample: bool | None = None) -> CMVAEOutput:
         """Encode, draw z (reparameterised; only while training unless ``sample`` says otherwise), decode both ways."""
-        mu, logvar = self.encode(images)
+        mu, logvar, mask = self.encode_with_mask(images)
         sample = self.training if sample is None else sample
         z = mu + torch.randn_like(mu) * torch.exp(0.5 * logvar) if sample else mu
-        return CMVAEOutput(mu=mu, logvar=logvar, z=z, image=self.decode_image(z), state=self.decode_state(z))
+        return CMVAEOutput(mu=mu, logvar=logvar, z=z, image=self.decode_image(z), state=self.decode_state(z), mask=mask)
 
 
 # ---------------------------------------------------------------- loss
@@ -232,9 +275,11 @@ class LossParts:
     image: torch.Tensor
     state: torch.Tensor
     kl: torch.Tensor
+    mask: torch.Tensor | None = None  # the mask head's loss, when it is trained
 
     def as_floats(self) -> dict[str, float]:
-        return {name: float(getattr(self, name).detach()) for name in ("total", "image", "state", "kl")}
+        names = ("total", "image", "state", "kl") + (("mask",) if self.mask is not None else ())
+        return {name: float(getattr(self, name).detach()) for name in names}
 
 
 def state_errors(predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
@@ -296,12 +341,37 @@ class StateLoss:
 SPEC_STATE_LOSS = StateLoss()
 
 
+def pool_masks(masks: torch.Tensor, size: int) -> torch.Tensor:
+    """bool (N, 64, 64) -> float (N, size, size): a cell shows the dolphin if any of its pixels does."""
+    return F.adaptive_max_pool2d(masks[:, None].float(), size)[:, 0]
+
+
+def mask_loss(logits: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy of mask logits against the masks any-pooled to their size, positives reweighted.
+
+    A far dolphin fills one or two of the 64 cells, so unweighted "nowhere" is a cheap near-optimum; weighting
+    each positive cell by the batch's negatives per positive makes the animal's cells and the water count alike.
+    """
+    target = pool_masks(masks, logits.shape[-1])
+    positives = target.sum()
+    pos_weight = (target.numel() - positives) / positives.clamp_min(1.0)
+    return F.binary_cross_entropy_with_logits(logits, target, pos_weight=pos_weight)
+
+
+def mask_overlap(logits: torch.Tensor, masks: torch.Tensor) -> tuple[float, float]:
+    """(intersection, union) cell counts of the predicted (logit > 0) and the any-pooled true masks."""
+    predicted, target = logits > 0, pool_masks(masks, logits.shape[-1]) > 0
+    return float((predicted & target).sum()), float((predicted | target).sum())
+
+
 def cmvae_loss(
     outputs: CMVAEOutput,
     images: torch.Tensor,
     labels: torch.Tensor,
     beta: float,
     state_loss: StateLoss = SPEC_STATE_LOSS,
+    masks: torch.Tensor | None = None,
+    mask_weight: float = 0.0,
 ) -> LossParts:
     """Image MSE (pixels in [-1, 1]) + state MSE (normalised labels, psi wrapped) + beta * KL per image value.
 
@@ -318,12 +388,28 @@ def cmvae_loss(
     square is least halfway between the two (wrong by 90 deg either way); the
     absolute error is least at the likelier of the two, and its mean is the
     MAE that the encoder is judged by.
+
+    With ``mask_weight`` > 0 the mask head's :func:`mask_loss` against ``masks`` (bool (N, 64, 64)) is added.
     """
     image = F.mse_loss(outputs.image, images)
     state = state_loss(outputs.state, labels)
     kl = (-0.5 * (1.0 + outputs.logvar - outputs.mu.pow(2) - outputs.logvar.exp()).sum(dim=1)).mean()
     kl_per_value = kl / images[0].numel()
-    return LossParts(total=image + state + beta * kl_per_value, image=image, state=state, kl=kl)
+    parts = LossParts(total=image + state + beta * kl_per_value, image=image, state=state, kl=kl)
+    return add_mask_loss(parts, outputs.mask, masks, mask_weight)
+
+
+def add_mask_loss(
+    parts: LossParts | DistillationParts, logits: torch.Tensor | None, masks: torch.Tensor | None, mask_weight: float
+) -> LossParts | DistillationParts:
+    """``parts`` with ``mask_weight`` x :func:`mask_loss` in its total; untouched (no term, same sum) at weight 0."""
+    if mask_weight <= 0:
+        return parts
+    if logits is None or masks is None:
+        raise ValueError("mask_weight > 0 needs a model with a mask head and the frames' masks")
+    parts.mask = mask_loss(logits, masks)
+    parts.total = parts.total + mask_weight * parts.mask
+    return parts
 
 
 @dataclass
@@ -332,9 +418,12 @@ class DistillationParts:
     latent: torch.Tensor
     state: torch.Tensor
     prediction: torch.Tensor  # (N, 3): the normalised (d, theta, psi) the student's mu decodes to
+    mask_logits: torch.Tensor | None = None  # (N, 8, 8): the student's mask head, when it has one
+    mask: torch.Tensor | None = None  # the mask head's loss, when it is trained
 
     def as_floats(self) -> dict[str, float]:
-        return {name: float(getattr(self, name).detach()) for name in ("total", "latent", "state")}
+        names = ("total", "latent", "state") + (("mask",) if self.mask is not None else ())
+        return {name: float(getattr(self, name).detach()) for name in names}
 
 
 def distillation_loss(
@@ -345,6 +434,8 @@ def distillation_loss(
     labels: torch.Tensor,
     latent_weight: float,
     state_loss: StateLoss = SPEC_STATE_LOSS,
+    masks: torch.Tensor | None = None,
+    mask_weight: float = 0.0,
 ) -> DistillationParts:
     """Latent matching plus the state error: the student's posterior of a frame against the teacher's of its clean twin.
 
@@ -352,12 +443,16 @@ def distillation_loss(
     state term reads the student's mu through its (frozen) state decoders, so where a noisy frame cannot give
     the teacher's latent back exactly, the error goes where the labels say it costs least. The image decoder is
     not run: a latent that matches the teacher's decodes as the teacher's does, and the decoder is most of the compute.
+    With ``mask_weight`` > 0 the student's mask head learns ``masks`` too (:func:`add_mask_loss`).
     """
-    mu, logvar = student.encode(images)
+    mu, logvar, mask_logits = student.encode_with_mask(images)
     latent = F.mse_loss(mu, teacher_mu) + F.mse_loss(logvar, teacher_logvar)
     prediction = student.decode_state(mu)
     state = state_loss(prediction, labels)
-    return DistillationParts(total=latent_weight * latent + state, latent=latent, state=state, prediction=prediction)
+    parts = DistillationParts(
+        total=latent_weight * latent + state, latent=latent, state=state, prediction=prediction, mask_logits=mask_logits
+    )
+    return add_mask_loss(parts, mask_logits, masks, mask_weight)
 
 
 # ---------------------------------------------------------------- checkpoints
@@ -375,7 +470,12 @@ def make_checkpoint(
     return {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
-        "config": {"n_z": model.n_z, "beta": float(beta), "input_norm": model.input_norm},
+        "config": {
+            "n_z": model.n_z,
+            "beta": float(beta),
+            "input_norm": model.input_norm,
+            "mask_head": model.mask_head is not None,
+        },
         "state_dict": state_dict,
         "epoch": int(epoch),
         "val_loss": float(val_loss),
@@ -400,7 +500,10 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CMVAE, dict[str, Any]]:
     """A CMVAE in eval mode, channels_last, on ``device``, with the checkpoint dict it came from."""
     checkpoint = read_checkpoint(path)
-    model = CMVAE(n_z=int(checkpoint["config"]["n_z"]), input_norm=checkpoint["config"].get("input_norm", "none"))
+    config = checkpoint["config"]
+    model = CMVAE(
+        n_z=int(config["n_z"]), input_norm=config.get("input_norm", "none"), mask_head=config.get("mask_head", False)
+    )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()
     return model, checkpoint

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from encoder_service import figures
 from encoder_service.augment import bands, jitter
 from encoder_service.data import (
     AnyDataset,
@@ -30,6 +31,7 @@ from encoder_service.data import (
     iter_batches,
     open_datasets,
     prefetch,
+    require_masks,
     split_indices,
 )
 from encoder_service.model import (
@@ -48,7 +50,9 @@ from encoder_service.model import (
     label_errors,
     load_model,
     make_checkpoint,
+    mask_overlap,
     normalise_labels,
+    pool_masks,
     read_checkpoint,
 )
 from services.lifecycle import sigterm_as_ctrl_c
@@ -80,6 +84,7 @@ class TrainEncoderSettings:
     input_norm: str = "none"  # none | channel: white-balance each frame first (model.INPUT_NORMS)
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
+    mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -138,15 +143,24 @@ def mirror_batch(batch: Batch, flip: np.ndarray) -> Batch:
     left-right symmetric). It doubles what the encoder sees of each pose, and pairs every view of a
     dolphin facing left with one facing right, the cue z[2] has to find.
     """
-    images = batch.images.copy()
     labels = batch.labels.copy()
-    images[flip] = images[flip, :, ::-1]
     labels[flip, 1:] *= -1.0
-    clean = None
-    if batch.clean is not None:
-        clean = batch.clean.copy()
-        clean[flip] = clean[flip, :, ::-1]
-    return Batch(images=images, labels=labels, indices=batch.indices, clean=clean)
+    return Batch(
+        images=_mirrored(batch.images, flip),
+        labels=labels,
+        indices=batch.indices,
+        clean=_mirrored(batch.clean, flip),
+        masks=_mirrored(batch.masks, flip),
+    )
+
+
+def _mirrored(frames: np.ndarray | None, flip: np.ndarray) -> np.ndarray | None:
+    """A copy of ``frames`` (N, H, W, ...) with the rows picked by ``flip`` flipped left-right; None stays None."""
+    if frames is None:
+        return None
+    frames = frames.copy()
+    frames[flip] = frames[flip, :, ::-1]
+    return frames
 
 
 def inputs_and_targets(batch: Batch, feed_clean: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -196,15 +210,21 @@ def _loss(
         inputs = bands(inputs, jitter_rng, settings.augment_bands)
     labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
     images = images_to_tensor(inputs, device)
+    masks = _masks_tensor(batch, settings.mask_weight, device)
+    mask_args = {"masks": masks, "mask_weight": settings.mask_weight}
     if teacher is None:
-        return cmvae_loss(
-            model(images), images_to_tensor(targets, device), labels, settings.beta, settings.state_loss()
-        )
+        targets_t = images_to_tensor(targets, device)
+        return cmvae_loss(model(images), targets_t, labels, settings.beta, settings.state_loss(), **mask_args)
     with torch.no_grad():
         teacher_mu, teacher_logvar = teacher.encode(images_to_tensor(targets, device))
     return distillation_loss(
-        model, images, teacher_mu, teacher_logvar, labels, settings.latent_weight, settings.state_loss()
+        model, images, teacher_mu, teacher_logvar, labels, settings.latent_weight, settings.state_loss(), **mask_args
     )
+
+
+def _masks_tensor(batch: Batch, mask_weight: float, device: torch.device) -> torch.Tensor | None:
+    """The batch's masks on ``device`` when the mask head trains, else None (the masks are not read)."""
+    return torch.from_numpy(batch.masks).to(device) if mask_weight > 0 else None
 
 
 def _train_epoch(
@@ -296,8 +316,12 @@ def validate(
     feed_clean: bool = False,
     teacher: CMVAE | None = None,
     latent_weight: float = 1.0,
+    mask_weight: float = 0.0,
 ) -> dict[str, float]:
     """Mean losses on ``indices`` with z = mu, plus the MAE of each label in physical units.
+
+    With ``mask_weight`` > 0 the mask loss joins the total and ``mask_iou`` is the predicted masks' intersection
+    over union with the true ones (cells of the head's 8x8 grid, summed over all frames).
 
     A paired dataset is read noisy (its ``images``) unless ``feed_clean``; the decoder's target is its clean frame.
     With a ``teacher`` the losses are the distillation loss's (the latent match to the teacher's clean latent).
@@ -305,19 +329,26 @@ def validate(
     model.eval()
     totals: dict[str, float] = {}
     errors = np.zeros(len(LABEL_NAMES))
-    seen = 0
+    seen, overlap = 0, np.zeros(2)
     for batch in prefetch(iter_batches(dataset, indices, batch_size)):
         chosen = np.full(len(batch.indices), feed_clean)
         inputs, targets = inputs_and_targets(batch, chosen)
         labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
         images, targets_t = images_to_tensor(inputs, device), images_to_tensor(targets, device)
+        masks = _masks_tensor(batch, mask_weight, device)
+        mask_args = {"masks": masks, "mask_weight": mask_weight}
         if teacher is None:
             outputs = model(images)
-            parts = cmvae_loss(outputs, targets_t, labels, beta, state_loss)
-            state = outputs.state
+            parts = cmvae_loss(outputs, targets_t, labels, beta, state_loss, **mask_args)
+            state, mask_logits = outputs.state, outputs.mask
         else:
-            parts = distillation_loss(model, images, *teacher.encode(targets_t), labels, latent_weight, state_loss)
-            state = parts.prediction
+            teacher_mu, teacher_logvar = teacher.encode(targets_t)
+            parts = distillation_loss(
+                model, images, teacher_mu, teacher_logvar, labels, latent_weight, state_loss, **mask_args
+            )
+            state, mask_logits = parts.prediction, parts.mask_logits
+        if masks is not None:
+            overlap += mask_overlap(mask_logits, masks)
         for key, value in parts.as_floats().items():
             totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
         predicted = denormalise_labels(state.float().cpu().numpy())
@@ -326,6 +357,8 @@ def validate(
     metrics = _mean(totals, seen)
     for name, error in zip(LABEL_NAMES, errors, strict=True):
         metrics[f"mae_{name}"] = float(error / max(seen, 1))
+    if mask_weight > 0:
+        metrics["mask_iou"] = float(overlap[0] / max(overlap[1], 1.0))
     return metrics
 
 
@@ -342,13 +375,26 @@ def validate_all(
     Early stopping and ``best.pt`` then favour a model good on both, not one that gave up clean frames for noisy.
     """
     args = (model, dataset, indices, settings.batch_size, settings.beta, device, settings.state_loss())
-    distill = {"teacher": teacher, "latent_weight": settings.latent_weight}
+    distill = {"teacher": teacher, "latent_weight": settings.latent_weight, "mask_weight": settings.mask_weight}
     metrics = validate(*args, **distill)
     if dataset.paired:
         clean = validate(*args, feed_clean=True, **distill)
         metrics |= {f"clean_{key}": value for key, value in clean.items()}
         metrics["total"] = (metrics["total"] + clean["total"]) / 2.0
     return metrics
+
+
+@torch.inference_mode()
+def save_mask_figure(model: CMVAE, dataset: AnyDataset, rows: np.ndarray, path: Path, device: torch.device) -> Path:
+    """Frames (top), their true masks pooled to the head's grid (middle) and the head's predictions (bottom)."""
+    model.eval()
+    batch = dataset.read(rows)
+    predicted = torch.sigmoid(model(images_to_tensor(batch.images, device)).mask).cpu().numpy()
+    true = pool_masks(torch.from_numpy(batch.masks), predicted.shape[-1]).numpy()
+    overlays = [batch.images, figures.mask_overlay(batch.images, true), figures.mask_overlay(batch.images, predicted)]
+    return figures.image_grid(
+        [list(row) for row in overlays], path, "Where the dolphin is", row_labels=["frame", "true", "predicted"]
+    )
 
 
 def _save(checkpoint: dict[str, Any], path: Path) -> None:
@@ -363,8 +409,20 @@ def _load_weights(model: CMVAE, path: str, n_z: int) -> None:
     checkpoint = read_checkpoint(path)
     if checkpoint["config"]["n_z"] != n_z:
         raise ValueError(f"--init {path} has n_z={checkpoint['config']['n_z']}, settings say {n_z}")
-    model.load_state_dict({name: tensor.float() for name, tensor in checkpoint["state_dict"].items()})
+    weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
+    model.load_state_dict(_with_models_mask_head(weights, model))
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
+
+
+def _with_models_mask_head(weights: dict[str, torch.Tensor], model: CMVAE) -> dict[str, torch.Tensor]:
+    """``weights`` with the mask head matched to ``model``'s: its fresh head where the checkpoint has none, the
+    checkpoint's head dropped where the model has none (the head is a training aid; the encoder is what carries over).
+    """
+    head = {name: tensor for name, tensor in weights.items() if name.startswith("mask_head.")}
+    rest = {name: tensor for name, tensor in weights.items() if name not in head}
+    if model.mask_head is None:
+        return rest
+    return rest | (head or {f"mask_head.{name}": tensor for name, tensor in model.mask_head.state_dict().items()})
 
 
 def _teacher(settings: TrainEncoderSettings, dataset: AnyDataset, device: torch.device) -> CMVAE | None:
@@ -399,6 +457,8 @@ def run(settings: TrainEncoderSettings) -> int:
     for flag, share in (("--augment", settings.augment), ("--augment-bands", settings.augment_bands)):
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
+    if not (math.isfinite(settings.mask_weight) and settings.mask_weight >= 0):
+        raise ValueError(f"--mask-weight must be a finite weight >= 0 (0 = no mask head), got {settings.mask_weight}")
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)
@@ -408,6 +468,8 @@ def run(settings: TrainEncoderSettings) -> int:
         torch.backends.cudnn.benchmark = True
 
     dataset = open_datasets(settings.dataset)
+    if settings.mask_weight > 0:
+        require_masks(dataset, "--mask-weight")
     train_rows, val_rows = split_indices(len(dataset), settings.val_fraction, settings.seed)
     if len(val_rows) == 0:
         raise ValueError("val_fraction is 0: early stopping and best.pt need a validation split")
@@ -420,7 +482,8 @@ def run(settings: TrainEncoderSettings) -> int:
         device,
     )
 
-    model = CMVAE(n_z=settings.n_z, input_norm=settings.input_norm).to(device=device, memory_format=torch.channels_last)
+    model = CMVAE(n_z=settings.n_z, input_norm=settings.input_norm, mask_head=settings.mask_weight > 0)
+    model.to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
     if teacher is not None:
         freeze_decoders(model)
@@ -459,7 +522,11 @@ def run(settings: TrainEncoderSettings) -> int:
                 metrics = validate_all(model, dataset, val_rows, settings, device, teacher)
                 epochs_run += 1
                 val_loss = metrics["total"]
-                history.append({"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss})
+                entry = {"epoch": epoch + 1, "train_loss": train_metrics["total"], "val_loss": val_loss}
+                if "mask" in metrics:
+                    entry |= {"train_mask": train_metrics["mask"], "val_mask": metrics["mask"]}
+                    entry["val_mask_iou"] = metrics["mask_iou"]
+                history.append(entry)
                 if writer is not None:
                     for key, value in train_metrics.items():
                         writer.add_scalar(f"train/{key}", value, epoch + 1)
@@ -467,13 +534,14 @@ def run(settings: TrainEncoderSettings) -> int:
                         writer.add_scalar(f"val/{key}", value, epoch + 1)
                     writer.flush()
                 log.info(
-                    "epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)",
+                    "epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)%s",
                     epoch + 1,
                     train_metrics["total"],
                     val_loss,
                     metrics["mae_d"],
                     metrics["mae_theta"],
                     metrics["mae_psi"],
+                    f", mask loss {metrics['mask']:.4f}, IoU {metrics['mask_iou']:.3f}" if "mask" in metrics else "",
                 )
                 if val_loss < best_val:
                     best_val, best_epoch = val_loss, epoch + 1
@@ -532,5 +600,7 @@ def run(settings: TrainEncoderSettings) -> int:
         "wall_time_s": time.perf_counter() - started,
     }
     (out / "train_summary.json").write_text(json.dumps(summary, indent=2))
+    if settings.mask_weight > 0 and epochs_run > 0:
+        save_mask_figure(model, dataset, val_rows[:8], out / "masks.png", device)
     log.info("done: best validation loss %.5f at epoch %d; %s", best_val, best_epoch, best_path)
     return 130 if interrupted else 0

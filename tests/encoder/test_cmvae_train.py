@@ -68,7 +68,7 @@ def test_two_epochs_lower_the_validation_loss_and_write_safe_checkpoints(dataset
     best = torch.load(out / "best.pt", weights_only=True)
     last = torch.load(out / "last.pt", weights_only=True)
     assert best["format"] == "swimm-cmvae" and best["version"] == 1
-    assert best["config"] == {"n_z": 10, "beta": 8.0, "input_norm": "none"}
+    assert best["config"] == {"n_z": 10, "beta": 8.0, "input_norm": "none", "mask_head": False}
     assert best["epoch"] == 2 and best["val_loss"] == pytest.approx(second["val_loss"])
     assert set(best["metrics"]) >= {"total", "image", "state", "kl", "mae_d", "mae_theta", "mae_psi"}
     assert "optimizer" not in best  # only last.pt carries the resume state
