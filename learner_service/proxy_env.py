@@ -322,7 +322,9 @@ class ProxyEnv(gym.Env):
 class ProxyVecEnv(VecEnv):
     """One :class:`ProxyEnv` per ``proxy.envs`` entry on one shared session, as a stable-baselines3 VecEnv.
 
-    ``step_async`` sends all actions at once and ``step_wait`` gathers the replies, so the remote steps overlap.
+    Its envs step over links of ``proxy.group_size`` envs (one each by default) and hold their claims under one
+    holder id, the vector env's. ``step_async`` sends all actions at once and ``step_wait`` gathers the replies, so
+    the remote steps overlap.
     SB3's auto-reset semantics hold (``info["terminal_observation"]``, ``info["TimeLimit.truncated"]``), and
     sub-env i has base seed ``base_seed + i``, exactly as a DummyVecEnv of TrackingEnvs would. A VecEnv of its
     own (the public base class only): the observations are stacked here, not in DummyVecEnv's private buffers.
