@@ -46,8 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.layout import default_layout
-from learner_service.group_link import GroupLink
-from learner_service.link import RemoteEnvLink, new_holder_id
+from learner_service.link import EnvLink, new_holder_id
 from learner_service.up import sim_shares
 from services.keys import Keys
 from services.polling import POLLING_SWITCH_INTERVAL_S
@@ -148,7 +147,7 @@ class ServedEnv:
         sims = Roster(session, keys, "sim")
         stack.callback(sims.close)
         sims.wait_for(1, timeout_s=60)
-        self.link = RemoteEnvLink(session, keys, "train", "0", holder, encoded=False, poll_ms=way.poll_ms)
+        self.link = EnvLink(session, keys, "train", ["0"], holder, encoded=False, poll_ms=way.poll_ms)
         stack.callback(self.link.close)
         self.link.claim()
         self.link.send_reset(1, 1)
@@ -159,7 +158,7 @@ class ServedEnv:
             start = time.perf_counter()
             for action in actions:
                 sent = time.perf_counter()
-                self.link.send_action(action)
+                self.link.send([action])
                 self.link.wait()
                 tally.round_trips.append(time.perf_counter() - sent)
             tally.seconds += time.perf_counter() - start
@@ -177,18 +176,17 @@ class GroupedEnvs:
         keys = Keys(settings.namespace)
         holder = new_holder_id("learner")
         stack.callback(announce(session, keys, "learner", holder).undeclare)
-        links = []
-        for env in range(envs):
-            link = RemoteEnvLink(session, keys, "train", str(env), holder, encoded=False)
-            stack.callback(link.close)
-            link.claim(timeout_s=60)
-            link.send_reset(1, 1 + env)
-            link.wait()
-            links.append(link)
         size = group_size or 1
-        self.groups = [GroupLink(session, keys, f"{holder}.{i}", links[i : i + size]) for i in range(0, envs, size)]
-        for group in self.groups:
+        self.groups = []
+        for start in range(0, envs, size):
+            ids = [str(env) for env in range(start, min(start + size, envs))]
+            group = EnvLink(session, keys, "train", ids, holder, encoded=False, group=f"{holder}.{start // size}")
             stack.callback(group.close)
+            for index in range(len(ids)):
+                group.claim(timeout_s=60, index=index)
+                group.send_reset(1, 1 + start + index, index=index)
+                group.wait()
+            self.groups.append(group)
         self.envs = envs
 
     def step(self, actions: list, tally: Tally) -> None:
@@ -197,7 +195,7 @@ class GroupedEnvs:
         for action in actions:
             sent = time.perf_counter()
             for group in self.groups:
-                group.send([action] * len(group.links))
+                group.send([action] * len(group.envs))
             for group in self.groups:
                 group.wait()
             tally.round_trips.append(time.perf_counter() - sent)

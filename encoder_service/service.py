@@ -1,22 +1,22 @@
 """`swimm encoder`: observations in, latents out, batched across environments.
 
-Routing: the learner picks one live encoder per environment (rendezvous
-hashing over the encoders' liveliness tokens) and the sim publishes each
-frame on ``<ns>/<channel>/<env>/obs/<encoder id>``. This encoder subscribes
-only to its own id, so each frame crosses the network once and is encoded
-once. When an encoder dies its token goes; the learner's next retry routes
-to a live one (docs/encoder_service.md gives the bound).
+Routing: the learner picks one live encoder per group of envs (rendezvous
+hashing over the encoders' liveliness tokens) and the sim publishes the
+group's observations, one message, on ``<ns>/<channel>/<group>/obs/<encoder
+id>``. This encoder subscribes only to its own id, so each frame crosses the
+network once and is encoded once. When an encoder dies its token goes; the
+learner's next retry routes to a live one (docs/encoder_service.md gives the
+bound).
 
 Batching (:class:`LatentBatcher`): the Zenoh callback only queues raw
-bytes; one worker thread takes the first waiting frame, gathers more until
-``max_batch`` frames or ``max_wait_ms`` have passed, encodes them in one
-forward pass and publishes each latent with its telemetry passed through.
-A group's frames (``<ns>/<channel>/groups/<group>/obs/<id>``, one message
-for several envs) join the same forward pass and leave as one message of
-latents, an env the sim refused passed on as its error item.
-Frames that cannot be decoded or have the wrong shape or dtype are refused
-with a logged reason, counted, and reported on the env's ``err`` key; the
-service keeps serving.
+bytes; one worker thread takes the first waiting message, gathers more
+until ``max_batch`` messages or ``max_wait_ms`` have passed, encodes all
+their frames in one forward pass and answers each message with one message
+of latents, telemetry passed through, an env the sim refused passed on as
+its error item. A frame that cannot be decoded or has the wrong shape or
+dtype becomes an error item with the reason, logged and counted; a message
+that cannot be read at all is logged and counted (the learner's timeout
+names the step). The service keeps serving.
 """
 
 from __future__ import annotations
@@ -33,18 +33,9 @@ import numpy as np
 import zenoh
 
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
-from services.keys import GROUPS, Keys
+from services.keys import Keys
 from services.lifecycle import serve_until_signalled
-from services.messages import (
-    IMAGE_SHAPE,
-    BadMessage,
-    BatchItem,
-    BatchMsg,
-    ErrorMsg,
-    LatentMsg,
-    ObservationMsg,
-    stamp_of,
-)
+from services.messages import IMAGE_SHAPE, BadMessage, BatchItem, BatchMsg, LatentMsg, ObservationMsg
 from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce, declare_about
 from services.results import file_sha256
@@ -146,13 +137,6 @@ class EncoderMetrics(Metrics):
         return snap
 
 
-@dataclass(frozen=True)
-class _Decoded:
-    frame: _Frame
-    channel: str
-    obs: ObservationMsg
-
-
 @dataclass
 class _Group:
     """A group's observations (sim -> here) on their way to being one message of latents (here -> learner)."""
@@ -160,7 +144,7 @@ class _Group:
     frame: _Frame
     channel: str
     batch: BatchMsg
-    observations: list[ObservationMsg | None]  # None where the item is an error, passed on as it came
+    observations: list[ObservationMsg | str]  # the observation, or why its item carries none (passed on as its error)
 
 
 class EncoderService:
@@ -184,9 +168,6 @@ class EncoderService:
         self.session = open_session(self.settings.zenoh, role="encoder")
         self._worker.start()
         self._subscriber = self.session.declare_subscriber(self.inbox_key, self._on_frame)
-        self._group_subscriber = self.session.declare_subscriber(
-            self.keys.encoder_group_inbox(self.ident), self._on_frame
-        )
         self._metrics_publisher = MetricsPublisher(
             self.session, self.keys, "encoder", self.ident, self.metrics, self.settings.metrics_period_s
         )
@@ -218,75 +199,48 @@ class EncoderService:
                 self.metrics.count("errors_internal")
                 log.exception("could not encode a batch of %d frames", len(batch))
 
-    def _decode(self, frame: _Frame) -> _Decoded | None:
+    def _decode(self, frame: _Frame) -> _Group | None:
         try:
-            channel, env = self.keys.parse_env_key(frame.key)
-        except ValueError as exc:
-            self._refuse(None, f"frame on an unexpected key: {exc}", frame.payload)
-            return None
-        try:
-            obs = ObservationMsg.decode(frame.payload, IMAGE_SHAPE)
-            if obs.env != env:
-                raise BadMessage(f"frame of env {obs.env!r} arrived on the key of env {env!r}")
-        except BadMessage as exc:
-            self._refuse((channel, env), str(exc), frame.payload)
-            return None
-        return _Decoded(frame, channel, obs)
-
-    def _decode_group(self, frame: _Frame) -> _Group | None:
-        try:
-            channel, _ = self.keys.parse_group_key(frame.key)
+            channel, _ = self.keys.parse_step_key(frame.key)
             batch = BatchMsg.decode(frame.payload)
         except (BadMessage, ValueError) as exc:  # no env to answer: the learner's retry will name the step
             self.metrics.count("errors_refused")
             log.warning("refused a group of frames on %s: %s", frame.key, exc)
             return None
-        observations: list[ObservationMsg | None] = []
+        observations: list[ObservationMsg | str] = []
         for item in batch.items:
-            obs = None
-            if not item.error:
-                try:
-                    obs = ObservationMsg.decode(item.payload, IMAGE_SHAPE)
-                except BadMessage as exc:
-                    self.metrics.count("errors_refused")
-                    log.warning("refused the frame of %s/%s in group %s: %s", channel, item.env, batch.group, exc)
-            observations.append(obs)
+            if item.error:  # the sim's refusal, passed on as it came
+                observations.append(item.error)
+                continue
+            try:
+                obs = ObservationMsg.decode(item.payload, IMAGE_SHAPE)
+                if obs.env != item.env:
+                    raise BadMessage(f"the frame of env {obs.env!r} came as env {item.env!r}'s")
+                observations.append(obs)
+            except BadMessage as exc:
+                self.metrics.count("errors_refused")
+                log.warning("refused the frame of %s/%s in group %s: %s", channel, item.env, batch.group, exc)
+                observations.append(f"encoder {self.ident} refused the frame: {exc}")
         return _Group(frame, channel, batch, observations)
 
-    def _encode(self, batch: list[_Frame]) -> None:
-        """One forward pass for every frame of the batch, single or in groups; then one reply per single frame and
-        one per group."""
-        singles: list[_Decoded] = []
-        groups: list[_Group] = []
-        for frame in batch:
-            if f"/{GROUPS}/" in frame.key:
-                if (group := self._decode_group(frame)) is not None:
-                    groups.append(group)
-            elif (item := self._decode(frame)) is not None:
-                singles.append(item)
-        images = [item.obs.image for item in singles]
-        images += [obs.image for group in groups for obs in group.observations if obs is not None]
-        if not images:
-            return
-        mu, logvar = self.encoder.encode(np.stack(images))
-        self.metrics.record_batch(len(images))
+    def _encode(self, frames: list[_Frame]) -> None:
+        """One forward pass for every frame of every group in ``frames``, then one message of latents per group."""
+        groups = [group for frame in frames if (group := self._decode(frame)) is not None]
+        images = [obs.image for group in groups for obs in group.observations if isinstance(obs, ObservationMsg)]
+        if images:
+            mu, logvar = self.encoder.encode(np.stack(images))
+            self.metrics.record_batch(len(images))
         rows = iter(range(len(images)))
-        for item in singles:
-            row = next(rows)
-            latent = self._latent(item.obs, mu[row], logvar[row])
-            self._publisher(self.keys.latent(item.channel, item.obs.env)).put(latent.encode())
-            self.metrics.observe_ms("latency", (time.perf_counter() - item.frame.received_at) * 1e3)
         for group in groups:
             items = []
             for source, obs in zip(group.batch.items, group.observations, strict=True):
-                if obs is None:
-                    error = source.error or f"encoder {self.ident} refused the frame"
-                    items.append(BatchItem(source.env, source.ep, source.seq, error=error))
+                if isinstance(obs, str):
+                    items.append(BatchItem(source.env, source.ep, source.seq, error=obs))
                     continue
                 row = next(rows)
                 items.append(BatchItem(obs.env, obs.ep, obs.seq, self._latent(obs, mu[row], logvar[row]).encode()))
-            reply = BatchMsg(group.batch.group, self.ident, tuple(items))
-            self._publisher(self.keys.group_latent(group.channel, group.batch.group)).put(reply.encode())
+            reply = BatchMsg(group.batch.group, self.ident, tuple(items), group.batch.to)
+            self._publisher(self.keys.latent(group.channel, group.batch.group)).put(reply.encode())
             self.metrics.observe_ms("latency", (time.perf_counter() - group.frame.received_at) * 1e3)
 
     def _latent(self, obs: ObservationMsg, mu: np.ndarray, logvar: np.ndarray) -> LatentMsg:
@@ -307,26 +261,10 @@ class EncoderService:
             )
         return self._publishers[key]
 
-    def _refuse(self, where: tuple[str, str] | None, reason: str, payload: bytes) -> None:
-        """Count, log and, when the env is known, tell its err key why (with the frame's ep/seq if readable)."""
-        self.metrics.count("errors_refused")
-        log.warning("refused a frame%s: %s", f" of {where[0]}/{where[1]}" if where else "", reason)
-        if where is None:
-            return
-        ep, seq, _ = stamp_of(payload)
-        try:
-            # The encoder cannot know who drives the env (frames come from the sim), so the refusal is addressed
-            # to no one in particular: whoever waits for this (ep, seq) takes it.
-            refusal = ErrorMsg(f"encoder {self.ident} refused the frame: {reason}", ep, seq, sender="")
-            self.session.put(self.keys.err(*where), refusal.encode())
-        except zenoh.ZError as exc:
-            log.warning("could not report the refusal on %s: %s", self.keys.err(*where), exc)
-
     def stop(self) -> None:
         self._token.undeclare()  # leave the roster first so learners route elsewhere
         self._about.undeclare()
         self._subscriber.undeclare()
-        self._group_subscriber.undeclare()
         self.batcher.close()
         self._worker.join(timeout=10)
         self._metrics_publisher.close()

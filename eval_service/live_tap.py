@@ -1,9 +1,10 @@
 """Feeding the live view from an env someone else drives (``--live-env train/0``): a passive Zenoh listener.
 
-It subscribes to the env's actions and to its observations on every route (``<ns>/<ch>/<env>/obs/*``, as the
-key layout intends for viewers), and recomputes what the holder's task computes from the same telemetry: the
-geometry, the reward and the running Table 12 terms. It never sends anything, so the training it watches
-is exactly what it would be without it. Replayed observations (a retried step) are shown once.
+It subscribes to every group's actions and observations on the env's channel, on every route
+(``<ns>/<ch>/*/obs/*``: the env may be stepped alone or in a learner's group), keeps the env's items, and
+recomputes what the holder's task computes from the same telemetry: the geometry, the reward and the running
+Table 12 terms. It never sends anything, so the training it watches is exactly what it would be without it.
+Replayed observations (a retried step) are shown once.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from learner_service.evaluation import step_row
 from learner_service.metrics import EpisodeMetrics
 from learner_service.task import REWARDS, TrackingTask
 from services.keys import CHANNELS, Keys, check_chunk
-from services.messages import ActionMsg, BadMessage, ObservationMsg
+from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
 from services.session import open_session
 from services.settings import ZenohSettings
 
@@ -53,29 +54,34 @@ class EnvTap:
         keys = Keys(zenoh_settings.namespace)
         self._session = open_session(zenoh_settings, role="eval")
         self._subscribers = [
-            self._session.declare_subscriber(keys.action(self.channel, self.env), self._on_action),
-            self._session.declare_subscriber(keys.obs(self.channel, self.env, "*"), self._on_obs),
+            self._session.declare_subscriber(keys.actions(self.channel), self._on_action),
+            self._session.declare_subscriber(keys.obs(self.channel, "*", "*"), self._on_obs),
         ]
         log.info("live view taps %s", self.source)
 
     def _on_action(self, sample: zenoh.Sample) -> None:
         try:
-            msg = ActionMsg.decode(sample.payload.to_bytes())
+            actions = [
+                msg for env, msg in batch_messages(sample.payload.to_bytes(), ActionMsg.decode) if env == self.env
+            ]
         except BadMessage:
             return  # the sim refuses and logs bad actions; the viewer just ignores them
         with self._lock:
-            self._actions[(msg.ep, msg.seq)] = np.array([msg.action[2], msg.action[3]], np.float64)  # surge, yaw
+            for msg in actions:
+                self._actions[(msg.ep, msg.seq)] = np.array([msg.action[2], msg.action[3]], np.float64)  # surge, yaw
             self._drain()
 
     def _on_obs(self, sample: zenoh.Sample) -> None:
         try:
-            msg = ObservationMsg.decode(sample.payload.to_bytes())
+            frames = [msg for env, msg in batch_messages(sample.payload.to_bytes(), ObservationMsg.decode)
+                      if env == self.env]  # fmt: skip
         except BadMessage:
             return
         with self._lock:
-            if msg.seq > 0:  # a reset's frame has no action; the episode starts with its first step
-                self._observations[(msg.ep, msg.seq)] = msg
-                self._drain()
+            for msg in frames:
+                if msg.seq > 0:  # a reset's frame has no action; the episode starts with its first step
+                    self._observations[(msg.ep, msg.seq)] = msg
+            self._drain()
 
     def _drain(self) -> None:
         """Record, in step order, every step whose action and observation have both arrived.

@@ -3,7 +3,7 @@
 A recording holds each env's observations (telemetry: the ground truth the metrics read) and the actions that led
 to them, keyed by (episode, step). An episode is scored as a live evaluation scores it: step k's action with the
 world after it, through the same reward and Table 12 metrics (learner_service.metrics). Re-sent steps appear twice
-on the wire and count once. Grouped steps (``groups/`` keys) are not read.
+on the wire and count once. Each step message may carry a group of envs; each env's items are read on their own.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from learner_service.learn_settings import RewardVersion
 from learner_service.metrics import EpisodeMetrics
 from learner_service.task import REWARDS, TrackingTask
 from services.keys import CHANNELS
-from services.messages import ActionMsg, BadMessage, ObservationMsg
+from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
 from services.record import recorded_namespace, recorded_samples
 from services.telemetry import Telemetry
 
@@ -45,16 +45,18 @@ def recorded_episodes(path: str | Path) -> dict[tuple[str, str, int], RecordedEp
     episodes: dict[tuple[str, str, int], RecordedEpisode] = defaultdict(RecordedEpisode)
     for key, payload, _ in recorded_samples(path):
         parts = key[len(namespace) + 1 :].split("/")
-        if len(parts) < 3 or parts[0] not in CHANNELS or parts[1] == "groups":
+        if len(parts) < 3 or parts[0] not in CHANNELS:
             continue
-        channel, env, kind = parts[0], parts[1], parts[2]
+        channel, kind = parts[0], parts[2]
         try:
             if kind == "obs":
-                msg = ObservationMsg.decode(payload)
-                episodes[(channel, env, msg.ep)].telemetry.setdefault(msg.seq, msg.telemetry)
+                for env, msg in batch_messages(payload, ObservationMsg.decode):
+                    episodes[(channel, env, msg.ep)].telemetry.setdefault(msg.seq, msg.telemetry)
             elif kind == "action":
-                action = ActionMsg.decode(payload)
-                episodes[(channel, env, action.ep)].actions.setdefault(action.seq, (action.action[2], action.action[3]))
+                for env, action in batch_messages(payload, ActionMsg.decode):
+                    episodes[(channel, env, action.ep)].actions.setdefault(
+                        action.seq, (action.action[2], action.action[3])
+                    )
         except BadMessage as exc:
             log.warning("%s: skipped an unreadable %s message on %s: %s", path, kind, key, exc)
     return dict(episodes)

@@ -1,15 +1,16 @@
-"""The learner's end of one remote environment: claim, reset, step, with retries.
+"""The learner's end of remote environments: claim, reset, step, with retries.
 
-A :class:`RemoteEnvLink` sends an action (or a reset) and waits for the
-matching reply, identified by (episode, seq). On a timeout it re-sends the
-same (episode, seq): the sim answers a repeat from its cache without
-stepping, and replies that arrive twice are dropped here. So no step is
-lost or applied twice, whatever the network or an encoder does.
+An :class:`EnvLink` steps a group of envs, one message each way (a single env is a group of one): it sends
+their actions in one :class:`services.messages.BatchMsg`, the sim steps them in order and answers with one
+message of observations, which one encoder turns into one message of latents (one forward pass). A step is
+identified per env by (episode, seq). On a timeout the link re-sends the same items: the sim answers a repeat
+from its cache without stepping, and replies that arrive twice are dropped here. So no step is lost or applied
+twice, whatever the network or an encoder does.
 
-In ``cmvae`` mode the reply is the encoder's latent, and the link chooses
-which encoder encodes each frame by rendezvous hashing of the env id over
-the live encoders; a retry recomputes the choice, which is how load moves
-off a dead encoder.
+In ``cmvae`` mode the reply is the encoder's latents, and the link chooses which encoder encodes them by
+rendezvous hashing of its name over the live encoders; a retry recomputes the choice, which is how load moves
+off a dead encoder. Claims and resets go per env over the control plane (services/control.py); a reset's
+observation comes back as its env's group of one.
 """
 
 from __future__ import annotations
@@ -17,27 +18,26 @@ from __future__ import annotations
 import logging
 import queue
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 import zenoh
 
+from learner_service.task import Frame
 from services import control
 from services.keys import Keys
 from services.messages import (
     DIRECT_ROUTE,
     ActionMsg,
     BadMessage,
+    BatchItem,
+    BatchMsg,
     DiveMode,
-    ErrorMsg,
     LatentMsg,
     ObservationMsg,
 )
 from services.polling import Inbox, poll_seconds
 from services.presence import Roster, choose_route, member_ident
-from services.telemetry import Telemetry
 
 log = logging.getLogger(__name__)
 
@@ -52,49 +52,13 @@ class StepRefused(RuntimeError):
     """The sim refused a step or reset; the message carries its reason."""
 
 
-@dataclass(frozen=True)
-class Reply:
-    ep: int
-    seq: int
-    telemetry: Telemetry
-    image: np.ndarray | None  # direct mode
-    mu: np.ndarray | None  # cmvae mode
-    logvar: np.ndarray | None
-
-
-def decode_reply(payload: bytes, encoded: bool) -> Reply:
-    """A step's reply: the encoder's latent (``encoded``) or the sim's observation; BadMessage if unreadable."""
+def decode_reply(payload: bytes, encoded: bool) -> Frame:
+    """One env's reply: the encoder's latent (``encoded``) or the sim's observation; BadMessage if unreadable."""
     if encoded:
         msg = LatentMsg.decode(payload)
-        mu, logvar = np.asarray(msg.mu, np.float32), np.asarray(msg.logvar, np.float32)
-        return Reply(msg.ep, msg.seq, msg.telemetry, None, mu, logvar)
+        return Frame(msg.telemetry, mu=np.asarray(msg.mu, np.float32), logvar=np.asarray(msg.logvar, np.float32))
     obs = ObservationMsg.decode(payload)
-    return Reply(obs.ep, obs.seq, obs.telemetry, obs.image, None, None)
-
-
-def await_reply(
-    waiter: Any, inbox: Inbox, accept: Callable[[Any], Any], resend: Callable[[], None], missing: Callable[[], str]
-) -> Any:
-    """The first item of ``inbox`` that ``accept`` takes, re-sending (``resend``) each time ``waiter``'s
-    ``step_timeout_s`` passes without one, up to ``max_retries`` times (counted in ``waiter.retries``); then
-    StepTimeout with ``missing()``'s message. A re-send nobody answered is logged and waited out like a lost one; a
-    refused one (:class:`services.control.ControlError`, e.g. a restarted sim's "not claimed") is raised."""
-    for attempt in range(waiter.max_retries + 1):
-        deadline = time.monotonic() + waiter.step_timeout_s
-        while (remaining := deadline - time.monotonic()) > 0:
-            try:
-                item = inbox.get(remaining)
-            except queue.Empty:
-                break
-            if (reply := accept(item)) is not None:
-                return reply
-        waiter.retries += 1
-        log.warning("%s: no reply within %.1f s (try %d); re-sending", waiter.name, waiter.step_timeout_s, attempt + 1)
-        try:
-            resend()
-        except control.ControlTimeout as exc:
-            log.warning("%s: re-send failed: %s", waiter.name, exc)
-    raise StepTimeout(missing())
+    return Frame(obs.telemetry, image=obs.image)
 
 
 def new_holder_id(role: str) -> str:
@@ -102,78 +66,93 @@ def new_holder_id(role: str) -> str:
     return member_ident(role)
 
 
-class RemoteEnvLink:
+class EnvLink:
+    """The learner's end of ``envs`` (one or several) on ``channel``, stepped as group ``group`` (default and for one
+    env: the env's id). ``ep``, ``seq`` and ``claimed`` are per env, in the link's order."""
+
     def __init__(
         self,
         session: zenoh.Session,
         keys: Keys,
         channel: str,
-        env: str,
+        envs: Sequence[str],
         holder: str,
         encoded: bool,
         encoders: Roster | None = None,
         step_timeout_s: float = 2.0,
         max_retries: int = 10,
         poll_ms: float = 0.0,
+        group: str = "",
     ) -> None:
+        if not envs:
+            raise ValueError("a link needs at least one env")
+        if not group and len(envs) > 1:
+            raise ValueError(f"a link of {len(envs)} envs needs a group name")
         self.session, self.keys = session, keys
-        self.channel, self.env, self.holder = channel, env, holder
+        self.channel, self.envs, self.holder = channel, tuple(envs), holder
+        self.group = group or envs[0]  # a single env's group is named after it, as its resets are answered
         self.encoded = encoded
         self.encoders = encoders
         self.step_timeout_s = step_timeout_s
         self.max_retries = max_retries
-        self._poll_s = poll_seconds(poll_ms)  # services/polling.py: when polling pays
-        self.claimed = False  # set by a granted claim; only then does close() release
-        self.siblings: tuple[str, ...] = ()  # set by a vector env: its envs' frames spread evenly over the encoders
-        self.ep = 0
-        self.seq = 0
+        # The names of every link its learner steps (this one's included), over which encoders are shared evenly
+        # (services.presence.balanced_choice); empty: this link's own rendezvous choice.
+        self.siblings: tuple[str, ...] = ()
+        self.claimed = [False] * len(envs)  # set by a granted claim; only then does release() send anything
+        self.ep = [0] * len(envs)
+        self.seq = [0] * len(envs)
         self.duplicates_dropped = 0
         self.retries = 0
-        self._replies: Inbox[Reply | ErrorMsg | None] = Inbox(self._poll_s)  # None: an unreadable message
-        self._pending: tuple[str, object] | None = None  # what to re-send on a timeout
-        reply_key = keys.latent(channel, env) if encoded else keys.obs(channel, env, DIRECT_ROUTE)
-        self._subscriber = self._replies.subscribe(session, reply_key, self._read_reply)
-        self._err_subscriber = self._replies.subscribe(session, keys.err(channel, env), self._read_error)
+        self._replies: Inbox[BatchMsg | None] = Inbox(poll_seconds(poll_ms))  # None: an unreadable message
+        self._actions: list[tuple[SimAction, DiveMode]] = []  # the step in flight, one per env
+        self._resetting: tuple[int, tuple] | None = None  # the reset in flight: (env index, its arguments)
+        self._expected: list[tuple[str, int, int]] = []  # (env, ep, seq) of each item of the awaited reply
+        # Steps are answered on the group's key, resets on each env's own (the reset request names no group).
+        self._subscribers = [self._replies.subscribe(session, self._reply_key(name), self._read)
+                             for name in dict.fromkeys((self.group, *self.envs))]  # fmt: skip
         self._publisher = session.declare_publisher(
-            keys.action(channel, env), congestion_control=zenoh.CongestionControl.BLOCK
+            keys.action(channel, self.group), congestion_control=zenoh.CongestionControl.BLOCK
         )
 
     @property
     def name(self) -> str:
-        return f"{self.channel}/{self.env}"
+        return f"{self.channel}/{self.group}"
 
-    # --- incoming messages, decoded where the Inbox hands them over -----------------------------
-    def _read_reply(self, sample: zenoh.Sample) -> Reply | None:
+    def _reply_key(self, group: str) -> str:
+        if self.encoded:
+            return self.keys.latent(self.channel, group)
+        return self.keys.obs(self.channel, group, DIRECT_ROUTE)
+
+    def _env_name(self, index: int) -> str:
+        return f"{self.channel}/{self.envs[index]}"
+
+    def _read(self, sample: zenoh.Sample) -> BatchMsg | None:
+        """Where the Inbox hands a message over: decoded, or None (logged) when unreadable."""
         try:
-            return decode_reply(sample.payload.to_bytes(), self.encoded)
+            return BatchMsg.decode(sample.payload.to_bytes())
         except BadMessage as exc:
             log.warning("%s: dropped an unreadable reply: %s", self.name, exc)
             return None
 
-    def _read_error(self, sample: zenoh.Sample) -> ErrorMsg | None:
-        try:
-            return ErrorMsg.decode(sample.payload.to_bytes())
-        except BadMessage as exc:
-            log.warning("%s: unreadable error message: %s", self.name, exc)
-            return None
-
-    # --- control ---------------------------------------------------------------------------------
-    def claim(self, timeout_s: float = 5.0) -> dict:
-        reply = control.request(
-            self.session, self.keys.ctl(self.channel, self.env), "claim", timeout_s, holder=self.holder
-        )
-        self.claimed = True
+    # --- control, per env ------------------------------------------------------------------------
+    def claim(self, timeout_s: float = 5.0, index: int = 0) -> dict:
+        reply = control.request(self.session, self._ctl(index), "claim", timeout_s, holder=self.holder)
+        self.claimed[index] = True
         return reply
 
-    def release(self) -> None:
-        """Give the env back; a link whose claim was refused holds nothing and sends nothing."""
-        if not self.claimed:
-            return
-        self.claimed = False
-        try:
-            control.request(self.session, self.keys.ctl(self.channel, self.env), "release", 2.0, holder=self.holder)
-        except control.ControlError as exc:
-            log.warning("%s: release failed: %s", self.name, exc)
+    def release(self, index: int | None = None) -> None:
+        """Give back env ``index`` (default: every env) if this link claimed it; a refused claim holds nothing."""
+        for each in range(len(self.envs)) if index is None else [index]:
+            if not self.claimed[each]:
+                continue
+            self.claimed[each] = False
+            try:
+                control.request(self.session, self._ctl(each), "release", 2.0, holder=self.holder)
+            except control.ControlError as exc:
+                log.warning("%s: release failed: %s", self._env_name(each), exc)
+
+    def _ctl(self, index: int) -> str:
+        return self.keys.ctl(self.channel, self.envs[index])
 
     def _route(self) -> str:
         encoders = self.encoders if self.encoded else None
@@ -187,86 +166,99 @@ class RemoteEnvLink:
         noise: bool | dict | None = None,
         latency: dict | None = None,
         scene: dict | None = None,
+        index: int = 0,
     ) -> None:
-        """Start episode ``ep``; ``noise`` switches the sim's image noise (on, off, a map of noise settings),
-        ``latency`` its camera and control delays (a map of sim_service.latency settings) and ``scene`` its scenery
-        (a map of sim_service.scenery settings); None leaves each as it is."""
-        self.ep, self.seq = ep, 0
-        self._pending = ("reset", (seed, noise, latency, scene))
+        """Start episode ``ep`` of env ``index``; ``noise`` switches the sim's image noise (on, off, a map of noise
+        settings), ``latency`` its camera and control delays (a map of sim_service.latency settings) and ``scene``
+        its scenery (a map of sim_service.scenery settings); None leaves each as it is."""
+        self.ep[index], self.seq[index] = ep, 0
+        self._resetting = (index, (seed, noise, latency, scene))
+        self._expected = [(self.envs[index], ep, 0)]
         try:
             self._send()
         except control.ControlTimeout as exc:  # a busy or restarting sim: wait() re-sends it, like a step
-            log.warning("%s: reset unanswered (%s); will retry", self.name, exc)
+            log.warning("%s: reset unanswered (%s); will retry", self._env_name(index), exc)
 
-    def send_action(self, action: SimAction, dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
-        self.stage_action(action, dive_mode)
+    def send(self, actions: Sequence[SimAction], dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
+        """The next step of every env, one action each in the link's order, in one message."""
+        if len(actions) != len(self.envs):
+            raise ValueError(f"{self.name}: {len(actions)} actions for {len(self.envs)} envs")
+        self.seq = [seq + 1 for seq in self.seq]
+        self._actions = [(action, dive_mode) for action in actions]
+        self._resetting = None
+        self._expected = list(zip(self.envs, self.ep, self.seq, strict=True))
         self._send()
 
-    def stage_action(self, action: SimAction, dive_mode: DiveMode = DiveMode.DEPTH_HOLD) -> None:
-        """The next step's action, to be sent by a :class:`learner_service.group_link.GroupLink` with its group's."""
-        self.seq += 1
-        self._pending = ("action", (action, dive_mode))
-
-    def action_message(self, route: str) -> ActionMsg:
-        """The staged action as it goes out, to ``route`` (the same (ep, seq) each time: a retry is a repeat)."""
-        if self._pending is None or self._pending[0] != "action":
-            raise RuntimeError(f"{self.name}: no action staged")
-        action, dive_mode = self._pending[1]
-        return ActionMsg(ep=self.ep, seq=self.seq, action=action, dive_mode=dive_mode, route=route, sender=self.holder)
-
     def _send(self) -> None:
-        assert self._pending is not None
-        kind, args = self._pending
+        """Send the step or reset in flight, routed anew (the same (ep, seq) each time: a retry is a repeat)."""
         route = self._route()
-        if kind == "reset":
-            seed, noise, latency, scene = args
+        if self._resetting is not None:
+            index, (seed, noise, latency, scene) = self._resetting
             world_fields = {key: value for key, value in (("noise", noise), ("latency", latency), ("scene", scene))
                             if value is not None}  # fmt: skip
-            control.request(
-                self.session,
-                self.keys.ctl(self.channel, self.env),
-                "reset",
-                self.step_timeout_s,
-                holder=self.holder,
-                ep=self.ep,
-                seed=seed,
-                route=route,
-                **world_fields,
-            )
-        else:
-            self._publisher.put(self.action_message(route).encode())
+            control.request(self.session, self._ctl(index), "reset", self.step_timeout_s, holder=self.holder,
+                            ep=self.ep[index], seed=seed, route=route, **world_fields)  # fmt: skip
+            return
+        items = tuple(
+            BatchItem(env, ep, seq, ActionMsg(ep, seq, action, dive_mode, route, self.holder).encode())
+            for (env, ep, seq), (action, dive_mode) in zip(self._expected, self._actions, strict=True)
+        )
+        self._publisher.put(BatchMsg(self.group, self.holder, items).encode())
 
-    def wait(self) -> Reply:
-        """The reply to the last send; re-sends the same (ep, seq) on each timeout."""
-        return await_reply(self, self._replies, self._accept, self._send, self._missing_service_message)
+    def wait(self) -> list[Frame]:
+        """The replies to the last send, one per env it named, in order; re-sends the same steps on each timeout
+        (up to ``max_retries`` times, counted in ``retries``), then :class:`StepTimeout` naming what is missing.
+        A re-send nobody answered is waited out like a lost one; a refused one (:class:`ControlError`, e.g. a
+        restarted sim's "not claimed") is raised, and so is a refused step (:class:`StepRefused`)."""
+        for attempt in range(self.max_retries + 1):
+            deadline = time.monotonic() + self.step_timeout_s
+            while (remaining := deadline - time.monotonic()) > 0:
+                try:
+                    batch = self._replies.get(remaining)
+                except queue.Empty:
+                    break
+                if (replies := self._match(batch)) is not None:
+                    return replies
+            self.retries += 1
+            log.warning("%s: no reply within %.1f s (try %d); re-sending", self.name, self.step_timeout_s, attempt + 1)
+            try:
+                self._send()
+            except control.ControlTimeout as exc:
+                log.warning("%s: re-send failed: %s", self.name, exc)
+        raise StepTimeout(self._missing_service_message())
 
-    def _accept(self, item: Reply | ErrorMsg | None) -> Reply | None:
-        """``item`` if it answers the step in flight; raises StepRefused for a refusal of it; else None."""
-        if item is None:
+    def _match(self, batch: BatchMsg | None) -> list[Frame] | None:
+        """The replies if ``batch`` answers what is in flight; raises StepRefused for a refusal of it; else None
+        (counted when it answers earlier steps)."""
+        if batch is None or batch.to not in (self.holder, ""):
+            return None  # unreadable, or the answer to somebody else's actions on these envs
+        if [(item.env, item.ep, item.seq) for item in batch.items] != self._expected:
+            self.duplicates_dropped += 1  # a late or repeated reply to an earlier step
             return None
-        if isinstance(item, ErrorMsg):
-            # Addressed to us (the sim's refusals) or to whoever drives the env (an encoder's).
-            if item.sender in (self.holder, "") and (item.ep, item.seq) == (self.ep, self.seq):
-                raise StepRefused(f"{self.name}: {item.reason}")
-            return None
-        if (item.ep, item.seq) == (self.ep, self.seq):
-            return item
-        self.duplicates_dropped += 1  # a late or repeated reply to an earlier step
-        return None
+        replies = []
+        for item in batch.items:
+            if item.error:
+                raise StepRefused(f"{self.channel}/{item.env}: {item.error}")
+            try:
+                replies.append(decode_reply(item.payload, self.encoded))
+            except BadMessage as exc:
+                log.warning("%s: unreadable reply for env %s: %s; waiting for a re-send", self.name, item.env, exc)
+                return None
+        return replies
 
     def _missing_service_message(self) -> str:
-        where = f"{self.name} episode {self.ep} seq {self.seq}"
+        steps = ", ".join(f"{self.channel}/{env} episode {ep} seq {seq}" for env, ep, seq in self._expected)
         waited = f"{self.max_retries + 1} tries of {self.step_timeout_s:.1f} s"
         if self.encoded and self.encoders is not None:
             live = sorted(self.encoders.members())
             return (
-                f"no latent for {where} after {waited}; live encoders: {live or 'none'}. "
+                f"no latent for {steps} after {waited}; live encoders: {live or 'none'}. "
                 "Are `swimm sim` and `swimm encoder` running and connected to the same router and namespace?"
             )
-        return f"no observation for {where} after {waited}. Is `swimm sim` running and connected?"
+        return f"no observation for {steps} after {waited}. Is `swimm sim` running and connected?"
 
     def close(self) -> None:
         self.release()
-        self._subscriber.undeclare()
-        self._err_subscriber.undeclare()
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
         self._publisher.undeclare()

@@ -4,12 +4,13 @@
 :class:`TrackingTask` turns the remote world's telemetry (and the encoder's latent, or the raw frame) into
 observations, rewards and terminations, with the same episode seeds and the same time limit, so the two are
 interchangeable and a seed gives the same trajectory either way. Only the transport differs, and that is
-:class:`learner_service.link.RemoteEnvLink`'s job (idempotent retries, duplicate dropping, routing to an
-encoder, a timeout that names the missing service).
+:class:`learner_service.link.EnvLink`'s job (idempotent retries, duplicate dropping, routing to an encoder, a
+timeout that names the missing service); a ProxyEnv steps on a link of its own env (a group of one).
 
-:class:`ProxyVecEnv` drives several remote envs from one session as a stable-baselines3 ``VecEnv``:
-``step_async`` sends every action before ``step_wait`` gathers the replies, so the sim and the encoder work
-on all environments' steps while the learner waits, rather than one round trip after the other.
+:class:`ProxyVecEnv` drives several remote envs from one session as a stable-baselines3 ``VecEnv``, over links
+of ``group_size`` envs each (one by default): ``step_async`` sends every link's actions before ``step_wait``
+gathers the replies, so the sim and the encoder work on all environments' steps while the learner waits, rather
+than one round trip after the other.
 
 Episode numbers: ``info["ep"]`` counts the task's episodes from 1 (it restarts when ``reset(seed=...)``
 restarts the seed sequence), as in-process. The episode number on the wire is a separate counter that only
@@ -30,8 +31,7 @@ from stable_baselines3.common.env_util import is_wrapped
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvObs, VecEnvStepReturn
 
-from learner_service.group_link import GroupLink
-from learner_service.link import RemoteEnvLink, Reply, SimAction, StepRefused, new_holder_id
+from learner_service.link import EnvLink, SimAction, StepRefused, new_holder_id
 from learner_service.task import (
     CAUSE_SIM_LOST,
     LATENCY_OPTION,
@@ -79,7 +79,7 @@ class ProxySettings:
     max_retries: int = 10  # re-sends before StepTimeout
     poll_ms: float = 0.0  # poll for each reply this long, then nap (services/polling.py)
     role: str = "learner"  # liveliness role of the holder: "learner" or "eval"
-    group_size: int = 0  # envs stepped as one message each way (ProxyVecEnv); 0 = each env its own messages
+    group_size: int = 0  # envs stepped as one message each way (ProxyVecEnv); 0 or 1 = each env its own messages
 
     def check(self) -> None:
         """Refuse settings that could only fail later, with a message that says what to change."""
@@ -95,6 +95,46 @@ class ProxySettings:
             raise ValueError("step_timeout_s must be > 0 and max_retries >= 0")
         if self.group_size < 0:
             raise ValueError(f"group_size must be >= 0 (0: no groups), got {self.group_size}")
+
+
+class Presence:
+    """A learner's stand in the namespace: its holder id and liveliness token, the encoder roster in cmvae mode,
+    and the links it steps over, made and closed together (by a ProxyEnv, or by a ProxyVecEnv for all its envs)."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, proxy: ProxySettings, encoded: bool, name: str) -> None:
+        self.session, self.keys, self.proxy, self.encoded = session, keys, proxy, encoded
+        self.holder = new_holder_id(proxy.role)
+        self.links: list[EnvLink] = []
+        self.encoders: Roster | None = None
+        self._token: zenoh.LivelinessToken | None = announce(session, keys, proxy.role, self.holder)
+        if encoded:
+            self.encoders = Roster(session, keys, "encoder")
+            if not self.encoders.members():
+                wait_s = proxy.zenoh.startup_timeout_s
+                log.info("%s: waiting up to %.0f s for a live encoder", name, wait_s)
+                try:
+                    self.encoders.wait_for(1, timeout_s=wait_s)
+                except BaseException:
+                    self.close()
+                    raise
+
+    def link(self, envs: list[str], group: str = "") -> EnvLink:
+        proxy = self.proxy
+        link = EnvLink(self.session, self.keys, proxy.channel, envs, self.holder, self.encoded, self.encoders,
+                       proxy.step_timeout_s, proxy.max_retries, proxy.poll_ms, group)  # fmt: skip
+        self.links.append(link)
+        return link
+
+    def close(self) -> None:
+        for link in self.links:
+            link.close()
+        self.links = []
+        if self.encoders is not None:
+            self.encoders.close()
+            self.encoders = None
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
 
 
 class ProxyEnv(gym.Env):
@@ -119,29 +159,39 @@ class ProxyEnv(gym.Env):
         env: str | None = None,
         base_seed: int = 0,
         session: zenoh.Session | None = None,
+        member: tuple[EnvLink, int] | None = None,
     ) -> None:
+        """``member``: env ``index`` of a link its vector env owns (with its holder and token), else a link of its
+        own for env ``env`` (default: ``proxy.envs[0]``)."""
         proxy.check()
         self.task = TrackingTask(task)
         self.observation_space = self.task.observation_space
         self.action_space = self.task.action_space
         self.proxy = proxy
-        self.env_id = check_chunk(env if env is not None else proxy.envs[0], "env id")
+        self.env_id = check_chunk(member[0].envs[member[1]] if member else env or proxy.envs[0], "env id")
         self.base_seed = base_seed
         self.episode = 0
         self._last_image: np.ndarray | None = None
-        self.holder = new_holder_id(proxy.role)
         self.keys = Keys(proxy.zenoh.namespace)
         self._owns_session = session is None
         self.session = session if session is not None else open_session(proxy.zenoh, role=proxy.role)
-        self._token: zenoh.LivelinessToken | None = None
-        self._encoders: Roster | None = None
-        self._link: RemoteEnvLink | None = None
+        self._presence: Presence | None = None
+        self._link: EnvLink | None = None
+        self.index = 0
         self._pending_action: np.ndarray | None = None
         self._last_obs: Any = None
         self._last_info: dict[str, Any] = {}
         self.sims_lost = 0  # episodes cut short because the sim restarted and forgot them
         try:
-            self._connect()
+            if member is None:
+                self._presence = Presence(self.session, self.keys, proxy, self.task.settings.obs == "cmvae", self.name)
+                member = (self._presence.link([self.env_id]), 0)
+            self._link, self.index = member
+            self.holder = self._link.holder
+            wait_s = proxy.zenoh.startup_timeout_s
+            log.info("%s: claiming as %s (waiting up to %.0f s for a sim that serves it)", self.name, self.holder,
+                     wait_s)  # fmt: skip
+            self._claim(wait_s)
         except BaseException:
             self.close()
             raise
@@ -150,37 +200,13 @@ class ProxyEnv(gym.Env):
     def name(self) -> str:
         return f"{self.proxy.channel}/{self.env_id}"
 
-    def _connect(self) -> None:
-        proxy = self.proxy
-        wait_s = proxy.zenoh.startup_timeout_s
-        self._token = announce(self.session, self.keys, proxy.role, self.holder)
-        encoded = self.task.settings.obs == "cmvae"
-        if encoded:
-            self._encoders = Roster(self.session, self.keys, "encoder")
-            if not self._encoders.members():
-                log.info("%s: waiting up to %.0f s for a live encoder", self.name, wait_s)
-                self._encoders.wait_for(1, timeout_s=wait_s)
-        self._link = RemoteEnvLink(
-            self.session,
-            self.keys,
-            proxy.channel,
-            self.env_id,
-            self.holder,
-            encoded=encoded,
-            encoders=self._encoders,
-            step_timeout_s=proxy.step_timeout_s,
-            max_retries=proxy.max_retries,
-            poll_ms=proxy.poll_ms,
-        )
-        log.info("%s: claiming as %s (waiting up to %.0f s for a sim that serves it)", self.name, self.holder, wait_s)
-        self._claim(wait_s)
-
     def _claim(self, wait_s: float) -> None:
         try:
-            claimed = self.link.claim(timeout_s=wait_s)
+            claimed = self.link.claim(timeout_s=wait_s, index=self.index)
         except ControlError as exc:
             raise ClaimRefused(f"cannot claim env {self.name}: {exc}") from None
-        self.link.ep = int(claimed.get("ep", 0))  # the next episode on the wire must come after the sim's current one
+        # The next episode on the wire must come after the sim's current one.
+        self.link.ep[self.index] = int(claimed.get("ep", 0))
 
     def _claim_again(self, refusal: str) -> None:
         """The sim forgot this env (it was restarted): claim it again, so the next reset starts a new episode."""
@@ -215,11 +241,11 @@ class ProxyEnv(gym.Env):
         log.debug("%s: episode %d (seed %d) starts at d %.2f m", self.name, self.episode, world_seed, info["d"])
         return obs, info
 
-    def _start_episode(self, world_seed: int, options: dict) -> Reply:
+    def _start_episode(self, world_seed: int, options: dict) -> Frame:
         link = self.link
-        link.send_reset(link.ep + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION),
-                        options.get(SCENE_OPTION))  # fmt: skip
-        return link.wait()
+        link.send_reset(link.ep[self.index] + 1, world_seed, options.get(NOISE_OPTION), options.get(LATENCY_OPTION),
+                        options.get(SCENE_OPTION), index=self.index)  # fmt: skip
+        return link.wait()[0]
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         self.send_step(action)
@@ -227,8 +253,8 @@ class ProxyEnv(gym.Env):
 
     # --- the two halves of a step, for ProxyVecEnv ---------------------------------------------------
     def send_step(self, action: Any) -> None:
-        """Send the action; the reply is collected by :meth:`finish_step`."""
-        self.link.send_action(self.begin_step(action))
+        """Send the action on this env's own link; the reply is collected by :meth:`finish_step`."""
+        self.link.send([self.begin_step(action)])
 
     def begin_step(self, action: Any) -> SimAction:
         """Check the action and mark the step in flight; the sim's action, for the caller (or a group) to send."""
@@ -240,12 +266,13 @@ class ProxyEnv(gym.Env):
         self._pending_action = np.asarray(action)
         return sim_action
 
-    def finish_step(self, reply: Reply | SimLost | None = None) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        """The step in flight, from ``reply`` (its group's) or from waiting for it on this env's link."""
+    def finish_step(self, reply: Frame | SimLost | None = None) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        """The step in flight, from ``reply`` (its link's, read by the vector env) or from waiting on this env's
+        own link."""
         if self._pending_action is None:
             raise RuntimeError(f"{self.name}: no step in flight")
         try:
-            reply = reply if reply is not None else self.link.wait()
+            reply = reply if reply is not None else self.link.wait()[0]
         except StepRefused as exc:
             reply = sim_lost(exc)
         if isinstance(reply, SimLost):
@@ -262,14 +289,14 @@ class ProxyEnv(gym.Env):
 
     # --- helpers -------------------------------------------------------------------------------------
     @property
-    def link(self) -> RemoteEnvLink:
+    def link(self) -> EnvLink:
         if self._link is None:
             raise RuntimeError(f"{self.name}: this env is closed")
         return self._link
 
-    def _frame(self, reply: Reply) -> Frame:
+    def _frame(self, reply: Frame) -> Frame:
         self._last_image = reply.image
-        return Frame(reply.telemetry, image=reply.image, mu=reply.mu, logvar=reply.logvar)
+        return reply
 
     def render(self) -> np.ndarray | None:
         """The last camera frame (uint8 RGB), kept out of ``info`` so SB3 does not copy it into every step's info."""
@@ -281,16 +308,13 @@ class ProxyEnv(gym.Env):
         return self._link.retries if self._link is not None else 0
 
     def close(self) -> None:
-        """Release the env, then undeclare everything; safe to call twice."""
+        """Release the env, then undeclare what it owns (its vector env owns a shared link); safe to call twice."""
         if self._link is not None:
-            self._link.close()
+            self._link.release(self.index)
             self._link = None
-        if self._encoders is not None:
-            self._encoders.close()
-            self._encoders = None
-        if self._token is not None:
-            self._token.undeclare()
-            self._token = None
+        if self._presence is not None:
+            self._presence.close()
+            self._presence = None
         if self._owns_session and not self.session.is_closed():
             self.session.close()
 
@@ -298,7 +322,9 @@ class ProxyEnv(gym.Env):
 class ProxyVecEnv(VecEnv):
     """One :class:`ProxyEnv` per ``proxy.envs`` entry on one shared session, as a stable-baselines3 VecEnv.
 
-    ``step_async`` sends all actions at once and ``step_wait`` gathers the replies, so the remote steps overlap.
+    Its envs step over links of ``proxy.group_size`` envs (one each by default) and hold their claims under one
+    holder id, the vector env's. ``step_async`` sends all actions at once and ``step_wait`` gathers the replies, so
+    the remote steps overlap.
     SB3's auto-reset semantics hold (``info["terminal_observation"]``, ``info["TimeLimit.truncated"]``), and
     sub-env i has base seed ``base_seed + i``, exactly as a DummyVecEnv of TrackingEnvs would. A VecEnv of its
     own (the public base class only): the observations are stacked here, not in DummyVecEnv's private buffers.
@@ -314,35 +340,32 @@ class ProxyVecEnv(VecEnv):
         proxy.check()
         self._owns_session = session is None
         self.session = session if session is not None else open_session(proxy.zenoh, role=proxy.role)
-        claimed: list[ProxyEnv] = []
+        self.envs: list[ProxyEnv] = []
+        self._presence: Presence | None = None
         try:
-            for index, env_id in enumerate(proxy.envs):
-                claimed.append(ProxyEnv(task, proxy, env_id, base_seed + index, session=self.session))
+            self._presence = Presence(self.session, Keys(proxy.zenoh.namespace), proxy, task.obs == "cmvae",
+                                      f"{proxy.channel}/{','.join(proxy.envs)}")  # fmt: skip
+            self.links = self._make_links(self._presence, proxy)
+            for link in self.links:
+                for index in range(len(link.envs)):
+                    member = ProxyEnv(task, proxy, base_seed=base_seed + len(self.envs), session=self.session,
+                                      member=(link, index))  # fmt: skip
+                    self.envs.append(member)
         except BaseException:
-            for env in claimed:
-                env.close()
-            if self._owns_session:
-                self.session.close()
+            self.close()
             raise
-        self.envs = claimed
-        siblings = tuple(env.link.name for env in claimed)
-        for env in claimed:  # one step's frames spread over the encoders, not queued at one (grouped: resets)
-            env.link.siblings = siblings
-        self.groups = self._make_groups(proxy) if proxy.group_size else []
-        super().__init__(len(claimed), claimed[0].observation_space, claimed[0].action_space)
+        super().__init__(len(self.envs), self.envs[0].observation_space, self.envs[0].action_space)
 
-    def _make_groups(self, proxy: ProxySettings) -> list[GroupLink]:
-        """Consecutive envs, ``group_size`` to a group (the last may be smaller), named after this learner."""
-        size = proxy.group_size
-        holder = self.envs[0].holder
-        groups = [
-            GroupLink(self.session, self.envs[0].keys, f"{holder}.{start // size}",
-                      [env.link for env in self.envs[start : start + size]], proxy.poll_ms)
-            for start in range(0, len(self.envs), size)
-        ]  # fmt: skip
-        for group in groups:  # a vector step's groups spread over the encoders, not queued at one
-            group.siblings = tuple(g.name for g in groups)
-        return groups
+    @staticmethod
+    def _make_links(presence: Presence, proxy: ProxySettings) -> list[EnvLink]:
+        """Consecutive envs, ``group_size`` to a link (the last may be smaller): one env's link is named after it,
+        a group's after this learner."""
+        size, envs = max(proxy.group_size, 1), list(proxy.envs)
+        links = [presence.link(envs[start : start + size], f"{presence.holder}.{start // size}" if size > 1 else "")
+                 for start in range(0, len(envs), size)]  # fmt: skip
+        for link in links:  # a vector step's messages spread over the encoders, not queued at one
+            link.siblings = tuple(other.name for other in links)
+        return links
 
     def reset(self) -> VecEnvObs:
         observations = []
@@ -355,32 +378,24 @@ class ProxyVecEnv(VecEnv):
         return self._stack(observations)
 
     def step_async(self, actions: np.ndarray) -> None:
-        """Every env's action goes out before any reply is awaited; with groups, one message per group."""
-        if not self.groups:
-            for env, action in zip(self.envs, actions, strict=True):
-                env.send_step(action)
-            return
+        """Every env's action goes out before any reply is awaited: one message per link."""
         sim_actions = [env.begin_step(action) for env, action in zip(self.envs, actions, strict=True)]
         start = 0
-        for group in self.groups:
-            group.send(sim_actions[start : start + len(group.links)])
-            start += len(group.links)
+        for link in self.links:
+            link.send(sim_actions[start : start + len(link.envs)])
+            start += len(link.envs)
 
-    def _replies(self) -> Iterator[Reply | SimLost | None]:
-        """Each env's reply in env order (None without groups: each env waits on its own link); a group whose sim
-        restarted gives each of its envs a :class:`SimLost`.
+    def _replies(self) -> Iterator[Frame | SimLost]:
+        """Each env's reply in env order; a link whose sim restarted gives each of its envs a :class:`SimLost`.
 
-        A generator, so that ``step_wait`` turns one group's replies into observations (and resets its finished
-        episodes) while the later groups are still with the sim and the encoder, rather than after all of them.
+        A generator, so that ``step_wait`` turns one link's replies into observations (and resets its finished
+        episodes) while the later links' steps are still with the sim and the encoder, rather than after all of them.
         """
-        if not self.groups:
-            yield from [None] * self.num_envs
-            return
-        for group in self.groups:
+        for link in self.links:
             try:
-                yield from group.wait()
+                yield from link.wait()
             except StepRefused as exc:
-                yield from [sim_lost(exc)] * len(group.links)
+                yield from [sim_lost(exc)] * len(link.envs)
 
     def step_wait(self) -> VecEnvStepReturn:
         observations, rewards, dones, infos = [], np.zeros(self.num_envs, np.float32), np.zeros(self.num_envs, bool), []
@@ -401,10 +416,11 @@ class ProxyVecEnv(VecEnv):
         return np.stack(observations)
 
     def close(self) -> None:
-        for group in self.groups:
-            group.close()
         for env in self.envs:
             env.close()
+        if self._presence is not None:
+            self._presence.close()
+            self._presence = None
         if self._owns_session and not self.session.is_closed():
             self.session.close()
 

@@ -1,11 +1,12 @@
 """`swimm pilot --publish`: the frames the policy acted on, published as a sim publishes an env's observations.
 
 A real dive then feeds everything swimm has for simulated ones, unchanged: an encoder answers each frame with its
-latent on the env's latent key, the live view and `swimm record` see the observations and latents, and a
-recording of the dive replays like a sim's. The frames go out as env ``env`` of the eval channel, one episode,
-``seq`` the frame's number, each routed to the live encoder that rendezvous hashing picks for that env (as the
-learner routes its steps), or ``direct`` while no encoder is live: a dive never waits for one. A real camera has
-no ground truth, so the telemetry is :meth:`services.telemetry.Telemetry.unknown` (NaN but for the time).
+latent on the env's latent key (each frame goes as the env's group of one, as a sim sends a reset's), the live
+view and `swimm record` see the observations and latents, and a recording of the dive replays like a sim's. The
+frames go out as env ``env`` of the eval channel, one episode, ``seq`` the frame's number, each routed to the live
+encoder that rendezvous hashing picks for that env (as the learner routes its steps), or ``direct`` while no
+encoder is live: a dive never waits for one. A real camera has no ground truth, so the telemetry is
+:meth:`services.telemetry.Telemetry.unknown` (NaN but for the time).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 import zenoh
 
 from services.keys import Keys
-from services.messages import DIRECT_ROUTE, ObservationMsg
+from services.messages import DIRECT_ROUTE, BatchMsg, ObservationMsg
 from services.presence import Roster, rendezvous_choice
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -42,9 +43,9 @@ class FramePublisher:
         members = self.encoders.members()
         route = rendezvous_choice(f"{CHANNEL}/{self.env}", members) if members else DIRECT_ROUTE
         telemetry = Telemetry.unknown(time.monotonic() - self.started)
-        message = ObservationMsg(env=self.env, ep=1, seq=number, telemetry=telemetry, image=frame)
+        message = ObservationMsg(env=self.env, ep=1, seq=number, telemetry=telemetry, image=frame).encode()
         # DROP: a congested network loses a frame of the feed rather than stalling the control loop.
-        self.session.put(self.keys.obs(CHANNEL, self.env, route), message.encode(),
+        self.session.put(self.keys.obs(CHANNEL, self.env, route), BatchMsg.alone(self.env, 1, number, message).encode(),
                          congestion_control=zenoh.CongestionControl.DROP)  # fmt: skip
 
     def close(self) -> None:

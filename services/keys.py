@@ -1,17 +1,14 @@
 """Key expressions of one swimm run, all under a namespace (default ``swimm/default``).
 
-Step pipeline (pub/sub)::
+Step pipeline (pub/sub), each message a BatchMsg of a group of envs (services/messages.py)::
 
-    <ns>/<channel>/<env>/action            learner -> sim
-    <ns>/<channel>/<env>/obs/<route>       sim -> encoder <route>, or -> learner when route is "direct"
-    <ns>/<channel>/<env>/latent            encoder -> learner
-    <ns>/<channel>/<env>/err               any service -> sender: refusals with their reason
+    <ns>/<channel>/<group>/action          learner -> sim
+    <ns>/<channel>/<group>/obs/<route>     sim -> encoder <route>, or -> learner when route is "direct"
+    <ns>/<channel>/<group>/latent          encoder -> learner
 
-Groups of envs stepped as one (``<group>`` named by the learner that drives them)::
-
-    <ns>/<channel>/groups/<group>/action       learner -> sim: a BatchMsg of the group's actions
-    <ns>/<channel>/groups/<group>/obs/<route>  sim -> encoder <route> (or learner, "direct"): their observations
-    <ns>/<channel>/groups/<group>/latent       encoder -> learner: their latents
+``<group>`` is named by the learner that steps it: the env's id for a single env (a group of one), and
+``<holder>.<k>`` for several. A reset's observation goes out as its env's group of one (the reset request names
+no group), so a learner listens on its own group's keys and on each of its envs'.
 
 Control and presence::
 
@@ -30,7 +27,6 @@ import re
 from dataclasses import dataclass
 
 CHANNELS = ("train", "eval")
-GROUPS = "groups"  # the key chunk of grouped steps; one key level deeper than an env's, so wildcards keep them apart
 _CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
@@ -45,48 +41,24 @@ def check_chunk(value: str, what: str) -> str:
 class Keys:
     namespace: str = "swimm/default"
 
-    def _env(self, channel: str, env: str) -> str:
-        return f"{self.namespace}/{channel}/{env}"
+    def _group(self, channel: str, group: str) -> str:
+        return f"{self.namespace}/{channel}/{group}"
 
-    def action(self, channel: str, env: str) -> str:
-        return f"{self._env(channel, env)}/action"
+    def action(self, channel: str, group: str) -> str:
+        return f"{self._group(channel, group)}/action"
 
-    def obs(self, channel: str, env: str, route: str) -> str:
-        return f"{self._env(channel, env)}/obs/{route}"
+    def obs(self, channel: str, group: str, route: str) -> str:
+        return f"{self._group(channel, group)}/obs/{route}"
 
-    def latent(self, channel: str, env: str) -> str:
-        return f"{self._env(channel, env)}/latent"
+    def latent(self, channel: str, group: str) -> str:
+        return f"{self._group(channel, group)}/latent"
 
-    def err(self, channel: str, env: str) -> str:
-        return f"{self._env(channel, env)}/err"
+    def actions(self, channel: str) -> str:
+        """Every group's actions on one channel (what a sim serving that channel listens to)."""
+        return self.action(channel, "*")
 
     def ctl(self, channel: str, env: str) -> str:
-        return f"{self._env(channel, env)}/ctl"
-
-    # A group's keys are an env's keys with ``groups/<group>`` in the env's place: one level deeper.
-    def group_action(self, channel: str, group: str) -> str:
-        return self.action(channel, f"{GROUPS}/{group}")
-
-    def group_obs(self, channel: str, group: str, route: str) -> str:
-        return self.obs(channel, f"{GROUPS}/{group}", route)
-
-    def group_latent(self, channel: str, group: str) -> str:
-        return self.latent(channel, f"{GROUPS}/{group}")
-
-    def group_actions(self, channel: str) -> str:
-        """Every group's actions on one channel (what a sim serving that channel listens to)."""
-        return f"{self.namespace}/{channel}/{GROUPS}/*/action"
-
-    def encoder_group_inbox(self, encoder_id: str) -> str:
-        """Every group's observations routed to one encoder."""
-        return f"{self.namespace}/*/{GROUPS}/*/obs/{encoder_id}"
-
-    def parse_group_key(self, key: str) -> tuple[str, str]:
-        """(channel, group) of a group key such as ``<ns>/train/groups/learner-1.0/obs/enc-1``."""
-        parts = self._chunks(key)
-        if len(parts) < 4 or parts[0] not in CHANNELS or parts[1] != GROUPS:
-            raise ValueError(f"{key!r} is not a group key of namespace {self.namespace!r}")
-        return parts[0], parts[2]
+        return f"{self.namespace}/{channel}/{env}/ctl"
 
     def _chunks(self, key: str) -> list[str]:
         """The chunks of ``key`` after the namespace ([] for a key outside it)."""
@@ -116,8 +88,8 @@ class Keys:
     def all_metrics(self) -> str:
         return f"{self.namespace}/metrics/**"
 
-    def parse_env_key(self, key: str) -> tuple[str, str]:
-        """(channel, env) of a step-pipeline key such as ``<ns>/train/0/obs/enc-1``."""
+    def parse_step_key(self, key: str) -> tuple[str, str]:
+        """(channel, group) of a step-pipeline key such as ``<ns>/train/0/obs/enc-1``."""
         parts = self._chunks(key)
         if len(parts) < 3 or parts[0] not in CHANNELS:
             raise ValueError(f"{key!r} is not a step key of namespace {self.namespace!r}")

@@ -11,16 +11,21 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
 
 from services.telemetry import Telemetry
 
-PROTOCOL_VERSION = 1
+M = TypeVar("M")
+
+#: 2: every step message is a BatchMsg of N items (a single env is a group of one), on the keys of the group it
+#: steps; ErrorMsg and the err key are gone, a refusal travelling as its env's error item (docs/architecture.md).
+PROTOCOL_VERSION = 2
 #: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)
@@ -69,18 +74,6 @@ def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     if version != PROTOCOL_VERSION:
         raise BadMessage(f"unknown protocol version {version!r}; this service speaks {PROTOCOL_VERSION}")
     return body
-
-
-def stamp_of(payload: bytes) -> tuple[int, int, str]:
-    """The (ep, seq, sender) of a refused message where its map can be read, else (0, 0, ""): a refusal that
-    names the step it answers reaches the learner waiting for that step at once instead of after its timeout."""
-    try:
-        body = unpack(payload)
-    except BadMessage:
-        return 0, 0, ""
-    ep, seq, sender = body.get("ep"), body.get("seq"), body.get("sender", "")
-    valid = all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in (ep, seq))
-    return (ep, seq, sender if isinstance(sender, str) else "") if valid else (0, 0, "")
 
 
 def _int(body: dict[str, Any], name: str) -> int:
@@ -275,31 +268,6 @@ class LatentMsg:
 
 
 @dataclass(frozen=True)
-class ErrorMsg:
-    """Any service -> sender: why a message was refused.
-
-    ``sender`` is the refused message's sender when it could be read, so a
-    client ignores refusals meant for somebody else on the same env.
-    """
-
-    reason: str
-    ep: int = 0
-    seq: int = 0
-    sender: str = ""
-    sent_at: float = field(default_factory=time.time)
-
-    def encode(self) -> bytes:
-        return _pack_stamped(self.ep, self.seq, self.sent_at, error=self.reason, sender=self.sender)
-
-    @classmethod
-    def decode(cls, payload: bytes) -> ErrorMsg:
-        body = unpack(payload)
-        return cls(
-            reason=_str(body, "error"), ep=_int(body, "ep"), seq=_int(body, "seq"), sender=_str(body, "sender", "")
-        )
-
-
-@dataclass(frozen=True)
 class BatchItem:
     """One env's part of a :class:`BatchMsg`: its message as it would travel alone, or why it was refused."""
 
@@ -312,21 +280,29 @@ class BatchItem:
 
 @dataclass(frozen=True)
 class BatchMsg:
-    """A group of envs' messages travelling as one (issue of pipelined collection, docs/architecture.md).
+    """The one message of the step pipeline, each way: a group of envs' actions, observations or latents.
 
-    A learner sends its group's actions in one message; the sim steps them in order and answers with one message
-    of their observations; an encoder encodes those in one forward pass and answers with one of latents. Each
-    item keeps its env's own (ep, seq), so retries and duplicate dropping work per env exactly as for one env.
+    A learner sends its group's actions in one message (a single env is a group of one); the sim steps them in
+    order and answers with one message of their observations; an encoder encodes those in one forward pass and
+    answers with one of latents. Each item keeps its env's own (ep, seq), so retries and duplicate dropping work
+    per env; ``to`` names the learner an answer is for, so a refusal of somebody else's actions is not taken for
+    a refusal of its own.
     """
 
     group: str
     sender: str
     items: tuple[BatchItem, ...]
+    to: str = ""  # an answer's addressee: the sender of the actions it answers ("" in the actions themselves)
     sent_at: float = field(default_factory=time.time)
+
+    @classmethod
+    def alone(cls, env: str, ep: int, seq: int, payload: bytes, sender: str = "", to: str = "") -> BatchMsg:
+        """One env's message as its own group of one, the group named after the env."""
+        return cls(env, sender, (BatchItem(env, ep, seq, payload),), to)
 
     def encode(self) -> bytes:
         items = [[item.env, item.ep, item.seq, item.payload, item.error] for item in self.items]
-        return _pack_stamped(0, 0, self.sent_at, group=self.group, sender=self.sender, items=items)
+        return _pack_stamped(0, 0, self.sent_at, group=self.group, sender=self.sender, to=self.to, items=items)
 
     @classmethod
     def decode(cls, payload: bytes) -> BatchMsg:
@@ -351,7 +327,13 @@ class BatchMsg:
                     _str(fields_, "error"),
                 )  # fmt: skip
             )
-        return cls(_str(body, "group"), _str(body, "sender", ""), tuple(items), _time(body))
+        return cls(_str(body, "group"), _str(body, "sender", ""), tuple(items), _str(body, "to", ""), _time(body))
+
+
+def batch_messages(payload: bytes, decode: Callable[[bytes], M]) -> list[tuple[str, M]]:
+    """(env, message) of each item of a step message that carries one (a refused item has none), for readers that
+    follow envs rather than groups (recordings, the live view); BadMessage if any of it is unreadable."""
+    return [(item.env, decode(item.payload)) for item in BatchMsg.decode(payload).items if not item.error]
 
 
 def encode_request(op: str, **args: Any) -> bytes:

@@ -34,7 +34,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from services.lifecycle import stop_on_signals
-from services.messages import BadMessage, ObservationMsg
+from services.messages import BadMessage, ObservationMsg, batch_messages
 from services.session import open_session
 from services.settings import ZenohSettings
 
@@ -119,11 +119,12 @@ class McapRecorder:
 
     def _write_image(self, key: str, payload: bytes, received_ns: int) -> None:
         try:
-            msg = ObservationMsg.decode(payload)
+            frames = batch_messages(payload, ObservationMsg.decode)
         except BadMessage:
-            return  # a group's batch, or not an observation: kept raw above
-        if msg.image is not None:
-            self.write_image(key + IMAGE_TOPIC_SUFFIX, msg.image, int(msg.sent_at * 1e9), msg.env, received_ns)
+            return  # not readable observations: kept raw above
+        for env, msg in frames:  # a group's frames share its key's image channel, each named by its env
+            if msg.image is not None:
+                self.write_image(key + IMAGE_TOPIC_SUFFIX, msg.image, int(msg.sent_at * 1e9), env, received_ns)
 
     def write_image(self, topic: str, rgb: np.ndarray, stamp_ns: int, frame_id: str, log_ns: int) -> None:
         """An RGB frame on ``topic`` as a foxglove.CompressedImage (PNG, lossless)."""

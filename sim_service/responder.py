@@ -24,16 +24,7 @@ from services.control import CLAIMANT_ROLES
 from services.keys import Keys
 from services.lifecycle import serve_until_signalled
 from services.low_latency import largest_low_latency_image_size, low_latency_group_problem, observation_bytes
-from services.messages import (
-    DIRECT_ROUTE,
-    ActionMsg,
-    BadMessage,
-    BatchItem,
-    BatchMsg,
-    ErrorMsg,
-    stamp_of,
-    unpack,
-)
+from services.messages import DIRECT_ROUTE, ActionMsg, BadMessage, BatchItem, BatchMsg, unpack
 from services.metrics import Metrics, MetricsPublisher
 from services.polling import Inbox, poll_seconds
 from services.presence import Roster, announce, live_now
@@ -64,10 +55,10 @@ class SimSettings:
 
 @dataclass
 class _Request:
-    kind: str  # "action" | "group" | "ctl" | "lapse"
+    kind: str  # "step" | "ctl" | "lapse"
     env: LockstepEnv | None
     payload: bytes = b""
-    key: str = ""  # a group's key, which names its channel and group
+    key: str = ""  # a step's key, which names its channel and group
     query: zenoh.Query | None = None
     gone: set[str] = field(default_factory=set)
     received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
@@ -117,13 +108,6 @@ class SimResponder:
         self._declared = []
         for env in self._envs:
             self._declared.append(
-                self._inbox.subscribe(
-                    self.session,
-                    self.keys.action(env.channel, env.env),
-                    lambda sample, e=env: _Request("action", e, payload=sample.payload.to_bytes()),
-                )
-            )
-            self._declared.append(
                 self.session.declare_queryable(
                     self.keys.ctl(env.channel, env.env),
                     lambda q, e=env: self._inbox.put(_Request("ctl", e, query=q)),
@@ -133,8 +117,8 @@ class SimResponder:
             self._declared.append(
                 self._inbox.subscribe(
                     self.session,
-                    self.keys.group_actions(channel),
-                    lambda sample: _Request("group", None, sample.payload.to_bytes(), key=str(sample.key_expr)),
+                    self.keys.actions(channel),
+                    lambda sample: _Request("step", None, sample.payload.to_bytes(), key=str(sample.key_expr)),
                 )
             )
         self._token = announce(self.session, self.keys, "sim", self.ident)
@@ -225,10 +209,8 @@ class SimResponder:
 
     def _handle(self, request: _Request) -> None:
         try:
-            if request.kind == "action":
-                self._handle_action(request)
-            elif request.kind == "group":
-                self._handle_group(request)
+            if request.kind == "step":
+                self._handle_step(request)
             elif request.kind == "ctl":
                 self._handle_ctl(request)
             elif request.kind == "lapse":
@@ -238,34 +220,16 @@ class SimResponder:
             self.metrics.count("errors_internal")
             log.exception("internal error while handling a %s request", request.kind)
 
-    def _handle_action(self, request: _Request) -> None:
-        env = request.env
-        assert env is not None
-        try:
-            msg = ActionMsg.decode(request.payload)
-        except BadMessage as exc:
-            self._refuse(env, str(exc), *stamp_of(request.payload))
-            return
-        if self.settings.realtime:
-            env.pending = msg  # applied at the next tick
-            return
-        try:
-            outcome = env.act(msg)
-        except Refusal as exc:
-            self._refuse(env, str(exc), msg.ep, msg.seq, msg.sender)
-            return
-        self._publish(env, env.route, outcome, request.received_at)
-
-    def _handle_group(self, request: _Request) -> None:
-        """A group's actions: each env steps as a single action would step it, and one message answers them all,
-        each item the observation (or refusal) its env would have sent alone. A group is one sim's: one that holds
-        none of this sim's envs is left to the others, and an env of it this sim does not serve is refused."""
+    def _handle_step(self, request: _Request) -> None:
+        """A group's actions (one env's: a group of one): each env steps in order, and one message answers them all,
+        each item its env's observation or refusal. A group is one sim's: one that holds none of this sim's envs is
+        left to the others, and an env of it this sim does not serve is refused."""
         try:
             batch = BatchMsg.decode(request.payload)
-            channel, group = self.keys.parse_group_key(request.key)
-        except (BadMessage, ValueError) as exc:  # no one to answer: the learner's timeout names the step
+            channel, group = self.keys.parse_step_key(request.key)
+        except (BadMessage, ValueError) as exc:  # no env to answer: the learner's timeout names the step
             self.metrics.count("errors_refused")
-            log.warning("refused a group of actions: %s", exc)
+            log.warning("refused a group of actions on %s: %s", request.key, exc)
             return
         if not any((channel, item.env) in self._by_name for item in batch.items):
             return  # another sim's group: sims serving one run side by side all hear every group
@@ -278,10 +242,13 @@ class SimResponder:
                 route = msg.route
                 if env is None:
                     raise Refusal(f"env {channel}/{item.env} is not served by sim {self.ident}")
-                if self.settings.realtime:
-                    raise Refusal("a real-time sim takes actions one env at a time, not in groups")
                 if too_large:
                     raise Refusal(too_large)  # refused before stepping, so a smaller group can take the step
+                if self.settings.realtime:
+                    if len(batch.items) > 1:
+                        raise Refusal("a real-time sim takes actions one env at a time, not in groups")
+                    env.pending = msg  # applied at the next tick, which answers it
+                    return
                 outcome = env.act(msg)
             except (BadMessage, Refusal) as exc:
                 self.metrics.count("errors_refused")
@@ -291,9 +258,7 @@ class SimResponder:
             items.append(BatchItem(item.env, item.ep, item.seq, outcome.payload))
             self.metrics.count("replays" if outcome.replayed else "steps")
             self._unprepared.add(env)
-        reply = BatchMsg(group, self.ident, tuple(items))
-        self._publisher(self.keys.group_obs(channel, group, route)).put(reply.encode())
-        self.metrics.count("groups")
+        self._answer(channel, group, route, batch.sender, items)
         self.metrics.observe_ms("step", (time.perf_counter() - request.received_at) * 1e3 / len(batch.items))
 
     def _group_problem(self, group_size: int) -> str | None:
@@ -308,10 +273,12 @@ class SimResponder:
             try:
                 outcome = env.step_realtime()
             except Refusal as exc:
-                self._refuse(env, str(exc), env.ep, env.seq, env.holder or "")
+                self.metrics.count("errors_refused")
+                log.warning("refused action on %s: %s", env.name, exc)
+                self._answer(env.channel, env.env, env.route, "", [BatchItem(env.env, env.ep, env.seq, error=str(exc))])
                 continue
             if outcome is not None:
-                self._publish(env, env.route, outcome, time.perf_counter())
+                self._publish(env, env.route, env.holder or "", outcome, time.perf_counter())
 
     def _handle_ctl(self, request: _Request) -> None:
         env, query = request.env, request.query
@@ -339,7 +306,7 @@ class SimResponder:
                 except ValueError as exc:
                     raise BadMessage(f"reset's {exc}") from None
                 outcome = env.reset(holder, ep, seed, route, noise, latency, scene)
-                self._publish(env, route, outcome, request.received_at)
+                self._publish(env, route, holder, outcome, request.received_at)
                 control.reply(query, True, **env.info(), replayed=outcome.replayed)
             else:
                 raise BadMessage(f"unknown control op {op!r} (known: info, claim, release, reset)")
@@ -356,17 +323,19 @@ class SimResponder:
             self._publishers[key] = publisher
         return publisher
 
-    def _publish(self, env: LockstepEnv, route: str, outcome: Outcome, received_at: float) -> None:
-        self._publisher(self.keys.obs(env.channel, env.env, route)).put(outcome.payload)
+    def _answer(self, channel: str, group: str, route: str, to: str, items: list[BatchItem]) -> None:
+        """One message of observations (or refusals) for ``group``, to the encoder ``route`` or the learner ``to``."""
+        reply = BatchMsg(group, self.ident, tuple(items), to)
+        self._publisher(self.keys.obs(channel, group, route)).put(reply.encode())
+
+    def _publish(self, env: LockstepEnv, route: str, to: str, outcome: Outcome, received_at: float) -> None:
+        """One env's observation outside a step (a reset's, a real-time tick's): as its own group of one."""
+        reply = BatchMsg.alone(env.env, env.ep, env.seq, outcome.payload, self.ident, to)
+        self._publisher(self.keys.obs(env.channel, env.env, route)).put(reply.encode())
         self.metrics.count("replays" if outcome.replayed else "steps")
         self.metrics.observe_ms("step", (time.perf_counter() - received_at) * 1e3)
         if not self.settings.realtime:
             self._unprepared.add(env)
-
-    def _refuse(self, env: LockstepEnv, reason: str, ep: int = 0, seq: int = 0, sender: str = "") -> None:
-        self.metrics.count("errors_refused")
-        log.warning("refused action on %s: %s", env.name, reason)
-        self.session.put(self.keys.err(env.channel, env.env), ErrorMsg(reason, ep, seq, sender).encode())
 
     # --- shutdown -------------------------------------------------------------------------------
     def stop(self) -> None:

@@ -21,9 +21,9 @@ import time
 
 import numpy as np
 
-from learner_service.link import RemoteEnvLink, new_holder_id
+from learner_service.link import EnvLink, new_holder_id
 from services.keys import Keys
-from services.messages import LatentMsg
+from services.messages import LatentMsg, batch_messages
 from services.presence import Roster, announce
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -54,17 +54,17 @@ def main() -> None:
     lock = threading.Lock()
 
     def note_encoder(sample) -> None:
-        msg = LatentMsg.decode(sample.payload.to_bytes())
         with lock:
-            encoded_by.setdefault((msg.env, msg.ep, msg.seq), msg.encoder)
+            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+                encoded_by.setdefault((env, msg.ep, msg.seq), msg.encoder)
 
     latent_sub = session.declare_subscriber(f"{args.namespace}/train/*/latent", note_encoder)
     links = [
-        RemoteEnvLink(
+        EnvLink(
             session,
             keys,
             "train",
-            str(i),
+            [str(i)],
             holder,
             encoded=True,
             encoders=encoders,
@@ -76,9 +76,9 @@ def main() -> None:
     rng = np.random.default_rng(0)
     with open(args.out, "w") as out:
 
-        def record(link: RemoteEnvLink) -> None:
-            reply = link.wait()
-            line = {"env": link.env, "ep": reply.ep, "seq": reply.seq, "sim_time": reply.telemetry.sim_time}
+        def record(link: EnvLink) -> None:
+            (reply,) = link.wait()
+            line = {"env": link.group, "ep": link.ep[0], "seq": link.seq[0], "sim_time": reply.telemetry.sim_time}
             line["t"] = time.time()
             out.write(json.dumps(line) + "\n")
             out.flush()
@@ -91,16 +91,16 @@ def main() -> None:
         for _ in range(args.steps):
             actions = rng.uniform(-1, 1, (len(links), 4))
             for link, action in zip(links, actions, strict=True):
-                link.send_action(tuple(float(a) for a in action))
+                link.send([tuple(float(a) for a in action)])
             for link in links:
                 record(link)
         time.sleep(0.5)  # the side subscriber may see the last latents after the link did
         with lock:
             summary = {
-                link.env: {
+                link.group: {
                     "retries": link.retries,
                     "duplicates_dropped": link.duplicates_dropped,
-                    "encoders": [encoded_by.get((link.env, 1, seq), "") for seq in range(args.steps + 1)],
+                    "encoders": [encoded_by.get((link.group, 1, seq), "") for seq in range(args.steps + 1)],
                 }
                 for link in links
             }

@@ -13,7 +13,7 @@ import torch
 
 from encoder_service.model import CMVAE, make_checkpoint
 from services.keys import Keys
-from services.messages import LatentMsg
+from services.messages import LatentMsg, batch_messages
 from sim_service.settings import WorldSettings
 from tests.deploy.docker_stack import SIM_TAG, TORCH_TAG
 
@@ -51,9 +51,9 @@ class LatentLog:
         self._sub = session.declare_subscriber(f"{keys.namespace}/train/*/latent", self._on_latent)
 
     def _on_latent(self, sample) -> None:
-        msg = LatentMsg.decode(sample.payload.to_bytes())
         with self._lock:
-            self.rows.append((msg.env, msg.ep, msg.seq, msg.telemetry.sim_time, msg.encoder))
+            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+                self.rows.append((env, msg.ep, msg.seq, msg.telemetry.sim_time, msg.encoder))
 
     def snapshot(self) -> list[tuple[str, int, int, float, str]]:
         with self._lock:

@@ -14,10 +14,10 @@ import queue
 import numpy as np
 import pytest
 
-from learner_service.link import RemoteEnvLink, new_holder_id
+from learner_service.link import EnvLink, new_holder_id
 from services import control
 from services.keys import Keys
-from services.messages import ActionMsg
+from services.messages import ActionMsg, BatchMsg, batch_messages
 from services.presence import Roster, announce
 from services.procs import ProcessGroup, free_tcp_port, wait_for_port
 from services.session import StartupTimeout, open_session
@@ -79,17 +79,18 @@ def test_only_learners_drive_the_sim_behind_the_tls_acl_router(secure_router, pr
         seen_actions: queue.Queue[ActionMsg] = queue.Queue()
         seen_metrics: queue.Queue[bytes] = queue.Queue()
         action_sub = monitor.declare_subscriber(
-            keys.action("train", "0"), lambda s: seen_actions.put(ActionMsg.decode(s.payload.to_bytes()))
+            keys.action("train", "0"),
+            lambda s: [seen_actions.put(msg) for _, msg in batch_messages(s.payload.to_bytes(), ActionMsg.decode)],
         )
         metrics_sub = monitor.declare_subscriber(keys.all_metrics(), lambda s: seen_metrics.put(bytes(s.payload)))
         learners_seen = Roster(monitor, keys, "learner")
 
-        link = RemoteEnvLink(learner, keys, "train", "0", holder, encoded=False, step_timeout_s=5.0, max_retries=2)
+        link = EnvLink(learner, keys, "train", ["0"], holder, encoded=False, step_timeout_s=5.0, max_retries=2)
         link.claim()
         rng = np.random.default_rng(SEED)
         actions = [tuple(float(x) for x in row) for row in rng.uniform(-1, 1, (STEPS, 4))]
         link.send_reset(1, SEED)
-        telemetry = [link.wait().telemetry]
+        telemetry = [link.wait()[0].telemetry]
 
         # Refused: an encoder may announce only an encoder token.
         intruder_token = announce(intruder, keys, "learner", "learner-intruder")
@@ -98,9 +99,10 @@ def test_only_learners_drive_the_sim_behind_the_tls_acl_router(secure_router, pr
         spoofs = intruder.declare_publisher(keys.action("train", "0"))
         for action in actions:
             # The intruder goes first each step: were it let through, the sim would apply its action as this seq.
-            spoofs.put(ActionMsg(1, link.seq + 1, (1.0, 1.0, 1.0, -1.0), sender=holder).encode())
-            link.send_action(action)
-            telemetry.append(link.wait().telemetry)
+            spoof = ActionMsg(1, link.seq[0] + 1, (1.0, 1.0, 1.0, -1.0), sender=holder).encode()
+            spoofs.put(BatchMsg.alone("0", 1, link.seq[0] + 1, spoof, holder).encode())
+            link.send([action])
+            telemetry.append(link.wait()[0].telemetry)
         intruder.put(keys.metrics("encoder", "intruder"), b"the intruder is connected and may publish metrics")
 
         assert telemetry == reference_telemetry(actions)  # the sim's step sequence is the intruder-free one

@@ -1,7 +1,8 @@
 """`swimm encoder` in-process against a real `swimm router` process: latents, batching and refusals.
 
 The frames are published by a test session exactly as the sim publishes
-them (an ObservationMsg on ``<ns>/<channel>/<env>/obs/<encoder id>``), so
+them (each a group of one: a BatchMsg of the env's ObservationMsg on
+``<ns>/<channel>/<env>/obs/<encoder id>``), so
 what is tested is the service's own routing, batching, codec and
 error handling over real Zenoh; the sim itself is covered elsewhere.
 """
@@ -25,7 +26,7 @@ from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
 from learner_service.live_encoders import check_live_encoders
 from services.keys import Keys
-from services.messages import PROTOCOL_VERSION, ErrorMsg, LatentMsg, ObservationMsg, image_to_fields
+from services.messages import PROTOCOL_VERSION, BatchItem, BatchMsg, LatentMsg, ObservationMsg, image_to_fields
 from services.presence import Roster, ask_about
 from services.results import file_sha256
 from services.settings import ZenohSettings
@@ -87,20 +88,24 @@ class Feeder:
     def __init__(self, session: zenoh.Session, keys: Keys) -> None:
         self.session, self.keys = session, keys
         self.latents: queue.Queue[LatentMsg] = queue.Queue()
-        self.errors: queue.Queue[ErrorMsg] = queue.Queue()
-        self._subs = [
-            session.declare_subscriber(
-                f"{keys.namespace}/*/*/latent", lambda s: self.latents.put(LatentMsg.decode(s.payload.to_bytes()))
-            ),
-            session.declare_subscriber(
-                f"{keys.namespace}/*/*/err", lambda s: self.errors.put(ErrorMsg.decode(s.payload.to_bytes()))
-            ),
-        ]
+        self.errors: queue.Queue[BatchItem] = queue.Queue()  # refused items
+        self._subs = [session.declare_subscriber(f"{keys.namespace}/*/*/latent", self._on_latents)]
         self._encoders = Roster(session, keys, "encoder")
 
-    def send(self, env: str, payload: bytes, channel: str = "train") -> None:
+    def _on_latents(self, sample: zenoh.Sample) -> None:
+        for item in BatchMsg.decode(sample.payload.to_bytes()).items:
+            if item.error:
+                self.errors.put(item)
+            else:
+                self.latents.put(LatentMsg.decode(item.payload))
+
+    def send(self, env: str, payload: bytes, channel: str = "train", ep: int = 1, seq: int = 0) -> None:
+        """``payload`` as env ``env``'s group of one, as the sim sends a reset's observation."""
+        self.send_raw(env, BatchMsg.alone(env, ep, seq, payload).encode(), channel)
+
+    def send_raw(self, group: str, payload: bytes, channel: str = "train") -> None:
         self._encoders.wait_for(1, timeout_s=20)  # the encoder announces itself once it listens
-        self.session.put(self.keys.obs(channel, env, IDENT), payload, congestion_control=BLOCK)  # as the sim does
+        self.session.put(self.keys.obs(channel, group, IDENT), payload, congestion_control=BLOCK)  # as the sim does
 
     def frame(self, env: str, seq: int, image: np.ndarray) -> bytes:
         return ObservationMsg(env=env, ep=1, seq=seq, telemetry=telemetry(seq), image=image).encode()
@@ -129,7 +134,7 @@ def test_latents_match_the_encoder_on_the_same_images(start_service, feeder: Fee
     start_service(max_wait_ms=5.0)
     frames = images(12, seed=4)
     for seq, image in enumerate(frames):
-        feeder.send(str(seq % 3), feeder.frame(str(seq % 3), seq, image), channel="eval" if seq % 2 else "train")
+        feeder.send(str(seq % 3), feeder.frame(str(seq % 3), seq, image), "eval" if seq % 2 else "train", seq=seq)
     by_seq = {msg.seq: msg for msg in feeder.take_latents(len(frames))}
     assert sorted(by_seq) == list(range(len(frames)))  # each frame encoded once
     expected_mu, expected_logvar = LatentEncoder(checkpoint, threads=1).encode(frames)
@@ -149,7 +154,7 @@ def test_frames_arriving_together_are_encoded_in_batches(start_service, feeder: 
     )
     count = 48
     for seq, image in enumerate(images(count, seed=5)):
-        feeder.send(str(seq % 16), feeder.frame(str(seq % 16), seq, image))
+        feeder.send(str(seq % 16), feeder.frame(str(seq % 16), seq, image), seq=seq)
     assert sorted(msg.seq for msg in feeder.take_latents(count)) == list(range(count))
     snap: dict = {}
     deadline = time.monotonic() + 10
@@ -181,19 +186,22 @@ def test_bad_frames_are_refused_with_reasons_and_the_service_keeps_serving(start
         "telemetry": body(good, telemetry={"rover_pos": [0, 0, 0]}),
         "env": body(good, env="7"),  # a frame claiming another env than its key
     }
-    feeder.send("2", feeder.frame("2", 9, good), channel="replay")  # not a channel: refused, with no err key to tell
+    feeder.send("2", feeder.frame("2", 9, good), channel="replay")  # not a channel: refused, with no one to tell
+    feeder.send_raw("2", feeder.frame("2", 9, good))  # not a group's message: refused, with no one to tell
     for payload in bad.values():
-        feeder.send("2", payload)
-    reasons = [feeder.errors.get(timeout=10) for _ in bad]
-    for what, error in zip(bad, reasons, strict=True):
-        assert what in error.reason.lower(), (what, error.reason)
-        assert error.sender == "" and f"encoder {IDENT}" in error.reason  # for whoever drives the env
-    assert (reasons[1].ep, reasons[1].seq) == (4, 9)  # readable refusals name their step
-    feeder.send("2", feeder.frame("2", 10, good))
+        feeder.send("2", payload, ep=4, seq=9)
+    refused = [feeder.errors.get(timeout=10) for _ in bad]
+    for what, item in zip(bad, refused, strict=True):
+        assert what in item.error.lower(), (what, item.error)
+        assert f"encoder {IDENT}" in item.error and (item.env, item.ep, item.seq) == ("2", 4, 9)  # names its step
+    sim_refused = BatchItem("2", 4, 10, error="env train/2 is held by learner-1")
+    feeder.send_raw("2", BatchMsg("2", "sim-1", (sim_refused,), to="learner-1").encode())
+    assert feeder.errors.get(timeout=10) == sim_refused  # the sim's refusal passed on as it came
+    feeder.send("2", feeder.frame("2", 10, good), seq=10)
     (latent,) = feeder.take_latents(1)
     assert (latent.env, latent.seq) == ("2", 10)
     snap = service.metrics.snapshot()
-    assert snap["errors_refused"] == len(bad) + 1 and snap["images"] == 1
+    assert snap["errors_refused"] == len(bad) + 2 and snap["images"] == 1
     assert feeder.errors.empty()
 
 

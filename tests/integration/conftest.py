@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import pytest
 import zenoh
 
-from learner_service.link import RemoteEnvLink, new_holder_id
+from learner_service.link import EnvLink, new_holder_id
 from services.keys import Keys
 from services.presence import Roster, announce
 from services.procs import ProcessGroup
@@ -30,12 +30,13 @@ class Client:
     holder: str
     token: zenoh.LivelinessToken
 
-    def link(self, channel: str = "train", env: str = "0", encoders: Roster | None = None, **kwargs) -> RemoteEnvLink:
-        return RemoteEnvLink(
+    def link(self, channel: str = "train", env: str = "0", encoders: Roster | None = None, **kwargs) -> EnvLink:
+        """A link of one env (a group of one); ``envs=[...]`` and ``group=...`` in ``kwargs`` make a group."""
+        return EnvLink(
             self.session,
             self.keys,
             channel,
-            env,
+            kwargs.pop("envs", [env]),
             self.holder,
             encoded=encoders is not None,
             encoders=encoders,

@@ -23,8 +23,8 @@ import pytest
 import torch
 
 from encoder_service.model import CMVAE, make_checkpoint
-from learner_service.link import Reply
-from services.messages import LatentMsg
+from learner_service.task import Frame
+from services.messages import LatentMsg, batch_messages
 from services.presence import rendezvous_choice
 from tests.integration.conftest import start_sim
 
@@ -48,9 +48,9 @@ class LatentTap:
         self._subscriber = client.session.declare_subscriber(f"{client.keys.namespace}/train/*/latent", self._on_latent)
 
     def _on_latent(self, sample) -> None:
-        msg = LatentMsg.decode(sample.payload.to_bytes())
         with self._lock:
-            self.seen.setdefault((msg.env, msg.ep, msg.seq), []).append(msg.encoder)
+            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+                self.seen.setdefault((env, msg.ep, msg.seq), []).append(msg.encoder)
 
     def close(self) -> None:
         self._subscriber.undeclare()
@@ -96,19 +96,24 @@ def test_killing_an_encoder_mid_run_moves_its_envs_and_loses_or_repeats_no_step(
     rng = np.random.default_rng(0)
     actions = rng.uniform(-1, 1, (ROUNDS_BEFORE + ROUNDS_AFTER + 1, len(ENVS), 4))
 
-    def reset(index: int) -> Reply:
+    def answer(index: int) -> tuple[int, int, Frame]:
+        """The reply to the link's send, with the (episode, seq) it answers."""
+        (frame,) = links[index].wait()
+        return links[index].ep[0], links[index].seq[0], frame
+
+    def reset(index: int) -> tuple[int, int, Frame]:
         links[index].claim()
         links[index].send_reset(1, 100 + index)
-        return links[index].wait()
+        return answer(index)
 
-    def step(index: int, round_: int) -> Reply:
-        links[index].send_action(tuple(float(a) for a in actions[round_, index]))
-        return links[index].wait()
+    def step(index: int, round_: int) -> tuple[int, int, Frame]:
+        links[index].send([tuple(float(a) for a in actions[round_, index])])
+        return answer(index)
 
-    replies: dict[str, list[Reply]] = {env: [] for env in ENVS}
+    replies: dict[str, list[tuple[int, int, Frame]]] = {env: [] for env in ENVS}
     with ThreadPoolExecutor(len(ENVS)) as pool:
 
-        def play_round(round_: int) -> list[Reply]:
+        def play_round(round_: int) -> list[tuple[int, int, Frame]]:
             return list(pool.map(lambda i: step(i, round_), range(len(ENVS))))
 
         for index, env in enumerate(ENVS):  # one at a time: eight queued resets could outlast the timeout under load
@@ -138,8 +143,8 @@ def test_killing_an_encoder_mid_run_moves_its_envs_and_loses_or_repeats_no_step(
                                            f"{recovered_at - frozen_at:.3f} s, moved envs {moved}\n")  # fmt: skip
     steps = ROUNDS_BEFORE + ROUNDS_AFTER + 1
     for env in ENVS:  # the client got every (episode, seq) exactly once, in order, and stepping went on
-        assert [(r.ep, r.seq) for r in replies[env]] == [(1, seq) for seq in range(steps + 1)], env
-        sim_times = [r.telemetry.sim_time for r in replies[env]]
+        assert [(ep, seq) for ep, seq, _ in replies[env]] == [(1, seq) for seq in range(steps + 1)], env
+        sim_times = [frame.telemetry.sim_time for _, _, frame in replies[env]]
         assert all(a < b for a, b in zip(sim_times, sim_times[1:], strict=False)), env  # telemetry passed through
     assert sum(link.retries for link in links) >= len(moved)  # the frozen frames were re-sent, not waited out
     expected = {(env, 1, seq) for env in ENVS for seq in range(steps + 1)}

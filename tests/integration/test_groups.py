@@ -1,4 +1,4 @@
-"""Groups of envs stepped as one message each way (learner_service/group_link.py) over real processes.
+"""Groups of envs stepped as one message each way (learner_service/link.py) over real processes.
 
 A ProxyVecEnv whose envs travel in groups must play exactly the episodes that a DummyVecEnv of in-process
 TrackingEnvs plays from the same seeds, whatever the grouping: rewards, dones, endings and (state observations)
@@ -23,13 +23,12 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
-from learner_service.group_link import GroupLink
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.link import StepRefused
 from learner_service.proxy_env import ProxySettings, ProxyVecEnv
 from learner_service.task import TaskSettings
 from services.low_latency import largest_low_latency_group
-from services.messages import BatchMsg, LatentMsg
+from services.messages import BatchMsg, LatentMsg, batch_messages
 from sim_service.settings import WorldSettings
 from tests.integration.conftest import start_sim
 
@@ -113,7 +112,7 @@ def test_grouped_steps_equal_the_in_process_vec_env(
     endpoint, _ = start_pipeline(group, namespace, checkpoint, ["enc-a"] if obs == "cmvae" else [], engine)
     proxy = ProxySettings(zenoh=zenoh_settings(endpoint), envs=tuple(map(str, range(ENVS))), group_size=group_size)
     remote_env = ProxyVecEnv(task, proxy, base_seed=BASE_SEED)
-    assert [len(g.links) for g in remote_env.groups] == ([2, 2, 1] if group_size == 2 else [ENVS])
+    assert [len(link.envs) for link in remote_env.links] == ([2, 2, 1] if group_size == 2 else [ENVS])
     exact = obs == "state" or engine == "onnx"
     assert_same(record(remote_env), in_process(task, checkpoint, engine), atol=0.0 if exact else LATENT_ATOL)
 
@@ -126,11 +125,16 @@ def test_killing_the_groups_encoder_mid_run_loses_or_repeats_no_step(
                           step_timeout_s=1.0)  # fmt: skip
     remote_env = ProxyVecEnv(TASK, proxy, base_seed=BASE_SEED)
     remote_env.envs[0].link.encoders.wait_for(2, timeout_s=30)
-    served_by: list[str] = []  # the encoder of every group reply, in order
-    tap = remote_env.session.declare_subscriber(
-        f"{namespace}/train/groups/*/latent",
-        lambda sample: served_by.append(BatchMsg.decode(sample.payload.to_bytes()).sender),
-    )
+    served_by: list[str] = []  # the encoder of every group step's reply (not a reset's), in order
+    groups = remote_env.links
+    names = {link.group for link in groups}
+
+    def tap_reply(sample) -> None:
+        reply = BatchMsg.decode(sample.payload.to_bytes())
+        if reply.group in names:
+            served_by.append(reply.sender)
+
+    tap = remote_env.session.declare_subscriber(f"{namespace}/train/*/latent", tap_reply)
     killed: dict[str, object] = {}
 
     def kill_the_busiest_encoder(step: int) -> None:
@@ -141,7 +145,6 @@ def test_killing_the_groups_encoder_mid_run_loses_or_repeats_no_step(
         threading.Timer(0.2, os.kill, (encoders[victim].pid, signal.SIGKILL)).start()
         killed.update(victim=victim, replies_before=len(served_by))
 
-    groups = remote_env.groups
     remote = record(remote_env, on_step=kill_the_busiest_encoder)
     tap.undeclare()
     assert_same(remote, in_process(TASK, checkpoint), atol=LATENT_ATOL)
@@ -162,14 +165,14 @@ def test_ungrouped_envs_spread_evenly_over_the_encoders_and_play_the_in_process_
     endpoint, encoders = start_pipeline(group, namespace, checkpoint, ["enc-a", "enc-e"])
     proxy = ProxySettings(zenoh=zenoh_settings(endpoint), envs=tuple(map(str, range(ENVS))), group_size=0)
     remote_env = ProxyVecEnv(TASK, proxy, base_seed=BASE_SEED)
-    assert not remote_env.groups
+    assert [link.envs for link in remote_env.links] == [(str(env),) for env in range(ENVS)]  # each its own group
     for env in remote_env.envs:  # each env's roster sees both, or its first frames would go to the one it saw
         env.link.encoders.wait_for(2, timeout_s=30)
     encoder_of: dict[str, set[str]] = {}  # env -> the encoders that sent its latents
 
     def tap_latent(sample) -> None:
-        latent = LatentMsg.decode(sample.payload.to_bytes())
-        encoder_of.setdefault(latent.env, set()).add(latent.encoder)
+        for env, latent in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+            encoder_of.setdefault(env, set()).add(latent.encoder)
 
     tap = remote_env.session.declare_subscriber(f"{namespace}/train/*/latent", tap_latent)
     remote = record(remote_env)
@@ -185,16 +188,15 @@ def test_a_group_step_the_sim_cannot_take_is_refused_naming_the_env(group, conne
     endpoint = group.start_router()
     start_sim(group, endpoint, namespace, "--train-envs", "1", "--eval-envs", "0")
     client = connect_client(endpoint)
-    served, unserved = client.link(env="0", step_timeout_s=1.0), client.link(env="7", step_timeout_s=1.0)
-    served.claim(timeout_s=30)
-    served.send_reset(1, seed=5)
-    served.wait()
-    unserved.ep = 1  # as if it had been reset: the sim must refuse it for what it is, an env it does not serve
-    group_link = GroupLink(client.session, client.keys, "g", [served, unserved])
-    group_link.send([(0.0, 0.0, 0.5, 0.0)] * 2)
+    link = client.link(envs=["0", "7"], group="g", step_timeout_s=1.0)
+    link.claim(timeout_s=30)
+    link.send_reset(1, seed=5)
+    link.wait()
+    link.ep[1] = 1  # as if it had been reset: the sim must refuse it for what it is, an env it does not serve
+    link.send([(0.0, 0.0, 0.5, 0.0)] * 2)
     with pytest.raises(StepRefused, match="train/7.*not served"):
-        group_link.wait()
-    group_link.close()
+        link.wait()
+    link.close()
 
 
 def test_a_low_latency_sim_answers_the_largest_group_one_message_holds_and_refuses_a_larger_one(
@@ -206,23 +208,26 @@ def test_a_low_latency_sim_answers_the_largest_group_one_message_holds_and_refus
     start_sim(group, endpoint, namespace, "--low-latency", "--train-envs", str(largest + 1), "--eval-envs", "0")
     client = connect_client(endpoint, low_latency=True)
     client.roster("sim").wait_for(1, timeout_s=60)
-    links = [client.link(env=str(env), step_timeout_s=1.0, max_retries=2) for env in range(largest + 1)]
-    for env, link in enumerate(links):
-        link.claim(timeout_s=30)
-        link.send_reset(1, seed=5 + env)
-        link.wait()
-    fits = GroupLink(client.session, client.keys, "fits", links[:largest])
+    envs = [str(env) for env in range(largest + 1)]
+    too_large = client.link(envs=envs, group="too-large", step_timeout_s=1.0, max_retries=2)
+    for index in range(len(envs)):
+        too_large.claim(timeout_s=30, index=index)
+        too_large.send_reset(1, seed=5 + index, index=index)
+        too_large.wait()
+    fits = client.link(envs=envs[:largest], group="fits", step_timeout_s=1.0, max_retries=2)
+    fits.ep = [1] * largest  # the same holder's envs, reset above
     fits.send([(0.0, 0.0, 0.5, 0.0)] * largest)
     replies = fits.wait()
-    assert [reply.seq for reply in replies] == [1] * largest
+    assert fits.seq == [1] * largest
     assert all(reply.image.shape == (WorldSettings().image_size,) * 2 + (3,) for reply in replies)
     fits.close()
-    too_large = GroupLink(client.session, client.keys, "too-large", links)
-    too_large.send([(0.0, 0.0, 0.5, 0.0)] * len(links))
+    too_large.seq = [1] * largest + [0]  # where ``fits`` left them
+    too_large.send([(0.0, 0.0, 0.5, 0.0)] * len(envs))
     with pytest.raises(StepRefused, match=f"--group-size {largest} or less"):
         too_large.wait()
-    too_large.close()
-    last = links[-1]  # refused before stepping: its env is still at seq 0, so its link's next step is out of order
-    last.send_action((0.0, 0.0, 0.5, 0.0))
+    # Refused before stepping: the last env is still at seq 0, so a step 2 is out of order.
+    last = client.link(env=envs[-1], step_timeout_s=1.0, max_retries=2)
+    last.ep, last.seq = [1], [1]
+    last.send([(0.0, 0.0, 0.5, 0.0)])
     with pytest.raises(StepRefused, match="seq 2 out of order"):
         last.wait()

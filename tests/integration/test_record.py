@@ -18,7 +18,7 @@ from mcap.reader import make_reader
 from encoder_service.model import CMVAE, make_checkpoint
 from eval_service.offline import score_recording
 from learner_service.task import REWARDS, TrackingTask
-from services.messages import LatentMsg, ObservationMsg
+from services.messages import LatentMsg, ObservationMsg, batch_messages
 from services.record import recorded_namespace, recorded_samples
 from tests.integration.conftest import start_sim
 
@@ -30,6 +30,12 @@ STEPS = 20
 def start_encoder(group, endpoint: str, namespace: str, checkpoint, name: str):
     return group.start(name, "encoder", "--connect", endpoint, "--namespace", namespace, "--checkpoint",
                        str(checkpoint), "--ident", "enc-0", "--threads", "1")  # fmt: skip
+
+
+def only(payload: bytes, decode):
+    """The message of a single env's step message (its group of one)."""
+    ((_, msg),) = batch_messages(payload, decode)
+    return msg
 
 
 def wait_for_line(service, text: str, timeout_s: float = 60) -> None:
@@ -58,10 +64,10 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
     link = client.link("train", "0", encoders=encoders, step_timeout_s=5.0)
     link.claim()
     link.send_reset(1, 4242)
-    live = [link.wait()]
+    live = link.wait()
     for step in range(STEPS):
-        link.send_action((0.0, 0.0, 0.5, 0.3 * (-1) ** step))
-        live.append(link.wait())
+        link.send([(0.0, 0.0, 0.5, 0.3 * (-1) ** step)])
+        live += link.wait()
     time.sleep(0.5)
     assert group.stop(recorder) == 0, recorder.log_tail()
 
@@ -73,7 +79,7 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
         by_key.setdefault(key, []).append(payload)
     prefix = f"{namespace}/train/0"
     assert len(by_key[f"{prefix}/action"]) == STEPS and len(by_key[f"{prefix}/obs/enc-0"]) == STEPS + 1
-    recorded_latents = [LatentMsg.decode(payload) for payload in by_key[f"{prefix}/latent"]]
+    recorded_latents = [only(payload, LatentMsg.decode) for payload in by_key[f"{prefix}/latent"]]
     assert [(m.ep, m.seq) for m in recorded_latents] == [(1, seq) for seq in range(STEPS + 1)]
     for reply, msg in zip(live, recorded_latents, strict=True):
         assert np.array_equal(reply.mu, np.asarray(msg.mu, np.float32))
@@ -84,7 +90,7 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
     first = json.loads(images[0][1].data)
     png = np.frombuffer(base64.b64decode(first["data"]), np.uint8)
     frame = cv2.cvtColor(cv2.imdecode(png, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    observed = ObservationMsg.decode(by_key[f"{prefix}/obs/enc-0"][0]).image
+    observed = only(by_key[f"{prefix}/obs/enc-0"][0], ObservationMsg.decode).image
     assert first["format"] == "png" and np.array_equal(frame, observed)
 
     # Scored offline as `swimm eval --recording` does: the return the live steps earned, step by step.
@@ -121,7 +127,7 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
     subscriber.undeclare()
     assert heard[f"{target}/train/0/obs/enc-0"] == by_key[f"{prefix}/obs/enc-0"]  # bit-exact, in order
     assert f"{target}/train/0/action" not in heard  # --keys kept the actions out
-    replayed = sorted((LatentMsg.decode(p) for p in heard[f"{target}/train/0/latent"]), key=lambda m: m.seq)
+    replayed = sorted((only(p, LatentMsg.decode) for p in heard[f"{target}/train/0/latent"]), key=lambda m: m.seq)
     for again, recorded in zip(replayed, recorded_latents, strict=True):
         assert (again.ep, again.seq) == (recorded.ep, recorded.seq)
         np.testing.assert_allclose(again.mu, recorded.mu, atol=1e-5)

@@ -14,7 +14,16 @@ import zenoh
 
 from learner_service.link import StepRefused
 from services.low_latency import largest_low_latency_image_size
-from services.messages import DIRECT_ROUTE, MAX_PAYLOAD_BYTES, PROTOCOL_VERSION, ActionMsg, ErrorMsg, ObservationMsg
+from services.messages import (
+    DIRECT_ROUTE,
+    MAX_PAYLOAD_BYTES,
+    PROTOCOL_VERSION,
+    ActionMsg,
+    BatchItem,
+    BatchMsg,
+    ObservationMsg,
+    batch_messages,
+)
 from services.procs import free_tcp_port, wait_for_port
 from sim_service.settings import WorldSettings
 from sim_service.world import World
@@ -39,10 +48,10 @@ def inprocess_episode(seed: int, steps):
 
 def remote_episode(link, ep: int, seed: int, steps):
     link.send_reset(ep, seed)
-    replies = [link.wait()]
+    replies = link.wait()
     for action in steps:
-        link.send_action(action)
-        replies.append(link.wait())
+        link.send([action])
+        replies += link.wait()
     return [(r.telemetry, r.image.tobytes()) for r in replies]
 
 
@@ -92,9 +101,9 @@ def test_low_latency_links_step_identically_up_to_the_largest_image_they_carry(g
     large = client.link("eval", poll_ms=2.0)
     large.claim()
     large.send_reset(1, 7)
-    assert large.wait().image.shape == (largest, largest, 3)
-    large.send_action((0, 0, 0.5, 0))
-    assert large.wait().image.shape == (largest, largest, 3)
+    assert large.wait()[0].image.shape == (largest, largest, 3)
+    large.send([(0, 0, 0.5, 0)])
+    assert large.wait()[0].image.shape == (largest, largest, 3)
     large.close()
 
 
@@ -113,7 +122,7 @@ def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client,
     expected = inprocess_episode(9, steps)
 
     link.send_reset(1, 9)
-    replies = [link.wait()]
+    replies = link.wait()
     outage = None
     for i, action in enumerate(steps):
         if i == 100:  # kill the router mid-episode and bring it back on the same endpoint
@@ -121,8 +130,8 @@ def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client,
             killed_at = time.monotonic()
             group.start("router-2", "router", "--listen", endpoint, *flags)
             assert wait_for_port("127.0.0.1", port, timeout_s=20)
-        link.send_action(action)
-        replies.append(link.wait())
+        link.send([action])
+        replies += link.wait()
         if i == 100:
             outage = time.monotonic() - killed_at
     got = [(r.telemetry, r.image.tobytes()) for r in replies]
@@ -139,15 +148,21 @@ def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, con
     client = connect_client(endpoint)
     client.roster("sim").wait_for(1, timeout_s=60)
     keys = client.keys
-    errors: queue.Queue[ErrorMsg] = queue.Queue()
+    answers: queue.Queue[BatchItem] = queue.Queue()
     sub = client.session.declare_subscriber(
-        keys.err("train", "0"), lambda s: errors.put(ErrorMsg.decode(s.payload.to_bytes()))
+        keys.obs("train", "0", DIRECT_ROUTE), lambda s: answers.put(BatchMsg.decode(s.payload.to_bytes()).items[0])
     )
 
-    def refused(payload: bytes) -> str:
+    def send(payload: bytes) -> None:
         # BLOCK: a put drops under congestion by default, and an 8 MB payload goes out in many fragments
         client.session.put(keys.action("train", "0"), payload, congestion_control=zenoh.CongestionControl.BLOCK)
-        return errors.get(timeout=10).reason
+
+    def refused(action: bytes) -> str:
+        """The sim's reason for refusing ``action`` as env 0's step (1, 1): the error item that answers it."""
+        send(BatchMsg.alone("0", 1, 1, action, sender=client.holder).encode())
+        answer = answers.get(timeout=10)
+        assert (answer.env, answer.ep, answer.seq, answer.payload) == ("0", 1, 1, b""), answer
+        return answer.error
 
     def action_body(**overrides):
         body = {"v": PROTOCOL_VERSION, "ep": 1, "seq": 1, "t": 0.0, "action": [0, 0, 0, 0],
@@ -161,28 +176,36 @@ def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, con
     link.claim()
     link.send_reset(1, 3)
     link.wait()
+    answers.get(timeout=10)  # the reset's observation
     assert "msgpack" in refused(b"\xc1\xff not msgpack").lower()
     assert "version" in refused(action_body(v=99)).lower()
     assert "action" in refused(action_body(action=[0, 0, 0])).lower()
     assert "nan" in refused(action_body(action=[0, 0, math.nan, 0])).lower()
     assert "[-1, 1]" in refused(action_body(action=[0, 0, 3.0, 0]))
     assert "dive" in refused(action_body(dive_mode="warp")).lower()
-    assert "exceeds" in refused(b"\x00" * (MAX_PAYLOAD_BYTES + 1))
     assert "out of order" in refused(action_body(seq=5))
+    # A message no env's item can be read from has no one to answer: it is counted and logged, and dropped.
+    for unreadable in (b"\xc1\xff not msgpack", b"\x00" * (MAX_PAYLOAD_BYTES + 1), action_body()):
+        send(unreadable)
+    with pytest.raises(queue.Empty):
+        answers.get(timeout=1.0)
 
     # A second learner is refused by name; the first keeps stepping as if nothing happened.
     other = connect_client(endpoint)
     with pytest.raises(Exception, match="held by"):
         other.link().claim()
-    # The refusals above name the step they answer, so the link would take them as its own for (1, 1):
-    # a new episode leaves them behind.
+    # The refusals above name the step they answer, so the link would take them as its own for (1, 1): a new
+    # episode leaves them behind.
     link.send_reset(2, 3)
     link.wait()
-    link.send_action((0, 0, 0.5, 0.1))
-    reply = link.wait()
-    assert (reply.ep, reply.seq) == (2, 1)
+    # A refusal of somebody else's step is not taken for one of the link's own: ``to`` names whom it answers.
+    spoof = ActionMsg(2, 1, (0, 0, 0, 0), sender=other.holder).encode()
+    send(BatchMsg.alone("0", 2, 1, spoof, other.holder).encode())
+    link.send([(0, 0, 0.5, 0.1)])
+    link.wait()
+    assert (link.ep, link.seq) == ([2], [1])
     # The link hears its own refusals (blocking or polling) and raises them with the sim's reason.
-    link.send_action((0, 0, 3.0, 0))
+    link.send([(0, 0, 3.0, 0)])
     with pytest.raises(StepRefused, match=r"\[-1, 1\]"):
         link.wait()
     sub.undeclare()
@@ -204,7 +227,10 @@ def test_a_realtime_sim_steps_on_its_clock_holding_the_latest_action(group, conn
     received: queue.Queue[tuple[float, ObservationMsg]] = queue.Queue()
     sub = client.session.declare_subscriber(
         client.keys.obs("train", "0", DIRECT_ROUTE),
-        lambda s: received.put((time.perf_counter(), ObservationMsg.decode(s.payload.to_bytes()))),
+        lambda s: [
+            received.put((time.perf_counter(), obs))
+            for _, obs in batch_messages(s.payload.to_bytes(), ObservationMsg.decode)
+        ],  # fmt: skip
     )
     link = client.link()
     link.claim()
@@ -230,7 +256,9 @@ def test_a_realtime_sim_steps_on_its_clock_holding_the_latest_action(group, conn
 
     # One action, any seq: applied at the next tick and held until another comes.
     surge = ActionMsg(ep=1, seq=1, action=(0.0, 0.0, 1.0, 0.0), sender=client.holder)
-    client.session.put(client.keys.action("train", "0"), surge.encode())
+    client.session.put(
+        client.keys.action("train", "0"), BatchMsg.alone("0", 1, 1, surge.encode(), client.holder).encode()
+    )
     surging = observe(2.0)
     speeds = [forward_speed(obs.telemetry) for _, obs in surging]
     assert speeds[-1] > 0.3 and speeds[-1] > speeds[len(speeds) // 2] > speeds[0]
@@ -248,8 +276,9 @@ def test_sigterm_stops_a_serving_sim_cleanly_and_it_leaves_the_roster(group, con
     link.claim()
     link.send_reset(1, 3)
     link.wait()
-    link.send_action((0.0, 0.0, 0.5, 0.0))
-    assert link.wait().seq == 1
+    link.send([(0.0, 0.0, 0.5, 0.0)])
+    link.wait()
+    assert link.seq == [1]
     assert group.stop(sim, timeout_s=10) == 0, sim.log_tail()  # not killed after the 10 s
     assert "stopped: {" in sim.log_tail(), sim.log_tail()  # its last words: the metrics it served
     deadline = time.monotonic() + 5

@@ -108,7 +108,7 @@ def test_published_frames_reach_a_live_encoder_as_a_sims_observations(
     encoder process answers with the latent it gives that frame in-process."""
     from encoder_service.inference import LatentEncoder
     from services.keys import Keys
-    from services.messages import LatentMsg, ObservationMsg
+    from services.messages import LatentMsg, ObservationMsg, batch_messages
     from services.presence import Roster
 
     keys = Keys(zenoh_settings(zenoh_router).namespace)
@@ -131,11 +131,11 @@ def test_published_frames_reach_a_live_encoder_as_a_sims_observations(
     while (frame := source.read()) is not None:
         seen.append(as_sim_frame(frame, HFOV_DEG, 64))
     source.close()
-    published = [ObservationMsg.decode(payload) for payload in observations]
+    published = [msg for payload in observations for _, msg in batch_messages(payload, ObservationMsg.decode)]
     assert [msg.seq for msg in published] == list(range(1, FRAMES + 1))
     assert all(np.array_equal(msg.image, frame) for msg, frame in zip(published, seen, strict=True))
     assert all(np.isnan(msg.telemetry.rover_pos[0]) for msg in published)  # a real camera has no ground truth
-    answered = {msg.seq: msg for msg in map(LatentMsg.decode, latents)}
+    answered = {msg.seq: msg for payload in latents for _, msg in batch_messages(payload, LatentMsg.decode)}
     assert len(answered) >= FRAMES - 5  # the first frames may leave before the pilot has seen the encoder
     encoder = LatentEncoder()
     for seq, msg in answered.items():

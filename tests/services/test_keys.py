@@ -1,4 +1,4 @@
-"""Key expressions: the layout under a namespace, id validation, and parsing a step key back to (channel, env).
+"""Key expressions: the layout under a namespace, id validation, and parsing a step key back to (channel, group).
 
 The Zenoh checks use zenoh.KeyExpr itself, so "valid" and "matches" mean what the router will mean.
 """
@@ -31,7 +31,6 @@ def test_step_pipeline_and_control_keys():
     assert KEYS.obs("eval", "0", "enc-2") == "swimm/run-1/eval/0/obs/enc-2"
     assert KEYS.obs("train", "0", "direct") == "swimm/run-1/train/0/obs/direct"
     assert KEYS.latent("train", "3") == "swimm/run-1/train/3/latent"
-    assert KEYS.err("train", "3") == "swimm/run-1/train/3/err"
     assert KEYS.ctl("eval", "1") == "swimm/run-1/eval/1/ctl"
 
 
@@ -48,7 +47,7 @@ def test_every_key_is_a_valid_zenoh_key_expression():
         KEYS.action("train", "0"),
         KEYS.obs("train", "0", "enc-1"),
         KEYS.latent("eval", "7"),
-        KEYS.err("eval", "7"),
+        KEYS.actions("eval"),
         KEYS.ctl("train", "0"),
         KEYS.encoder_inbox("enc-1"),
         KEYS.live("sim", "s1"),
@@ -83,10 +82,11 @@ def test_a_role_watch_sees_its_role_only_and_metrics_never_see_tokens():
         ("swimm/run-1/train/0/obs/enc-1", ("train", "0")),
         ("swimm/run-1/eval/12/action", ("eval", "12")),
         ("swimm/run-1/train/3/latent", ("train", "3")),
+        ("swimm/run-1/train/learner-1.0/latent", ("train", "learner-1.0")),
     ],
 )
-def test_parse_env_key_returns_channel_and_env(key, expected):
-    assert KEYS.parse_env_key(key) == expected
+def test_parse_step_key_returns_channel_and_group(key, expected):
+    assert KEYS.parse_step_key(key) == expected
 
 
 @pytest.mark.parametrize(
@@ -100,22 +100,17 @@ def test_parse_env_key_returns_channel_and_env(key, expected):
         "",
     ],
 )
-def test_parse_env_key_refuses_keys_outside_the_step_pipeline(key):
+def test_parse_step_key_refuses_keys_outside_the_step_pipeline(key):
     with pytest.raises(ValueError, match="is not a step key of namespace 'swimm/run-1'"):
-        KEYS.parse_env_key(key)
+        KEYS.parse_step_key(key)
 
 
-def test_group_keys_stay_apart_from_env_keys_and_reach_their_encoder():
-    group_inbox = zenoh.KeyExpr(KEYS.encoder_group_inbox("enc-1"))
-    env_inbox = zenoh.KeyExpr(KEYS.encoder_inbox("enc-1"))
-    grouped = zenoh.KeyExpr(KEYS.group_obs("train", "learner-1.0", "enc-1"))
-    assert group_inbox.intersects(grouped) and not env_inbox.intersects(grouped)
-    assert not group_inbox.intersects(zenoh.KeyExpr(KEYS.obs("train", "0", "enc-1")))
-    assert not group_inbox.intersects(zenoh.KeyExpr(KEYS.group_obs("train", "learner-1.0", "enc-2")))
-    actions = zenoh.KeyExpr(KEYS.group_actions("eval"))
-    assert actions.intersects(zenoh.KeyExpr(KEYS.group_action("eval", "g")))
-    assert not actions.intersects(zenoh.KeyExpr(KEYS.group_action("train", "g")))
-    assert not actions.intersects(zenoh.KeyExpr(KEYS.action("eval", "groups")))  # an env that happens to be so named
-    assert KEYS.parse_group_key(KEYS.group_latent("eval", "learner-1.2")) == ("eval", "learner-1.2")
-    with pytest.raises(ValueError, match="not a group key"):
-        KEYS.parse_group_key(KEYS.obs("train", "0", "enc-1"))
+def test_a_sim_hears_every_group_of_its_channel_and_an_encoder_every_group_routed_to_it():
+    actions = zenoh.KeyExpr(KEYS.actions("eval"))
+    assert actions.intersects(zenoh.KeyExpr(KEYS.action("eval", "0")))  # a single env: a group of one
+    assert actions.intersects(zenoh.KeyExpr(KEYS.action("eval", "learner-1.0")))
+    assert not actions.intersects(zenoh.KeyExpr(KEYS.action("train", "0")))
+    assert not actions.intersects(zenoh.KeyExpr(KEYS.ctl("eval", "0")))
+    inbox = zenoh.KeyExpr(KEYS.encoder_inbox("enc-1"))
+    assert inbox.intersects(zenoh.KeyExpr(KEYS.obs("train", "learner-1.0", "enc-1")))
+    assert not inbox.intersects(zenoh.KeyExpr(KEYS.obs("train", "learner-1.0", "enc-2")))

@@ -16,12 +16,11 @@ from services.messages import (
     BatchItem,
     BatchMsg,
     DiveMode,
-    ErrorMsg,
     LatentMsg,
     ObservationMsg,
+    batch_messages,
     encode_reply,
     encode_request,
-    stamp_of,
     unpack,
 )
 from services.telemetry import Telemetry
@@ -126,12 +125,6 @@ def test_latent_round_trips_every_field():
     assert LatentMsg.decode(sent.encode()) == sent
 
 
-def test_error_round_trips_reason_and_addressee():
-    sent = ErrorMsg(reason="action components must lie in [-1, 1]", ep=5, seq=6, sender="learner-1")
-    received = ErrorMsg.decode(sent.encode())
-    assert (received.reason, received.ep, received.seq, received.sender) == (sent.reason, 5, 6, "learner-1")
-
-
 def test_control_request_and_reply_carry_version_time_and_fields():
     request = unpack(encode_request("reset", ep=3, seed=42, holder="learner-1"))
     assert request["v"] == PROTOCOL_VERSION
@@ -147,7 +140,6 @@ def test_every_message_carries_version_episode_sequence_and_send_time():
         ActionMsg(ep=1, seq=2, action=(0, 0, 0, 0), sent_at=10.0).encode(),
         ObservationMsg("0", 1, 2, TELEMETRY, _image(), sent_at=10.0).encode(),
         LatentMsg("0", 1, 2, TELEMETRY, (0.0,), (0.0,), "enc-1", sent_at=10.0).encode(),
-        ErrorMsg("no", ep=1, seq=2, sent_at=10.0).encode(),
     ):
         body = unpack(payload)
         assert (body["v"], body["ep"], body["seq"], body["t"]) == (PROTOCOL_VERSION, 1, 2, 10.0)
@@ -293,32 +285,21 @@ def test_latent_with_mismatched_logvar_or_nan_mean_is_refused():
         LatentMsg.decode(_pack({**body, "mu": [math.nan, 0.0]}))
 
 
-def test_error_without_reason_is_refused():
-    body = unpack(ErrorMsg("x").encode())
-    del body["error"]
-    with pytest.raises(BadMessage, match="field 'error' must be a string"):
-        ErrorMsg.decode(_pack(body))
-
-
-# --- the step a refusal answers ---------------------------------------------------------------------------------
-def test_a_refused_message_gives_its_step_and_sender_where_they_can_be_read():
-    out_of_range = ActionMsg(ep=3, seq=7, action=(0.0, 0.0, 3.0, 0.0), sender="learner-1").encode()
-    with pytest.raises(BadMessage):
-        ActionMsg.decode(out_of_range)
-    assert stamp_of(out_of_range) == (3, 7, "learner-1")
-    assert stamp_of(b"\xc1 not msgpack") == (0, 0, "")
-    unreadable_step = msgpack.packb({"v": PROTOCOL_VERSION, "ep": -1, "seq": 7, "sender": "learner-1"})
-    assert stamp_of(unreadable_step) == (0, 0, "")
-    odd_sender = msgpack.packb({"v": PROTOCOL_VERSION, "ep": 3, "seq": 7, "sender": 5})
-    assert stamp_of(odd_sender) == (3, 7, "")
-
-
-def test_a_batch_round_trips_its_items_payloads_and_errors():
+def test_a_batch_round_trips_its_items_payloads_errors_and_addressee():
     action = ActionMsg(ep=3, seq=7, action=(0.0, 0.1, 0.5, -0.25), route="enc-1", sender="learner-x").encode()
-    batch = BatchMsg("learner-x.0", "learner-x", (BatchItem("0", 3, 7, action), BatchItem("1", 2, 9, error="held")))
+    items = (BatchItem("0", 3, 7, action), BatchItem("1", 2, 9, error="held"))
+    batch = BatchMsg("learner-x.0", "sim-1", items, to="learner-x")
     decoded = BatchMsg.decode(batch.encode())
     assert decoded == batch
     assert ActionMsg.decode(decoded.items[0].payload).action == (0.0, 0.1, 0.5, -0.25)
+    assert [(env, msg.seq) for env, msg in batch_messages(batch.encode(), ActionMsg.decode)] == [("0", 7)]
+
+
+def test_a_single_env_travels_as_a_group_of_one_named_after_it():
+    action = ActionMsg(ep=1, seq=2, action=(0.0, 0.0, 0.5, 0.0), sender="learner-x").encode()
+    alone = BatchMsg.decode(BatchMsg.alone("4", 1, 2, action, "learner-x").encode())
+    assert (alone.group, alone.sender, alone.to) == ("4", "learner-x", "")
+    assert alone.items == (BatchItem("4", 1, 2, action),)
 
 
 @pytest.mark.parametrize(

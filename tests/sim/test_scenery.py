@@ -12,7 +12,7 @@ import pytest
 
 from services import control
 from services.keys import Keys
-from services.messages import ObservationMsg
+from services.messages import ObservationMsg, batch_messages
 from services.presence import Roster, announce
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -177,7 +177,8 @@ def test_a_live_sims_reset_takes_a_scene_map(processes, namespace):
     token = announce(session, keys, "learner", holder)
     frames: queue.Queue[ObservationMsg] = queue.Queue()
     subscriber = session.declare_subscriber(
-        keys.obs("train", "0", "direct"), lambda sample: frames.put(ObservationMsg.decode(sample.payload.to_bytes()))
+        keys.obs("train", "0", "direct"),
+        lambda sample: [frames.put(obs) for _, obs in batch_messages(sample.payload.to_bytes(), ObservationMsg.decode)],
     )
     try:
         sims = Roster(session, keys, "sim")
