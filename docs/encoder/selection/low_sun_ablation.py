@@ -1,0 +1,60 @@
+"""Which part of the low-sun split misleads a CMVAE: the dim sun, its low elevation, or the light shafts?
+
+The split's scenery with one group of its ranges put back to the training ones, 150 reset frames each on the
+selection seed (211); prints and writes d and theta MAE per variant and model (docs/encoder.md, "Light shafts").
+
+    MUJOCO_GL=egl python docs/encoder/selection/low_sun_ablation.py OUT.csv CHECKPOINT [CHECKPOINT ...]
+"""
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import label_errors
+from learner_service.task import episode_seed
+from sim_service.dataset import labels_and_pose
+from sim_service.scenery import PRESETS
+from sim_service.settings import WorldSettings
+from sim_service.splits import SPLITS
+from sim_service.world import World
+
+FRAMES, SEED = 150, 211
+TRAINING = PRESETS["varied"]
+VARIANTS = {
+    "low-sun": {},
+    "no shafts": {"light_shafts": [0, 0]},
+    "training sun, split's shafts": {"sun_intensity": TRAINING.sun_intensity,
+                                     "sun_elevation_deg": TRAINING.sun_elevation_deg},
+    "split's sun, training shafts": {"light_shafts": TRAINING.light_shafts, "shaft_strength": TRAINING.shaft_strength},
+    "split's sun and shaft count, training strength": {"shaft_strength": TRAINING.shaft_strength},
+}  # fmt: skip
+
+
+def main(out: str, checkpoints: list[str]) -> None:
+    world = World(WorldSettings())
+    rows = []
+    for checkpoint in checkpoints:
+        encoder = LatentEncoder(checkpoint)
+        for name, ranges in VARIANTS.items():
+            scene = dataclasses.replace(SPLITS["low-sun"].scene, **ranges)
+            frames, labels = [], []
+            for index in range(1, FRAMES + 1):
+                telemetry, frame = world.reset(episode_seed(SEED, index), noise=False, scene=scene)
+                frames.append(frame)
+                labels.append(labels_and_pose(telemetry)[0])
+            mu, _ = encoder.encode(np.stack(frames))
+            errors = label_errors(np.stack(encoder.decode_state(mu), axis=1), np.stack(labels)).mean(axis=0)
+            rows.append({"checkpoint": Path(checkpoint).name, "variant": name, "frames": FRAMES,
+                         "d_mae_m": round(float(errors[0]), 3), "theta_mae_deg": round(float(errors[1]), 2)})  # fmt: skip
+    world.close()
+    table = pd.DataFrame(rows)
+    table.to_csv(out, index=False)
+    print(table.to_string(index=False))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2:])
