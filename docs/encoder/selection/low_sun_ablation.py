@@ -47,9 +47,10 @@ def main(out: str, checkpoints: list[str]) -> None:
                 frames.append(frame)
                 labels.append(labels_and_pose(telemetry)[0])
             mu, _ = encoder.encode(np.stack(frames))
-            errors = label_errors(np.stack(encoder.decode_state(mu), axis=1), np.stack(labels)).mean(axis=0)
+            d_error, theta_error, _ = label_errors(np.stack(encoder.decode_state(mu), axis=1), np.stack(labels)).mean(0)
             rows.append({"checkpoint": Path(checkpoint).name, "variant": name, "frames": FRAMES,
-                         "d_mae_m": round(float(errors[0]), 3), "theta_mae_deg": round(float(errors[1]), 2)})  # fmt: skip
+                         "d_mae_m": round(float(d_error), 3),
+                         "theta_mae_deg": round(float(theta_error), 2)})  # fmt: skip
     world.close()
     table = pd.DataFrame(rows)
     table.to_csv(out, index=False)
