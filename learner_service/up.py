@@ -35,7 +35,7 @@ import yaml
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import encoder_service
-from learner_service.learn_settings import LearnCommandSettings, default_run_dir
+from learner_service.learn_settings import TASK_DOLPHIN_MOTIONS, LearnCommandSettings, default_run_dir
 from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,
@@ -148,7 +148,8 @@ def child_commands(settings: UpSettings, endpoint: str, checkpoint: Path | None)
     children = []
     for index, (first, count) in enumerate(shares):
         eval_envs = settings.sim_eval_envs if index == 0 else 0
-        sim_args = ["--train-envs", str(count), "--first-train-env", str(first), "--eval-envs", str(eval_envs)]
+        sim_args = ["--train-envs", str(count), "--first-train-env", str(first), "--eval-envs", str(eval_envs),
+                    "--dolphin-motion", TASK_DOLPHIN_MOTIONS[settings.learn.task]]  # fmt: skip
         if len(shares) > 1:
             sim_args += ["--ident", f"sim-{index}"]
         children.append(("sim" if len(shares) == 1 else f"sim-{index}", "sim", [*common, *sim_args, *config]))

@@ -33,7 +33,7 @@ from learner_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from services.cli import main as swimm
-from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 from services.settings import ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
@@ -165,6 +165,25 @@ def test_cli_prints_the_table_beside_the_paper(tmp_path, capsys) -> None:
     summary = json.loads((out / "summary.json").read_text())["labels"]["scripted"]
     assert f"{summary['mean_return']:11.3g}" in printed.splitlines()[1]
     assert printed.splitlines()[2].startswith("paper SAC")
+
+
+def test_a_3d_evaluation_reports_the_elevation_error_beside_table_12(tmp_path, capsys) -> None:
+    out = tmp_path / "3d"
+    code = swimm(["eval", "--backend", "inprocess", "--obs", "state", "--task", "3d", "--algo", "scripted",
+                  "--episodes", "1", "--steps", str(STEPS), "--out", str(out), "--no-progress-bar"])  # fmt: skip
+    assert code == 0
+    header, scripted, paper = capsys.readouterr().out.splitlines()[:3]
+    summary = json.loads((out / "summary.json").read_text())["labels"]["scripted"]
+    steps = pd.read_csv(out / "steps.csv")
+    episode = pd.read_csv(out / "episodes.csv").iloc[0]
+    elevation_error = np.minimum(steps["elevation"].abs(), BETA_DEG).mean() / BETA_DEG
+    assert summary["E"] == pytest.approx(elevation_error) and episode["E"] == pytest.approx(elevation_error)
+    assert summary["E"] > 0.0  # the dolphin swims off the rover's depth at once
+    assert steps["d"].to_numpy() == pytest.approx(np.hypot(np.hypot(steps["target_x"] - steps["rover_x"],
+                                                                    steps["target_y"] - steps["rover_y"]),
+                                                           steps["target_z"] - steps["rover_z"]))  # fmt: skip
+    assert header.split()[-1] == "E" and f"{summary['E']:11.3g}" in scripted and paper.endswith("-")
+    assert (out / "metrics.png").is_file() and (out / "depth-scripted.png").is_file()
 
 
 def _get(url: str) -> tuple[str, bytes]:

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from learner_service.up import LocalSystem, ServiceDied, UpSettings
+from learner_service.learn_settings import LearnCommandSettings
+from learner_service.up import LocalSystem, ServiceDied, UpSettings, child_commands
+from services.cli import checked_settings
 from services.procs import ProcessGroup
 from services.settings import SETTINGS_EXIT_CODE
 
@@ -89,3 +91,11 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
         resumed.learn.resume == str(run_dir / "final_model.zip")
         and resumed.learn.hyperparams == settings.learn.hyperparams
     )
+
+
+@pytest.mark.parametrize("task", ["planar", "3d"])
+def test_the_sims_swim_the_dolphin_of_the_learners_task(task: str) -> None:
+    settings = UpSettings(learn=LearnCommandSettings(obs="state", task=task, envs=4), sims=2)
+    for _, command, arguments in child_commands(settings, "tcp/127.0.0.1:7447", None):
+        assert command == "sim"
+        assert checked_settings(command, arguments, environ={}).world.dolphin.motion == task
