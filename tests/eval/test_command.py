@@ -214,6 +214,17 @@ def test_live_view_serves_the_latest_frame_and_episode_metrics(tmp_path) -> None
     assert image.shape == (64, 64, 3) and image.std() > 0.01  # a rendered underwater frame, not a blank
 
 
+def test_the_live_view_keeps_the_running_e_of_a_3d_episode_only() -> None:
+    feed = LiveFeed()
+    flags = {"in_frustum": True, "distance_exceeded": False, "collided": False}
+    terms = {"A": 0.0, "D": 0.0, "S_D": 0.0, "S_A": 0.0}
+    for step, e in enumerate((0.2, 0.4), start=1):
+        feed.update("3d", {"label": "x", "episode": 1, "step": step, **flags, **terms, "E": e})
+        feed.update("planar", {"label": "x", "episode": 1, "step": step, **flags, **terms})
+    assert feed.state("3d")["episode"]["E"] == pytest.approx(0.3)
+    assert "E" not in feed.state("planar")["episode"]
+
+
 def test_watch_scores_each_new_best_model_once_and_stops_when_training_ends(tmp_path, sac_checkpoint) -> None:
     run = tmp_path / "run"
     run.mkdir()
@@ -231,6 +242,20 @@ def test_watch_scores_each_new_best_model_once_and_stops_when_training_ends(tmp_
     assert summary["num_timesteps"] == 1234 and summary["settings"]["obs"] == "state"  # the run's obs, not ours
     assert table["mean_return"].iloc[0] == pytest.approx(summary["labels"]["sac@1234"]["mean_return"])
     assert (out / "checkpoints" / "best-1234.zip").read_bytes() == sac_checkpoint.read_bytes()
+
+
+def test_watch_evaluates_a_3d_run_on_the_3d_task(tmp_path, sac_checkpoint) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    trained = {"algo": "sac", "obs": "state", "reward": "swimm2", "task": "3d"}
+    (run / "settings.json").write_text(json.dumps({"settings": trained}))
+    (run / watch.BEST_MODEL).write_bytes(sac_checkpoint.read_bytes())
+    (run / watch.BEST_MODEL_SCORE).write_text(json.dumps({"num_timesteps": 99, "mean_return": 1.0}))
+    (run / watch.RUN_FINISHED).write_text("{}")
+    given = settings(tmp_path, episodes=1, steps=20, watch=str(run))
+    watch.watch(given, run, tmp_path / "watched", None, None, interval_s=0.05, stop=threading.Event())
+    summary = json.loads((tmp_path / "watched" / "step-99" / "summary.json").read_text())
+    assert summary["settings"]["task"] == "3d" and "E" in summary["labels"]["sac@99"]
 
 
 def test_watcher_waits_for_a_best_model_and_takes_each_version_once(tmp_path) -> None:
