@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import math
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -164,12 +165,31 @@ def world_3d():
     world.close()
 
 
+@pytest.fixture(scope="module")
+def dolphin_pixels(world_3d):
+    """How many of the nose camera's 64 x 64 pixels show the dolphin now: MuJoCo's segmentation rendering."""
+    model = world_3d.model
+    bodies = [model.body(name).id for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
+    dolphin_geoms = np.flatnonzero(np.isin(model.geom_bodyid, bodies))
+    renderer = mujoco.Renderer(model, 64, 64)
+    renderer.enable_segmentation_rendering()
+
+    def count() -> int:
+        renderer.update_scene(world_3d.data, camera="nose")
+        segments = renderer.render()
+        return int(np.sum((segments[..., 1] == mujoco.mjtObj.mjOBJ_GEOM) & np.isin(segments[..., 0], dolphin_geoms)))
+
+    yield count
+    renderer.close()
+
+
 @pytest.mark.parametrize(
     ("elevation", "cause"),
     [(20.0, NO_CAUSE), (-20.0, NO_CAUSE), (50.0, CAUSE_VISIBILITY), (-50.0, CAUSE_VISIBILITY)],
 )
-def test_the_episode_ends_when_the_dolphin_leaves_the_view_vertically(world_3d, elevation, cause) -> None:
-    """Dead ahead, 3 m from the camera horizontally, crossing the view: above or below the frustum ends it."""
+def test_the_episode_ends_when_the_dolphin_leaves_the_view_vertically(world_3d, dolphin_pixels, elevation, cause):
+    """Dead ahead, 3 m from the camera horizontally, crossing the view: above or below the frustum ends it, and
+    the rendered frame agrees: it shows the dolphin exactly when the episode goes on."""
     up = 3.0 * math.tan(math.radians(elevation))
     telemetry, _ = world_3d.place(np.array(ROVER), 0.0, np.array(from_camera(3.0, 0.0, up)), math.pi / 2)
     task = TrackingTask(TaskSettings(obs="state", task="3d"))
@@ -179,6 +199,7 @@ def test_the_episode_ends_when_the_dolphin_leaves_the_view_vertically(world_3d, 
     assert info["theta"] < 1.0 < ALPHA_DEG  # horizontally the dolphin is dead ahead
     assert info["elevation"] == pytest.approx(elevation, abs=1.0)
     assert (info["cause"], terminated) == (cause, cause != NO_CAUSE)
+    assert (dolphin_pixels() > 0) == (cause == NO_CAUSE)
 
 
 def test_the_3d_task_in_process_tracks_the_3d_dolphin() -> None:
