@@ -325,6 +325,11 @@ def reset_options(settings: EvaluationSettings) -> dict[str, Any]:
     return options
 
 
+def vertical_columns(settings: EvaluationSettings) -> tuple[str, ...]:
+    """What the 3d task's tables (sweep, suite) add to Table 12's columns."""
+    return VERTICAL_COLUMNS if settings.task == "3d" else ()
+
+
 def table_columns(summaries: Iterable[dict[str, float]]) -> tuple[str, ...]:
     """Table 12's columns, and E when the summaries are the 3d task's."""
     return TABLE_COLUMNS + VERTICAL_COLUMNS if all("E" in summary for summary in summaries) else TABLE_COLUMNS

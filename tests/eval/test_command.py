@@ -331,6 +331,14 @@ def test_a_sweep_plays_every_condition_once_and_writes_its_table_and_figure(tmp_
     assert image.shape[0] > 200 and image.std() > 0.01
 
 
+def test_a_3d_sweep_adds_e_to_its_table(tmp_path) -> None:
+    given = settings(tmp_path, task="3d", algo=["scripted"], episodes=1, steps=20, sweep=True,
+                     sweep_plan=SweepSettings(severities=[0.0, 1.0], effects=["fog"]))  # fmt: skip
+    table = sweep.sweep(given, given.sweep_plan, Path(given.out))
+    episodes = pd.read_csv(Path(given.out) / "episodes.csv")
+    assert table["E"].tolist() == pytest.approx(episodes["E"].tolist()) and (table["E"] > 0).all()
+
+
 def test_a_latency_sweep_delays_and_holds_what_the_policy_commands(tmp_path) -> None:
     plan = SweepSettings(kind="latency", delays_ms=[0.0, 160.0], rates_hz=[50.0, 10.0])
     given = settings(tmp_path, algo=["scripted"], episodes=1, steps=60, sweep=True, figures=True, sweep_plan=plan)
