@@ -425,6 +425,8 @@ def what_the_run_saved(run_dir: Path, learn: LearnCommandSettings) -> str:
     evaluate = f"swimm eval --backend inprocess --algo {learn.algo} --obs {learn.obs} --checkpoint {policy}"
     if learn.obs == "cmvae" and learn.encoder_checkpoint:
         evaluate += f" --encoder-checkpoint {learn.encoder_checkpoint}"
+    if learn.task != "planar":  # the default: planar runs' command stays as it always read
+        evaluate += f" --task {learn.task}"
     resume_from = run_dir / (LIVE_MODEL if (run_dir / LIVE_MODEL).is_file() else FINAL_MODEL)
     lines.append(f"evaluate the policy: {evaluate} --episodes 20 --seed 127")
     lines.append(f"resume training: swimm up --config {run_dir / UP_CONFIG} --resume {resume_from}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import threading
@@ -83,6 +84,8 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
         f"resume training: swimm up --config {run_dir}/up.yaml --resume {run_dir}/final_model.zip",
     ):
         assert line in text, text
+    three_d = dataclasses.replace(settings.learn, task="3d")
+    assert f"--checkpoint {run_dir}/best_model.zip --task 3d --episodes 20" in what_the_run_saved(run_dir, three_d)
     resumed = cli.checked_settings(
         "up", ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
     )
