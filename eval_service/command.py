@@ -28,7 +28,7 @@ from contextlib import ExitStack, closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from eval_service.engine import TABLE_COLUMNS, EvaluationSettings, check_evaluation, evaluate
+from eval_service.engine import EvaluationSettings, check_evaluation, evaluate, table_columns
 from eval_service.live import LiveFeed, LiveSettings, LiveView
 from eval_service.live_tap import EnvTap, parse_env
 from eval_service.offline import score_recording
@@ -94,7 +94,7 @@ def run(settings: EvalCommandSettings) -> int:
             view = stack.enter_context(LiveView(feed, settings.live.host, settings.live.port))
             print(f"live view: {view.url}", file=sys.stderr)
             for name in settings.live.env:
-                stack.enter_context(closing(EnvTap(settings.zenoh, name, feed, settings.reward)))
+                stack.enter_context(closing(EnvTap(settings.zenoh, name, feed, settings.reward, settings.task)))
         # results go on the metrics key whenever there is a Zenoh network to put them on (not in-process)
         publish = settings.backend == "zenoh" and not settings.recording
         publisher = stack.enter_context(closing(ResultPublisher(settings.zenoh))) if publish else None
@@ -117,8 +117,8 @@ def run(settings: EvalCommandSettings) -> int:
 
 def score_offline(settings: EvalCommandSettings, out: Path) -> dict[str, dict[str, float]]:
     """``--recording``: every recorded episode scored, one label per env, written like a live evaluation."""
-    rows = score_recording(settings.recording, settings.reward)
-    folder = RunFolder(out)
+    rows = score_recording(settings.recording, settings.reward, settings.task)
+    folder = RunFolder(out, vertical=settings.task == "3d")
     for row in rows:
         folder.add_episode(row)
     labels = dict.fromkeys(row["label"] for row in rows)
@@ -129,9 +129,11 @@ def score_offline(settings: EvalCommandSettings, out: Path) -> dict[str, dict[st
 
 
 def print_table(summaries: dict[str, dict[str, float]], out: Path) -> None:
-    """Table 12 on stdout, one line per label and the paper's SAC last."""
+    """Table 12 on stdout (with E for the 3d task), one line per label and the paper's SAC last (it has no E)."""
     width = max(len(label) for label in [*summaries, PAPER_LABEL]) + 2
-    print("".ljust(width) + "".join(name.rjust(11) for name in TABLE_COLUMNS))
+    columns = table_columns(summaries.values())
+    print("".ljust(width) + "".join(name.rjust(11) for name in columns))
     for label, summary in [*summaries.items(), (PAPER_LABEL, PAPER_SAC)]:
-        print(label.ljust(width) + "".join(f"{summary[name]:11.3g}" for name in TABLE_COLUMNS))
+        print(label.ljust(width) + "".join(f"{summary[name]:11.3g}" if name in summary else "-".rjust(11)
+                                           for name in columns))  # fmt: skip
     print(f"run folder: {out}")

@@ -16,7 +16,7 @@ import dataclasses
 import logging
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,11 +30,11 @@ from eval_service.attach import attached_eval_env
 from eval_service.live import LiveFeed, tap_frames
 from eval_service.publish import ResultPublisher
 from eval_service.report import RunFolder
-from learner_service.envs import BACKENDS, IMAGE_MODES, shared_encoder
+from learner_service.envs import BACKENDS, shared_encoder
 from learner_service.evaluation import Contender, play_episodes
 from learner_service.export import SHIPPED_POLICY
 from learner_service.identity import encoder_for
-from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TrackerGains
+from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TaskName, TrackerGains
 from learner_service.metrics import summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings, episode_seed
@@ -42,7 +42,6 @@ from services.results import file_sha256, provenance
 from services.settings import ZenohSettings, to_dict
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
-from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
 S = TypeVar("S", bound="EvaluationSettings")
@@ -50,6 +49,7 @@ S = TypeVar("S", bound="EvaluationSettings")
 KEEP_NOISE = "keep"
 NOISE_CHOICES = (KEEP_NOISE, "off", "on", *(name for name in PRESETS if name != "off"))
 TABLE_COLUMNS = ("mean_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A")  # the paper's Table 12, return first
+VERTICAL_COLUMNS = ("E",)  # what the 3d task's summaries add to the table
 
 
 @dataclass
@@ -63,6 +63,7 @@ class EvaluationSettings:
     steps: int = 3000  # steps per episode (no early termination)
     obs: ObsMode = "cmvae"  # what the policies were trained on
     reward: RewardVersion = "swimm2"
+    task: TaskName = "planar"  # planar | 3d (in-process: the 3d dolphin too; a live sim needs --dolphin-motion 3d)
     noise: str = KEEP_NOISE  # keep (a live sim's noise as it was started) | off | on | murky | harsh
     latency: LatencySettings = field(default_factory=LatencySettings)  # --latency-*: delays (default: the sim's own)
     scripted: TrackerGains = field(default_factory=TrackerGains)  # --scripted-*: the scripted trackers' control law
@@ -93,7 +94,8 @@ def check_evaluation(settings: EvaluationSettings) -> None:
 
 
 def task_settings(settings: EvaluationSettings) -> TaskSettings:
-    return TaskSettings(obs=settings.obs, reward=settings.reward, max_steps=settings.steps, early_termination=False)  # type: ignore[arg-type]
+    return TaskSettings(obs=settings.obs, reward=settings.reward, task=settings.task, max_steps=settings.steps,  # type: ignore[arg-type]
+                        early_termination=False)  # fmt: skip
 
 
 def cmvae_in_use(settings: EvaluationSettings) -> str:
@@ -191,9 +193,9 @@ def evaluation_env(settings: EvaluationSettings, render: bool = False) -> Iterat
                                settings.step_timeout_s, settings.max_retries, encoder) as env:  # fmt: skip
             yield env
         return
-    from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only
+    from learner_service.inprocess_env import TrackingEnv, task_world  # MuJoCo: not in the torch image
 
-    world = WorldSettings(render=render or task.obs in IMAGE_MODES)
+    world = task_world(task, render)
     encoder = shared_encoder(task, checkpoint=settings.encoder_checkpoint or None)
     env = TrackingEnv(task, world, base_seed=settings.seed, encoder=encoder)
     try:
@@ -219,7 +221,8 @@ def evaluate(
     options = reset_options(settings)
     started = time.perf_counter()
     with evaluation_env(settings, render=feed is not None) as env:
-        folder = RunFolder(out)  # only once an env is ours: a refused evaluation leaves no half-empty run folder
+        # only once an env is ours: a refused evaluation leaves no half-empty run folder
+        folder = RunFolder(out, vertical=settings.task == "3d")
         env_name = getattr(env, "name", "inprocess")
         frame = tap_frames(env) if feed is not None else None
         for entry in entries:
@@ -322,5 +325,15 @@ def reset_options(settings: EvaluationSettings) -> dict[str, Any]:
     return options
 
 
+def vertical_columns(settings: EvaluationSettings) -> tuple[str, ...]:
+    """What the 3d task's tables (sweep, suite) add to Table 12's columns."""
+    return VERTICAL_COLUMNS if settings.task == "3d" else ()
+
+
+def table_columns(summaries: Iterable[dict[str, float]]) -> tuple[str, ...]:
+    """Table 12's columns, and E when the summaries are the 3d task's."""
+    return TABLE_COLUMNS + VERTICAL_COLUMNS if all("E" in summary for summary in summaries) else TABLE_COLUMNS
+
+
 def table_line(summary: dict[str, float]) -> str:
-    return ", ".join(f"{name} {summary[name]:.3g}" for name in TABLE_COLUMNS)
+    return ", ".join(f"{name} {summary[name]:.3g}" for name in table_columns([summary]))

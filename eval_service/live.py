@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 PAGE = Path(__file__).with_name("live_view.html")
 RUNNING_MEANS = ("A", "D", "S_D", "S_A")  # per-step terms whose episode mean is the SPEC's metric
+VERTICAL_MEANS = ("E",)  # and the 3d task's, in its rows only
 
 
 @dataclass
@@ -63,9 +64,10 @@ class LiveFeed:
         with self._lock:
             state = self._sources.setdefault(source, _Source())
             if state.row.get("episode") != row.get("episode") or state.row.get("label") != row.get("label"):
-                state.sums, state.steps = dict.fromkeys(RUNNING_MEANS, 0.0), 0
+                means = [name for name in RUNNING_MEANS + VERTICAL_MEANS if name in row]
+                state.sums, state.steps = dict.fromkeys(means, 0.0), 0
                 state.violations = {"left_view": False, "distance_exceeded": False, "collided": False}
-            for name in RUNNING_MEANS:
+            for name in state.sums:
                 state.sums[name] += float(row[name])
             state.violations["left_view"] |= not row["in_frustum"]
             state.violations["distance_exceeded"] |= bool(row["distance_exceeded"])

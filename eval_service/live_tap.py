@@ -18,8 +18,9 @@ import zenoh
 
 from eval_service.live import LiveFeed
 from learner_service.evaluation import step_row
+from learner_service.learn_settings import RewardVersion, TaskName
 from learner_service.metrics import EpisodeMetrics
-from learner_service.task import REWARDS, TrackingTask
+from learner_service.task import TrackingTask, frame_reward
 from services.keys import CHANNELS, Keys, check_chunk
 from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
 from services.session import open_session
@@ -41,11 +42,19 @@ def parse_env(name: str) -> tuple[str, str]:
 class EnvTap:
     """Pushes each new step of ``<channel>/<env>`` into ``feed`` under the source name ``"<channel>/<env>"``."""
 
-    def __init__(self, zenoh_settings: ZenohSettings, name: str, feed: LiveFeed, reward: str = "swimm2") -> None:
+    def __init__(
+        self,
+        zenoh_settings: ZenohSettings,
+        name: str,
+        feed: LiveFeed,
+        reward: RewardVersion = "swimm2",
+        task: TaskName = "planar",
+    ) -> None:
         self.channel, self.env = parse_env(name)
         self.source = f"{self.channel}/{self.env}"
         self.feed = feed
-        self._reward = REWARDS[reward]
+        self._reward = reward
+        self._task = task
         self._lock = threading.Lock()
         self._actions: dict[tuple[int, int], np.ndarray] = {}
         self._observations: dict[tuple[int, int], ObservationMsg] = {}
@@ -100,10 +109,10 @@ class EnvTap:
     def _record(self, msg: ObservationMsg, action: np.ndarray) -> None:
         if self._episode is None or msg.ep != self._episode.episode:
             self._episode = EpisodeMetrics(self.source, msg.ep)
-        info: dict[str, Any] = TrackingTask.info(msg.telemetry)
-        reward = self._reward(info["d"], info["theta"])
+        info: dict[str, Any] = TrackingTask.info(msg.telemetry, self._task)
+        reward = frame_reward(info, self._reward)
         smooth = self._episode.add(info["d"], info["theta"], msg.telemetry.target_in_frustum, msg.telemetry.collided,
-                                   action, reward)  # fmt: skip
+                                   action, reward, info.get("phi"))  # fmt: skip
         total = self._episode.total_reward
         row = step_row(self.source, msg.ep, UNKNOWN_SEED, msg.seq, action, reward, total, info, smooth)
         self.feed.update(self.source, row, msg.image)

@@ -13,9 +13,9 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from learner_service.learn_settings import RewardVersion
+from learner_service.learn_settings import RewardVersion, TaskName
 from learner_service.metrics import EpisodeMetrics
-from learner_service.task import REWARDS, TrackingTask
+from learner_service.task import TrackingTask, frame_reward
 from services.keys import CHANNELS
 from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
 from services.record import recorded_namespace, recorded_samples
@@ -62,7 +62,9 @@ def recorded_episodes(path: str | Path) -> dict[tuple[str, str, int], RecordedEp
     return dict(episodes)
 
 
-def score_recording(path: str | Path, reward: RewardVersion = "swimm2") -> list[dict[str, Any]]:
+def score_recording(
+    path: str | Path, reward: RewardVersion = "swimm2", task: TaskName = "planar"
+) -> list[dict[str, Any]]:
     """One Table 12 row per recorded episode with at least one step, labelled ``<channel>/<env>``."""
     rows = []
     for (channel, env, ep), episode in sorted(recorded_episodes(path).items()):
@@ -71,10 +73,10 @@ def score_recording(path: str | Path, reward: RewardVersion = "swimm2") -> list[
             continue
         metrics = EpisodeMetrics(f"{channel}/{env}", ep)
         for step in steps:
-            info = TrackingTask.info(episode.telemetry[step])
+            info = TrackingTask.info(episode.telemetry[step], task)
             metrics.add(info["d"], info["theta"], episode.telemetry[step].target_in_frustum,
-                        episode.telemetry[step].collided, episode.actions[step],
-                        REWARDS[reward](info["d"], info["theta"]))  # fmt: skip
+                        episode.telemetry[step].collided, episode.actions[step], frame_reward(info, reward),
+                        info.get("phi"))  # fmt: skip
         rows.append(metrics.row() | {"seed": None, "steps": metrics.steps})
     if not rows:
         raise ValueError(f"{path} holds no scorable episode (no env's actions with the observations after them)")

@@ -22,6 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from learner_service.plots import CAUSE_STYLES, PathLike, require_columns, save_figure
+from services.geometry import BETA_DEG
 
 log = logging.getLogger(__name__)
 
@@ -37,11 +38,13 @@ METRIC_MEANINGS = {
     "C'": "fraction of episodes with a collision",
     "S_D": "surge smoothness (mean)",
     "S_A": "yaw smoothness (mean)",
+    "E": "mean elevation error / beta (3d task)",
     "mean_return": "mean episode return",
 }
 
 EPISODE_COLUMNS = ("label", "episode", "return", *VIOLATION_FLAGS.values())
 STEP_COLUMNS = ("label", "episode", "step", "rover_x", "rover_y", "rover_yaw", "target_x", "target_y")
+DEPTH_COLUMNS = ("label", "episode", "step", "rover_z", "target_z", "elevation", "in_frustum")  # a 3d task's steps
 
 
 def plot_returns(episodes_df: pd.DataFrame, path: PathLike) -> Path:
@@ -62,6 +65,11 @@ def plot_metrics(
 def plot_trajectory(steps_df: pd.DataFrame, label: str, episode: int, path: PathLike, arrow_every: int = 100) -> Path:
     """Rover and dolphin paths of one episode seen from above, rover heading arrows every ``arrow_every`` steps."""
     return save_figure(trajectory_figure(steps_df, label, episode, arrow_every), path)
+
+
+def plot_depth(steps_df: pd.DataFrame, label: str, episode: int, path: PathLike) -> Path:
+    """The 3d task's vertical view of one episode: depths of rover and dolphin, and the elevation against beta."""
+    return save_figure(depth_figure(steps_df, label, episode), path)
 
 
 def returns_figure(episodes_df: pd.DataFrame) -> Figure:
@@ -123,10 +131,7 @@ def trajectory_figure(steps_df: pd.DataFrame, label: str, episode: int, arrow_ev
     require_columns(steps_df, STEP_COLUMNS, "per-step table")
     if arrow_every < 1:
         raise ValueError(f"arrow_every must be >= 1, got {arrow_every}")
-    rows = steps_df[(steps_df["label"].astype(str) == str(label)) & (steps_df["episode"] == episode)]
-    if rows.empty:
-        raise ValueError(f"no steps for label {label!r}, episode {episode}")
-    rows = rows.sort_values("step")
+    rows = _episode_rows(steps_df, label, episode)
     fig = Figure(figsize=(7, 7))
     ax = fig.add_subplot()
     ax.plot(rows["rover_x"], rows["rover_y"], color="tab:blue", linewidth=1.2, label="rover")
@@ -160,6 +165,38 @@ def trajectory_figure(steps_df: pd.DataFrame, label: str, episode: int, arrow_ev
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def depth_figure(steps_df: pd.DataFrame, label: str, episode: int) -> Figure:
+    """Depths over the episode, and the elevation with the band the view spans (+-beta), out-of-view steps marked."""
+    require_columns(steps_df, DEPTH_COLUMNS, "3d task's per-step table")
+    rows = _episode_rows(steps_df, label, episode)
+    fig = Figure(figsize=(8, 6))
+    depth, elevation = fig.subplots(2, 1, sharex=True)
+    depth.plot(rows["step"], rows["rover_z"], color="tab:blue", linewidth=1.2, label="rover")
+    depth.plot(rows["step"], rows["target_z"], color="tab:green", linewidth=1.2, label="dolphin")
+    depth.set_ylabel("z (m, 0 at the surface)")
+    depth.set_title(f"{label}, episode {episode}: depth and elevation ({len(rows)} steps)")
+    elevation.axhspan(-BETA_DEG, BETA_DEG, color="tab:green", alpha=0.1, label="in the view's height (+-beta)")
+    elevation.plot(rows["step"], rows["elevation"], color="black", linewidth=1.0, label="dolphin's elevation")
+    out = rows[~_flags(rows["in_frustum"])]
+    if not out.empty:
+        _mark_violations(elevation, out["step"], out["elevation"], "visibility", f"{len(out)} steps", s=10, alpha=0.6)
+    elevation.set_ylabel("elevation (deg)")
+    elevation.set_xlabel("step")
+    for ax in (depth, elevation):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def _episode_rows(steps_df: pd.DataFrame, label: str, episode: int) -> pd.DataFrame:
+    """One episode's steps of one label, in step order; refused naming both when there are none."""
+    rows = steps_df[(steps_df["label"].astype(str) == str(label)) & (steps_df["episode"] == episode)]
+    if rows.empty:
+        raise ValueError(f"no steps for label {label!r}, episode {episode}")
+    return rows.sort_values("step")
 
 
 def _metric_panel(ax: Axes, metric: str, bars: list[tuple[str, float, str, str]]) -> None:

@@ -2,10 +2,13 @@
 
 <out>/steps.csv       one row per step (evaluator.STEP_FIELDS), written as the steps happen
 <out>/episodes.csv    one row per episode (metrics.SUMMARY_ROW_FIELDS + seed, steps)
+
+A 3d task's run folder (``vertical``) adds the elevation columns to both CSVs (VERTICAL_STEP_FIELDS, E).
 <out>/summary.json    Table 12 per label, the paper's SAC beside it, and how the run was made
 <out>/returns.png     return per episode, violations marked by cause (the paper's Figures 13-14)
 <out>/metrics.png     metrics per label beside the paper's SAC (Figure 16)
 <out>/trajectory-<label>.png  rover and dolphin from above in the chosen episode, one per label
+<out>/depth-<label>.png       the 3d task's: depths and elevation in the chosen episode, one per label
 """
 
 from __future__ import annotations
@@ -18,8 +21,8 @@ from typing import Any
 import pandas as pd
 
 from eval_service import plots
-from learner_service.evaluation import STEP_FIELDS
-from learner_service.metrics import SUMMARY_ROW_FIELDS
+from learner_service.evaluation import STEP_FIELDS, VERTICAL_STEP_FIELDS
+from learner_service.metrics import SUMMARY_ROW_FIELDS, VERTICAL_ROW_FIELDS
 from services.results import write_result
 
 log = logging.getLogger(__name__)
@@ -34,11 +37,13 @@ EPISODE_FIELDS = (*SUMMARY_ROW_FIELDS, "seed", "steps")
 class RunFolder:
     """Writes one evaluation's files; the step CSV streams, everything else is written by :meth:`finish`."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, vertical: bool = False) -> None:
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
         self._steps_file = (self.path / "steps.csv").open("w", newline="")
-        self._steps = csv.DictWriter(self._steps_file, fieldnames=STEP_FIELDS)
+        self._step_fields = (*STEP_FIELDS, *VERTICAL_STEP_FIELDS) if vertical else STEP_FIELDS
+        self._episode_fields = (*EPISODE_FIELDS, *VERTICAL_ROW_FIELDS) if vertical else EPISODE_FIELDS
+        self._steps = csv.DictWriter(self._steps_file, fieldnames=self._step_fields)
         self._steps.writeheader()
         self.episodes: list[dict[str, Any]] = []
 
@@ -54,7 +59,7 @@ class RunFolder:
         """Close the step CSV, write episodes.csv, summary.json (``record`` with its provenance ``about``) and the
         figures (the trajectory of episode ``trajectory_episode``; None: no figures); returns summary.json's path."""
         self._steps_file.close()
-        episodes = pd.DataFrame(self.episodes, columns=list(EPISODE_FIELDS))
+        episodes = pd.DataFrame(self.episodes, columns=list(self._episode_fields))
         episodes.to_csv(self.path / "episodes.csv", index=False)
         summary_path = write_result(self.path / "summary.json", {"labels": summaries, PAPER_LABEL: PAPER_SAC, **record},
                                     about)  # fmt: skip
@@ -70,6 +75,8 @@ class RunFolder:
         episode = min(max(1, trajectory_episode), int(episodes["episode"].max()))
         for label in summaries:
             plots.plot_trajectory(steps, label, episode, self.path / f"trajectory-{_file_safe(label)}.png")
+            if "elevation" in self._step_fields:
+                plots.plot_depth(steps, label, episode, self.path / f"depth-{_file_safe(label)}.png")
 
 
 def _file_safe(label: str) -> str:

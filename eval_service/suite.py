@@ -35,6 +35,7 @@ from eval_service.engine import (
     load_policies,
     play_plan,
     run_provenance,
+    vertical_columns,
     with_policy_encoder,
 )
 from learner_service.task import episode_seed
@@ -83,7 +84,7 @@ def run_suite(settings: EvaluationSettings, suite: SuiteSettings, out: Path) -> 
     policies = load_policies(settings, entries)
     plan = [({"condition": split.name}, split.reset_options()) for split in conditions]
     rows, episodes, wall_s = play_plan(settings, entries, policies, plan, desc="suite")
-    table = pd.DataFrame(rows, columns=list(SUITE_COLUMNS))
+    table = pd.DataFrame(rows, columns=[*SUITE_COLUMNS, *vertical_columns(settings)])
     encoder = encoder_errors(settings, conditions, suite.frames)
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "suite.csv", index=False)

@@ -42,6 +42,7 @@ from eval_service.engine import (
     load_policies,
     play_plan,
     run_provenance,
+    vertical_columns,
     with_policy_encoder,
 )
 from services.results import write_result
@@ -130,7 +131,7 @@ def sweep(settings: EvaluationSettings, plan: SweepSettings, out: Path) -> pd.Da
     policies = load_policies(settings, entries)
     played = [({"effects": group, "severity": severity}, options) for group, severity, options in conditions(plan)]
     rows, episodes, wall_s = play_plan(settings, entries, policies, played, desc="sweep")
-    table = pd.DataFrame(rows, columns=list(SWEEP_COLUMNS))
+    table = pd.DataFrame(rows, columns=[*SWEEP_COLUMNS, *vertical_columns(settings)])
     out.mkdir(parents=True, exist_ok=True)
     table.to_csv(out / "sweep.csv", index=False)
     pd.DataFrame(episodes).to_csv(out / "episodes.csv", index=False)

@@ -9,8 +9,8 @@ own claimed eval env (released between evaluations), writes one run folder per c
 summary on the metrics key. It stops when the run writes ``result.json`` (training over) and the last best
 model is scored, or on SIGTERM / Ctrl-C.
 
-The algorithm and observation mode come from the run's ``settings.json`` (a policy must be evaluated on what
-it was trained on); ``--algo`` overrides the algorithm for runs without one.
+The algorithm, observation mode, reward and task come from the run's ``settings.json`` (a policy must be evaluated
+on what it was trained on); ``--algo`` overrides the algorithm for runs without one.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def best_model_version(run_dir: Path) -> tuple[int, str | None] | None:
 
 
 def run_settings(run_dir: Path) -> dict[str, Any]:
-    """The training run's own settings (algo, obs, reward), from its settings.json; {} if it has none yet."""
+    """The training run's own settings (algo, obs, reward, task), from its settings.json; {} if it has none yet."""
     try:
         return dict(json.loads((run_dir / RUN_SETTINGS).read_text()).get("settings", {}))
     except (OSError, ValueError):
@@ -104,9 +104,8 @@ def watch(settings: EvaluationSettings, run_dir: Path, out: Path, feed: LiveFeed
             version, copy = found
             trained = run_settings(run_dir)
             algo = trained.get("algo") or (settings.algo[0] if settings.algo else "sac")
-            obs = trained.get("obs", settings.obs)
-            reward = trained.get("reward", settings.reward)
-            evaluated = replace(settings, obs=obs, reward=reward)
+            evaluated = replace(settings, **{name: trained.get(name, getattr(settings, name))
+                                             for name in ("obs", "reward", "task")})  # fmt: skip
             entry = Contender(f"{algo}@{version}", algo, str(copy))
             summaries = evaluate(evaluated, out / f"step-{version}", [entry], feed, publisher,
                                  about={"watched_run": str(run_dir), "num_timesteps": version})  # fmt: skip

@@ -35,7 +35,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from learner_service.evaluation import play_episodes
 from learner_service.learn_settings import EvalSettings
-from learner_service.metrics import summarise
+from learner_service.metrics import VERTICAL_ROW_FIELDS, summarise
 from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,
@@ -52,6 +52,13 @@ log = logging.getLogger(__name__)
 
 CAUSE_TIME_LIMIT = "time_limit"  # what an episode that ended with an empty ``info["cause"]`` ran into
 CAUSES = (CAUSE_DISTANCE, CAUSE_VISIBILITY, CAUSE_COLLISION, CAUSE_TIME_LIMIT)
+#: Table 12 as an evaluation logs it and writes it to evaluations.csv.
+EVAL_METRICS = ("mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A")
+
+
+def recorded_metrics(summary: dict[str, float]) -> tuple[str, ...]:
+    """What an evaluation records of its summary: Table 12, and E when it is the 3d task's."""
+    return EVAL_METRICS + tuple(name for name in VERTICAL_ROW_FIELDS if name in summary)
 
 
 def ending_of(info: dict[str, Any]) -> str:
@@ -133,7 +140,7 @@ class RolloutEvalCallback(BaseCallback):
         self.evaluations += 1
         self._episodes_since = 0
         self._steps_at_last = self.num_timesteps
-        for key in ("mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A"):
+        for key in recorded_metrics(summary):
             self.logger.record(f"eval/{key}", summary[key])
         self.logger.record("eval/mean_ep_length", float(np.mean([row["steps"] for row in rows])))
         self._append_row(summary, rows, wall_s)
@@ -162,7 +169,7 @@ class RolloutEvalCallback(BaseCallback):
 
     def _append_row(self, summary: dict[str, float], rows: list[dict[str, Any]], wall_s: float) -> None:
         path = self.save_dir / EVALUATIONS_CSV
-        metrics = ["mean_return", "std_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A"]
+        metrics = recorded_metrics(summary)
         fields = ["num_timesteps", "wall_s", *metrics, "returns"]
         new_file = not path.is_file()
         if not new_file:  # a resumed run's file keeps its own columns (an older one may lack wall_s)

@@ -151,7 +151,9 @@ class Training:
         self.overrides = parse_hyperparams(settings.hyperparams)
         self.stop = stop or threading.Event()
         self.progress = RunProgress()  # the run's phase and numbers; `run` gives it its file, bar and publisher
-        self.task = TaskSettings(obs=settings.obs, reward=settings.reward, max_steps=settings.max_steps)
+        self.task = TaskSettings(
+            obs=settings.obs, reward=settings.reward, task=settings.task, max_steps=settings.max_steps
+        )
         self.eval_task = dataclasses.replace(self.task, max_steps=settings.eval.max_steps, early_termination=False)
 
     def proxy_settings(self, channel: str) -> Any:

@@ -27,7 +27,6 @@ from encoder_service import DEFAULT_CHECKPOINT
 from encoder_service.inference import LatentEncoder
 from learner_service.learn_settings import Backend
 from learner_service.task import TaskSettings
-from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
 
@@ -74,10 +73,9 @@ def make_env(
         from learner_service.proxy_env import ProxyEnv  # zenoh only when the backend needs it
 
         return ProxyEnv(task, _require_proxy(proxy), env_id, base_seed, session=session)
-    from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only
+    from learner_service.inprocess_env import TrackingEnv, task_world  # MuJoCo: not in the torch image
 
-    world = WorldSettings(render=task.obs in IMAGE_MODES)
-    return TrackingEnv(task, world, base_seed=base_seed, encoder=shared_encoder(task, encoder))
+    return TrackingEnv(task, task_world(task), base_seed=base_seed, encoder=shared_encoder(task, encoder))
 
 
 def make_vec_env(

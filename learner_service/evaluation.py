@@ -20,7 +20,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from learner_service.metrics import EpisodeMetrics
+from learner_service.metrics import EpisodeMetrics, elevation_error
 from learner_service.registry import Policy
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D
 
@@ -32,6 +32,8 @@ STEP_FIELDS = (
     "psi", "A", "D", "S_D", "S_A", "in_frustum", "distance_exceeded", "collided", "cause",
     "rover_x", "rover_y", "rover_z", "rover_yaw", "target_x", "target_y", "target_z", "target_yaw",
 )  # fmt: skip
+#: What a 3d task's step rows add: the signed elevation and unsigned error (degrees) and the step's term of E.
+VERTICAL_STEP_FIELDS = ("elevation", "phi", "E")
 
 StepSink = Callable[[dict[str, Any]], None]
 
@@ -59,13 +61,13 @@ def step_row(
     """One CSV row: the step's action, reward, geometry, per-step metric terms and both poses.
 
     Yaws are the headings of the bodies' forward vectors in the horizontal plane (degrees, counter-clockwise
-    from +x), which is what the top-down trajectory plot draws.
+    from +x), which is what the top-down trajectory plot draws. A 3d task's rows add VERTICAL_STEP_FIELDS.
     """
     telemetry = info["telemetry"]
     rover_yaw = math.degrees(math.atan2(telemetry.rover_forward[1], telemetry.rover_forward[0]))
     target_yaw = math.degrees(math.atan2(telemetry.target_forward[1], telemetry.target_forward[0]))
     d, theta = float(info["d"]), float(info["theta"])
-    return {
+    row = {
         "label": label, "episode": episode, "seed": seed, "step": step, "t": time.time(),
         "surge": float(action[0]), "yaw_cmd": float(action[1]), "reward": float(reward), "return_so_far": total,
         "d": d, "theta": theta, "azimuth": float(info["azimuth"]), "psi": float(info["psi"]),
@@ -77,6 +79,9 @@ def step_row(
         "target_x": float(telemetry.target_pos[0]), "target_y": float(telemetry.target_pos[1]),
         "target_z": float(telemetry.target_pos[2]), "target_yaw": target_yaw,
     }  # fmt: skip
+    if "phi" in info:
+        row |= {"elevation": float(info["elevation"]), "phi": float(info["phi"]), "E": elevation_error(info["phi"])}
+    return row
 
 
 def play_episodes(
@@ -110,7 +115,7 @@ def play_episodes(
             obs, reward, terminated, truncated, info = env.step(action)
             telemetry = info["telemetry"]
             smooth = metrics.add(info["d"], info["theta"], telemetry.target_in_frustum, telemetry.collided, action,
-                                 float(reward))  # fmt: skip
+                                 float(reward), info.get("phi"))  # fmt: skip
             if on_step is not None:
                 on_step(step_row(label, episode, episode_seed, metrics.steps, action, float(reward),
                                  metrics.total_reward, info, smooth))  # fmt: skip

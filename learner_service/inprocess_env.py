@@ -15,6 +15,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from learner_service.learn_settings import TASK_DOLPHIN_MOTIONS
 from learner_service.task import (
     LATENCY_OPTION,
     NOISE_OPTION,
@@ -29,12 +30,22 @@ from services.telemetry import Telemetry
 from sim_service.latency import latency_option
 from sim_service.noise import noise_option
 from sim_service.scenery import scene_option
-from sim_service.settings import WorldSettings
+from sim_service.settings import DolphinSettings, WorldSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
 
 IMAGE_MODES = ("cmvae", "image")
+
+
+def task_world(task: TaskSettings, render: bool = False) -> WorldSettings:
+    """The world an in-process env of ``task`` runs: its dolphin, rendering when asked or when observations need it.
+
+    A distributed sim's dolphin is its own ``--dolphin-motion``: start it with ``3d`` for the 3d task.
+    """
+    return WorldSettings(
+        render=render or task.obs in IMAGE_MODES, dolphin=DolphinSettings(motion=TASK_DOLPHIN_MOTIONS[task.task])
+    )
 
 
 class TrackingEnv(gym.Env):
@@ -58,7 +69,7 @@ class TrackingEnv(gym.Env):
     ) -> None:
         self.task = TrackingTask(task_settings)
         needs_images = self.task.settings.obs in IMAGE_MODES
-        world_settings = world_settings or WorldSettings(render=needs_images)
+        world_settings = world_settings or task_world(self.task.settings)
         if needs_images and not world_settings.render:
             raise ValueError(f"observation mode {self.task.settings.obs!r} needs a rendering world (render=True)")
         self.world = World(world_settings)
@@ -96,7 +107,7 @@ class TrackingEnv(gym.Env):
         world_seed = episode_seed(self.base_seed, self.episode)
         telemetry, image = self.world.reset(world_seed, noise, scene=scene)
         obs = self.task.reset(self._frame(telemetry, image), seed=world_seed)
-        info = self.task.info(telemetry) | {"ep": self.episode, "seed": world_seed}
+        info = self.task.info(telemetry, self.task.settings.task) | {"ep": self.episode, "seed": world_seed}
         log.debug(
             "episode %d (seed %d) starts at d %.2f m, theta %.1f deg",
             self.episode,

@@ -16,6 +16,10 @@ from services.settings import NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSet
 #: The choices of the learner's settings, typed so that the settings loader checks them wherever they come from.
 ObsMode = Literal["cmvae", "image", "state"]
 RewardVersion = Literal["swimm2", "swimm1"]
+#: planar: the paper's task at one depth; 3d: the dolphin climbs and dives, and elevation counts too.
+TaskName = Literal["planar", "3d"]
+#: The dolphin motion (sim_service.settings.Motion) each task tracks: the 3d task follows its climbs and dives.
+TASK_DOLPHIN_MOTIONS = {"planar": "planar", "3d": "3d"}
 Backend = Literal["zenoh", "inprocess"]
 
 EVAL_UNITS = ("episodes", "steps")
@@ -100,6 +104,7 @@ class LearnCommandSettings:
     algo: str = "sac"  # sac | ppo | td3 | package.module:Class
     obs: ObsMode = "cmvae"
     reward: RewardVersion = "swimm2"
+    task: TaskName = "planar"  # planar | 3d: in-process, the 3d dolphin too; a sim must run --dolphin-motion 3d
     max_steps: PosInt = 3000  # time limit of a training episode (truncation)
     steps: NonNegInt = 0  # training env steps (more when resuming); 0 = the algorithm's n_timesteps (1e6)
     budget_min: NonNegFloat = 0.0  # wall-time budget in minutes (model building and demonstrations count); 0 = none

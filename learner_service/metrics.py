@@ -1,5 +1,8 @@
 """Behaviour metrics of evaluation episodes: the paper's Table 12 (A, D, A', D', C', S_D, S_A) and returns.
 
+The 3d task adds E, the mean elevation error normalised as A is (by beta, half the vertical field of view);
+its D is measured on the 3d distance. Planar episodes have no E, so their rows and summaries are the paper's.
+
 An :class:`EpisodeMetrics` is fed one step at a time, so the evaluator can
 write its per-step CSV (with per-step smoothness) and the per-episode summary
 row from the same numbers; :func:`summarise` folds summary rows into the
@@ -25,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from learner_service.task import NO_CAUSE, violation_cause
-from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 
 #: Smoothness weights, W[0] for the most recent previous action (the SPEC's W_1).
 SMOOTHNESS_WEIGHTS = np.array([0.25, 0.20, 0.15, 0.10, 0.08, 0.06, 0.05, 0.04, 0.04, 0.03])
@@ -44,6 +47,8 @@ SUMMARY_ROW_FIELDS = (
     "S_A",
     "first_cause",
 )
+#: What a 3d task's summary row adds to SUMMARY_ROW_FIELDS.
+VERTICAL_ROW_FIELDS = ("E",)
 
 
 def smoothness(history: Sequence[Sequence[float]], action: Sequence[float]) -> np.ndarray:
@@ -60,6 +65,11 @@ def smoothness(history: Sequence[Sequence[float]], action: Sequence[float]) -> n
     return 0.5 * np.sum(np.abs(current - previous) * weights, axis=0)
 
 
+def elevation_error(phi: float) -> float:
+    """One step's term of E: the unsigned elevation error over beta, capped at 1 like A's."""
+    return min(abs(phi), BETA_DEG) / BETA_DEG
+
+
 class EpisodeMetrics:
     """Accumulates one episode's steps into its summary row."""
 
@@ -74,19 +84,32 @@ class EpisodeMetrics:
         self.first_cause = NO_CAUSE
         self._angle_error_sum = 0.0
         self._distance_error_sum = 0.0
+        self._elevation_error_sum: float | None = None  # stays None in planar episodes, which have no E
         self._smoothness_sum = np.zeros(2)
         self._history: deque[np.ndarray] = deque(maxlen=len(SMOOTHNESS_WEIGHTS))
 
     def add(
-        self, d: float, theta: float, in_frustum: bool, collided: bool, action: Sequence[float], reward: float
+        self,
+        d: float,
+        theta: float,
+        in_frustum: bool,
+        collided: bool,
+        action: Sequence[float],
+        reward: float,
+        phi: float | None = None,
     ) -> tuple[float, float]:
-        """Record one step (``theta`` unsigned, degrees; ``action`` = (surge, yaw)); returns its (s_d, s_a)."""
+        """Record one step (``theta`` unsigned, degrees; ``action`` = (surge, yaw)); returns its (s_d, s_a).
+
+        ``phi`` is the 3d task's unsigned elevation error in degrees (None in the planar task).
+        """
         act = np.asarray(action, dtype=np.float64)
         step_smoothness = smoothness(self._history, act)
         self._history.append(act)
         self._smoothness_sum += step_smoothness
         self._angle_error_sum += min(abs(theta), ALPHA_DEG) / ALPHA_DEG
         self._distance_error_sum += abs(d - OPT_D) / MAX_D
+        if phi is not None:
+            self._elevation_error_sum = (self._elevation_error_sum or 0.0) + elevation_error(phi)
         self.total_reward += reward
         self.steps += 1
         self.left_view |= not in_frustum
@@ -101,7 +124,7 @@ class EpisodeMetrics:
         if self.steps == 0:
             raise ValueError(f"episode {self.episode} of {self.label!r} has no steps to summarise")
         smooth = self._smoothness_sum / self.steps
-        return {
+        row = {
             "label": self.label,
             "episode": self.episode,
             "return": self.total_reward,
@@ -114,10 +137,15 @@ class EpisodeMetrics:
             "S_A": float(smooth[YAW]),
             "first_cause": self.first_cause,
         }
+        if self._elevation_error_sum is not None:
+            row["E"] = self._elevation_error_sum / self.steps
+        return row
 
 
 def summarise(episodes: Iterable[Mapping[str, Any] | EpisodeMetrics]) -> dict[str, float]:
     """Table 12 over episodes (summary rows or accumulators): means of A, D, S_D, S_A; fractions A', D', C'.
+
+    Episodes of the 3d task add the mean of E.
 
     ``std_return`` is the population standard deviation (ddof 0), like the paper's tables over 100 episodes.
     """
@@ -129,7 +157,7 @@ def summarise(episodes: Iterable[Mapping[str, Any] | EpisodeMetrics]) -> dict[st
         return np.asarray([row[name] for row in rows], dtype=np.float64)
 
     returns = column("return")
-    return {
+    summary = {
         "episodes": float(len(rows)),
         "A": float(column("A").mean()),
         "D": float(column("D").mean()),
@@ -141,3 +169,6 @@ def summarise(episodes: Iterable[Mapping[str, Any] | EpisodeMetrics]) -> dict[st
         "mean_return": float(returns.mean()),
         "std_return": float(returns.std()),
     }
+    if all("E" in row for row in rows):
+        summary["E"] = float(column("E").mean())
+    return summary

@@ -237,7 +237,8 @@ class ProxyEnv(gym.Env):
             reply = self._start_episode(world_seed, options)
         self._pending_action = None
         obs = self._last_obs = self.task.reset(self._frame(reply), seed=world_seed)
-        info = self._last_info = self.task.info(reply.telemetry) | {"ep": self.episode, "seed": world_seed}
+        info = self.task.info(reply.telemetry, self.task.settings.task)
+        info = self._last_info = info | {"ep": self.episode, "seed": world_seed}
         log.debug("%s: episode %d (seed %d) starts at d %.2f m", self.name, self.episode, world_seed, info["d"])
         return obs, info
 

@@ -20,8 +20,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from learner_service.learn_settings import ObsMode, RewardVersion
-from services.geometry import ALPHA_DEG, MAX_D, OPT_D, quat_to_euler, relative_geometry
+from learner_service.learn_settings import ObsMode, RewardVersion, TaskName
+from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D, quat_to_euler, relative_geometry, vertical_geometry
 from services.messages import IMAGE_SHAPE
 from services.telemetry import Telemetry
 
@@ -59,6 +59,7 @@ def episode_seed(base_seed: int, ep: int) -> int:
 class TaskSettings:
     obs: ObsMode = "cmvae"
     reward: RewardVersion = "swimm2"
+    task: TaskName = "planar"  # 3d: distance in 3d and an elevation term in the reward (docs/learner.md, "Tasks")
     n_prev_actions: int = 10  # ActPrev length
     use_latent_mean: bool = True  # False: feed z sampled from N(mu, exp(logvar)), as the reference does
     max_steps: int = 3000  # truncation (time limit)
@@ -75,6 +76,8 @@ class TaskSettings:
         if self.reward not in typing.get_args(RewardVersion):
             choices = ", ".join(typing.get_args(RewardVersion))
             raise ValueError(f"unknown reward version {self.reward!r}; choose {choices}")
+        if self.task not in typing.get_args(TaskName):
+            raise ValueError(f"unknown task {self.task!r}; choose {', '.join(typing.get_args(TaskName))}")
         if self.n_prev_actions < 0 or self.max_steps < 1:
             raise ValueError("n_prev_actions must be >= 0 and max_steps >= 1")
 
@@ -107,6 +110,28 @@ def swimm1_reward(d: float, theta: float) -> float:
 
 
 REWARDS = {"swimm2": swimm2_reward, "swimm1": swimm1_reward}
+
+
+def swimm2_elevation_penalty(phi: float, k: float = REWARD_K) -> float:
+    """The 3d task's elevation term for SWiMM 2.0, in [0, 1]: the azimuth penalty's form against beta."""
+    return math.log1p(k * min(phi, BETA_DEG)) / math.log1p(k * BETA_DEG)
+
+
+def swimm1_elevation_penalty(phi: float) -> float:
+    """The 3d task's elevation term for SWiMM 1.0: linear like its azimuth term, 1 at 90 degrees."""
+    return abs(phi) / 90.0
+
+
+#: The 3d task's reward is the version's reward at the 3d distance, less this penalty of the elevation error.
+ELEVATION_PENALTIES = {"swimm2": swimm2_elevation_penalty, "swimm1": swimm1_elevation_penalty}
+
+
+def frame_reward(info: dict[str, Any], version: RewardVersion) -> float:
+    """The reward of one frame from its :meth:`TrackingTask.info`: the version's, less the 3d task's elevation term."""
+    reward = REWARDS[version](info["d"], info["theta"])
+    if "phi" in info:
+        reward -= ELEVATION_PENALTIES[version](info["phi"])
+    return reward
 
 
 def violation_cause(d: float, in_frustum: bool, collided: bool) -> str:
@@ -209,8 +234,8 @@ class TrackingTask:
         self._history.append(self.clip_action(action))
         self.elapsed_steps += 1
         obs = self.observation(frame)
-        info = self.info(frame.telemetry)
-        reward = REWARDS[self.settings.reward](info["d"], info["theta"])
+        info = self.info(frame.telemetry, self.settings.task)
+        reward = frame_reward(info, self.settings.reward)
         terminated = self.settings.early_termination and info["cause"] != NO_CAUSE
         return obs, reward, terminated, info
 
@@ -220,17 +245,25 @@ class TrackingTask:
         return self.elapsed_steps >= self.settings.max_steps
 
     @staticmethod
-    def info(telemetry: Telemetry) -> dict[str, Any]:
-        """Geometry (degrees) and the violated condition of one frame, with the telemetry itself for baselines."""
+    def info(telemetry: Telemetry, task: TaskName = "planar") -> dict[str, Any]:
+        """Geometry (degrees) and the violated condition of one frame, with the telemetry itself for baselines.
+
+        The 3d task's ``d`` is the 3d distance (so the distance penalty, metric and limit hold in 3d), and it adds
+        ``elevation`` (signed) and ``phi`` (unsigned). Leaving view vertically needs no term of its own: the sim's
+        frustum test (``target_in_frustum``) is the camera's whole pyramid, top and bottom included.
+        """
         geometry = relative_geometry(telemetry)
-        return {
+        info = {
             "telemetry": telemetry,
             "d": geometry.d,
             "theta": geometry.theta,
             "azimuth": geometry.azimuth,
             "psi": geometry.psi,
-            "cause": violation_cause(geometry.d, telemetry.target_in_frustum, telemetry.collided),
         }
+        if task == "3d":
+            vertical = vertical_geometry(telemetry)
+            info |= {"d": vertical.distance, "elevation": vertical.elevation, "phi": vertical.phi}
+        return info | {"cause": violation_cause(info["d"], telemetry.target_in_frustum, telemetry.collided)}
 
     # --- observations --------------------------------------------------------------------------
     def action_history(self) -> np.ndarray:

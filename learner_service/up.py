@@ -35,7 +35,7 @@ import yaml
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import encoder_service
-from learner_service.learn_settings import LearnCommandSettings, default_run_dir
+from learner_service.learn_settings import TASK_DOLPHIN_MOTIONS, LearnCommandSettings, default_run_dir
 from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,
@@ -148,7 +148,8 @@ def child_commands(settings: UpSettings, endpoint: str, checkpoint: Path | None)
     children = []
     for index, (first, count) in enumerate(shares):
         eval_envs = settings.sim_eval_envs if index == 0 else 0
-        sim_args = ["--train-envs", str(count), "--first-train-env", str(first), "--eval-envs", str(eval_envs)]
+        sim_args = ["--train-envs", str(count), "--first-train-env", str(first), "--eval-envs", str(eval_envs),
+                    "--dolphin-motion", TASK_DOLPHIN_MOTIONS[settings.learn.task]]  # fmt: skip
         if len(shares) > 1:
             sim_args += ["--ident", f"sim-{index}"]
         children.append(("sim" if len(shares) == 1 else f"sim-{index}", "sim", [*common, *sim_args, *config]))
@@ -424,6 +425,8 @@ def what_the_run_saved(run_dir: Path, learn: LearnCommandSettings) -> str:
     evaluate = f"swimm eval --backend inprocess --algo {learn.algo} --obs {learn.obs} --checkpoint {policy}"
     if learn.obs == "cmvae" and learn.encoder_checkpoint:
         evaluate += f" --encoder-checkpoint {learn.encoder_checkpoint}"
+    if learn.task != "planar":  # the default: planar runs' command stays as it always read
+        evaluate += f" --task {learn.task}"
     resume_from = run_dir / (LIVE_MODEL if (run_dir / LIVE_MODEL).is_file() else FINAL_MODEL)
     lines.append(f"evaluate the policy: {evaluate} --episodes 20 --seed 127")
     lines.append(f"resume training: swimm up --config {run_dir / UP_CONFIG} --resume {resume_from}")

@@ -18,12 +18,16 @@ HFOV_DEG = math.degrees(2 * math.atan(CAMERA_SENSOR_MM[0] / (2 * CAMERA_FOCAL_MM
 VFOV_DEG = math.degrees(2 * math.atan(CAMERA_SENSOR_MM[1] / (2 * CAMERA_FOCAL_MM)))
 #: alpha: half the horizontal field of view, the largest azimuth that keeps the target in view.
 ALPHA_DEG = HFOV_DEG / 2
+#: beta: half the vertical field of view, the largest elevation that keeps the target in view (the 3d task).
+BETA_DEG = VFOV_DEG / 2
 
 OPT_D = 6.0
 MAX_D = 4.0
 #: The nose camera sits this far ahead of the rover's centre (sim_service/assets: camera "nose"), where the SPEC
 #: measures d and theta from.
 CAMERA_AHEAD_M = 0.235
+#: ... and this far above it; it is mounted level, looking along the rover's forward axis (no tilt).
+CAMERA_ABOVE_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -32,6 +36,15 @@ class RelativeGeometry:
     theta: float  # unsigned azimuth error, degrees in [0, 180]
     azimuth: float  # signed azimuth, degrees in (-180, 180], positive = target to the rover's left
     psi: float  # target yaw relative to the rover, degrees in (-180, 180]
+
+
+@dataclass(frozen=True)
+class VerticalGeometry:
+    """What the 3d task adds to :class:`RelativeGeometry`."""
+
+    distance: float  # 3d distance rover -> target, m (d is its horizontal part)
+    elevation: float  # signed elevation in the camera's frame, degrees in [-90, 90], positive = target above
+    phi: float  # unsigned elevation error, degrees in [0, 90]
 
 
 def quat_to_euler(quat) -> tuple[float, float, float]:
@@ -68,6 +81,34 @@ def relative_geometry(t: Telemetry) -> RelativeGeometry:
     azimuth = wrap_deg(bearing - rover_yaw)
     psi = wrap_deg(yaw_of(t.target_forward) - rover_yaw)
     return RelativeGeometry(d=d, theta=abs(azimuth), azimuth=azimuth, psi=psi)
+
+
+def rotate_into_body(quat, vector) -> tuple[float, float, float]:
+    """``vector`` (world frame) in the frame of the body whose orientation is the (w, x, y, z) ``quat``."""
+    w, x, y, z = quat
+    vx, vy, vz = vector
+    # Rotation by the conjugate quaternion, written out: t = 2 (v x u), v' = v + w t - u x t, with u = (x, y, z).
+    tx, ty, tz = 2 * (z * vy - y * vz), 2 * (x * vz - z * vx), 2 * (y * vx - x * vy)
+    return (
+        vx + w * tx - (y * tz - z * ty),
+        vy + w * ty - (z * tx - x * tz),
+        vz + w * tz - (x * ty - y * tx),
+    )
+
+
+def vertical_geometry(t: Telemetry) -> VerticalGeometry:
+    """The target's 3d distance from the rover and its elevation seen from the camera.
+
+    The distance is measured from the rover's centre, like d; the elevation from the camera, in its own frame
+    (level, looking along the rover's forward axis), so a pitching rover tilts the view as the picture does.
+    Elevation is the spherical one, the angle above the camera's horizontal plane: the vertical counterpart of
+    the azimuth, which is the angle within that plane.
+    """
+    offset = tuple(target - rover for target, rover in zip(t.target_pos, t.rover_pos, strict=True))
+    ahead, left, up = rotate_into_body(t.rover_quat, offset)
+    ahead, up = ahead - CAMERA_AHEAD_M, up - CAMERA_ABOVE_M
+    elevation = math.degrees(math.atan2(up, math.hypot(ahead, left)))
+    return VerticalGeometry(distance=math.dist(t.target_pos, t.rover_pos), elevation=elevation, phi=abs(elevation))
 
 
 def camera_centred(rover_xy, rover_yaw_deg, target_xy) -> tuple:

@@ -33,7 +33,7 @@ from learner_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from services.cli import main as swimm
-from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 from services.settings import ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
@@ -167,6 +167,25 @@ def test_cli_prints_the_table_beside_the_paper(tmp_path, capsys) -> None:
     assert printed.splitlines()[2].startswith("paper SAC")
 
 
+def test_a_3d_evaluation_reports_the_elevation_error_beside_table_12(tmp_path, capsys) -> None:
+    out = tmp_path / "3d"
+    code = swimm(["eval", "--backend", "inprocess", "--obs", "state", "--task", "3d", "--algo", "scripted",
+                  "--episodes", "1", "--steps", str(STEPS), "--out", str(out), "--no-progress-bar"])  # fmt: skip
+    assert code == 0
+    header, scripted, paper = capsys.readouterr().out.splitlines()[:3]
+    summary = json.loads((out / "summary.json").read_text())["labels"]["scripted"]
+    steps = pd.read_csv(out / "steps.csv")
+    episode = pd.read_csv(out / "episodes.csv").iloc[0]
+    elevation_error = np.minimum(steps["elevation"].abs(), BETA_DEG).mean() / BETA_DEG
+    assert summary["E"] == pytest.approx(elevation_error) and episode["E"] == pytest.approx(elevation_error)
+    assert summary["E"] > 0.0  # the dolphin swims off the rover's depth at once
+    assert steps["d"].to_numpy() == pytest.approx(np.hypot(np.hypot(steps["target_x"] - steps["rover_x"],
+                                                                    steps["target_y"] - steps["rover_y"]),
+                                                           steps["target_z"] - steps["rover_z"]))  # fmt: skip
+    assert header.split()[-1] == "E" and f"{summary['E']:11.3g}" in scripted and paper.endswith("-")
+    assert (out / "metrics.png").is_file() and (out / "depth-scripted.png").is_file()
+
+
 def _get(url: str) -> tuple[str, bytes]:
     with urllib.request.urlopen(url, timeout=10) as reply:
         return reply.headers["Content-Type"], reply.read()
@@ -195,6 +214,17 @@ def test_live_view_serves_the_latest_frame_and_episode_metrics(tmp_path) -> None
     assert image.shape == (64, 64, 3) and image.std() > 0.01  # a rendered underwater frame, not a blank
 
 
+def test_the_live_view_keeps_the_running_e_of_a_3d_episode_only() -> None:
+    feed = LiveFeed()
+    flags = {"in_frustum": True, "distance_exceeded": False, "collided": False}
+    terms = {"A": 0.0, "D": 0.0, "S_D": 0.0, "S_A": 0.0}
+    for step, e in enumerate((0.2, 0.4), start=1):
+        feed.update("3d", {"label": "x", "episode": 1, "step": step, **flags, **terms, "E": e})
+        feed.update("planar", {"label": "x", "episode": 1, "step": step, **flags, **terms})
+    assert feed.state("3d")["episode"]["E"] == pytest.approx(0.3)
+    assert "E" not in feed.state("planar")["episode"]
+
+
 def test_watch_scores_each_new_best_model_once_and_stops_when_training_ends(tmp_path, sac_checkpoint) -> None:
     run = tmp_path / "run"
     run.mkdir()
@@ -212,6 +242,20 @@ def test_watch_scores_each_new_best_model_once_and_stops_when_training_ends(tmp_
     assert summary["num_timesteps"] == 1234 and summary["settings"]["obs"] == "state"  # the run's obs, not ours
     assert table["mean_return"].iloc[0] == pytest.approx(summary["labels"]["sac@1234"]["mean_return"])
     assert (out / "checkpoints" / "best-1234.zip").read_bytes() == sac_checkpoint.read_bytes()
+
+
+def test_watch_evaluates_a_3d_run_on_the_3d_task(tmp_path, sac_checkpoint) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    trained = {"algo": "sac", "obs": "state", "reward": "swimm2", "task": "3d"}
+    (run / "settings.json").write_text(json.dumps({"settings": trained}))
+    (run / watch.BEST_MODEL).write_bytes(sac_checkpoint.read_bytes())
+    (run / watch.BEST_MODEL_SCORE).write_text(json.dumps({"num_timesteps": 99, "mean_return": 1.0}))
+    (run / watch.RUN_FINISHED).write_text("{}")
+    given = settings(tmp_path, episodes=1, steps=20, watch=str(run))
+    watch.watch(given, run, tmp_path / "watched", None, None, interval_s=0.05, stop=threading.Event())
+    summary = json.loads((tmp_path / "watched" / "step-99" / "summary.json").read_text())
+    assert summary["settings"]["task"] == "3d" and "E" in summary["labels"]["sac@99"]
 
 
 def test_watcher_waits_for_a_best_model_and_takes_each_version_once(tmp_path) -> None:
@@ -285,6 +329,14 @@ def test_a_sweep_plays_every_condition_once_and_writes_its_table_and_figure(tmp_
     assert camera["mean_return"].iloc[0] != camera["mean_return"].iloc[2]
     image = matplotlib.image.imread(Path(given.out) / "sweep.png")
     assert image.shape[0] > 200 and image.std() > 0.01
+
+
+def test_a_3d_sweep_adds_e_to_its_table(tmp_path) -> None:
+    given = settings(tmp_path, task="3d", algo=["scripted"], episodes=1, steps=20, sweep=True,
+                     sweep_plan=SweepSettings(severities=[0.0, 1.0], effects=["fog"]))  # fmt: skip
+    table = sweep.sweep(given, given.sweep_plan, Path(given.out))
+    episodes = pd.read_csv(Path(given.out) / "episodes.csv")
+    assert table["E"].tolist() == pytest.approx(episodes["E"].tolist()) and (table["E"] > 0).all()
 
 
 def test_a_latency_sweep_delays_and_holds_what_the_policy_commands(tmp_path) -> None:

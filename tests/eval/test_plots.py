@@ -14,6 +14,7 @@ from matplotlib.quiver import Quiver
 
 from eval_service import plots
 from learner_service import plots as training_plots
+from services.geometry import BETA_DEG
 
 PAPER_SAC = {
     "A": 2.67e-2,
@@ -168,6 +169,23 @@ def test_trajectory_figure_draws_both_paths_ends_and_heading_arrows():
     np.testing.assert_allclose(arrows.V[1], math.sin(every * 0.01 + math.pi / 2), atol=1e-9)
     assert ax.get_aspect() == 1.0
     assert ax.get_xlabel() == "x (m)" and ax.get_ylabel() == "y (m)"
+
+
+def test_depth_figure_draws_both_depths_and_the_elevation_against_beta(tmp_path):
+    count = 250
+    steps = _steps(count).assign(rover_z=-4.0, target_z=lambda df: -4.0 + np.sin(df["step"] * 0.02),
+                                 elevation=lambda df: 40.0 * np.sin(df["step"] * 0.02))  # fmt: skip
+    depth, elevation = plots.depth_figure(steps, "sac", 2).axes
+    rover, dolphin = depth.get_lines()
+    assert (rover.get_label(), dolphin.get_label()) == ("rover", "dolphin") and len(dolphin.get_xdata()) == count
+    np.testing.assert_allclose(dolphin.get_ydata()[:3], -4.0 + np.sin([0.0, 0.02, 0.04]))  # sorted by step
+    (band,) = elevation.patches
+    np.testing.assert_allclose(band.get_extents().transformed(elevation.transData.inverted()).get_points()[:, 1],
+                               [-BETA_DEG, BETA_DEG], atol=1e-6)  # fmt: skip
+    assert len(elevation.collections[0].get_offsets()) == 5  # the out-of-view steps 0, 50, ..., 200
+    _assert_png(plots.plot_depth(steps, "sac", 2, tmp_path / "depth.png"), 800, 600)
+    with pytest.raises(ValueError, match="elevation"):
+        plots.depth_figure(_steps(), "sac", 2)
 
 
 def test_trajectory_of_unknown_episode_raises():

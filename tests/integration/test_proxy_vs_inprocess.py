@@ -68,6 +68,18 @@ def test_state_mode_over_zenoh_equals_in_process(group, namespace, zenoh_setting
     assert_same_runs(remote, local)
 
 
+def test_3d_task_over_zenoh_equals_in_process(group, namespace, zenoh_settings) -> None:
+    """A sim started with the 3d dolphin serves the 3d task as the in-process env's own 3d world does."""
+    endpoint = group.start_router()
+    start_sim(group, endpoint, namespace, "--eval-envs", "0", "--dolphin-motion", "3d")
+    task = TaskSettings(obs="state", task="3d", max_steps=MAX_STEPS)
+    remote = record_run(ProxyEnv(task, ProxySettings(zenoh=zenoh_settings(endpoint)), base_seed=BASE_SEED))
+    local = record_run(TrackingEnv(task, base_seed=BASE_SEED))
+    assert_same_runs(remote, local)
+    target_z = np.array([row[0][8] for row in local])  # the state observation's target z
+    assert np.ptp(target_z) > 0.1  # the dolphin changed depth: the 3d motion ran on both sides
+
+
 def test_cmvae_mode_over_zenoh_equals_in_process(group, namespace, zenoh_settings, tmp_path) -> None:
     torch.manual_seed(0)
     checkpoint = tmp_path / "tiny-cmvae.pt"

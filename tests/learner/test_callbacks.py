@@ -174,3 +174,19 @@ def test_stop_event_ends_training_at_the_next_step() -> None:
     model.learn(1_000, callback=[StopAt(), StopOnEvent(stop)])
     env.close()
     assert model.num_timesteps == 30
+
+
+def test_evaluations_of_the_3d_task_record_e(tmp_path: Path) -> None:
+    train_task, eval_task = (TaskSettings(obs="state", task="3d", max_steps=40, early_termination=early)
+                             for early in (True, False))  # fmt: skip
+    env = VecMonitor(DummyVecEnv([lambda: TrackingEnv(train_task, base_seed=97)]), info_keywords=("cause",))
+    eval_env = TrackingEnv(eval_task, base_seed=113)
+    schedule = EvalSettings(episodes=1, min_steps=0, every=50, unit="steps", seed=113, max_steps=40)
+    model = make_model("sac", env, seed=97, overrides=TINY_SAC)
+    model.learn(100, callback=RolloutEvalCallback(eval_env, schedule, tmp_path))
+    table = pd.read_csv(tmp_path / EVALUATIONS_CSV)
+    assert table.columns[-2:].tolist() == ["E", "returns"] and (table["E"] > 0).all()
+    best = table.loc[table["mean_return"].idxmax()]
+    assert json.loads((tmp_path / BEST_MODEL_SCORE).read_text())["E"] == pytest.approx(best["E"])
+    env.close()
+    eval_env.close()

@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from learner_service.metrics import SUMMARY_ROW_FIELDS, EpisodeMetrics, smoothness, summarise
-from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+from learner_service.metrics import (
+    SUMMARY_ROW_FIELDS,
+    VERTICAL_ROW_FIELDS,
+    EpisodeMetrics,
+    smoothness,
+    summarise,
+)
+from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 
 
 def test_the_papers_worked_example_with_surge_first() -> None:
@@ -126,6 +132,21 @@ def test_summary_over_episodes() -> None:
     assert summary["S_A"] == pytest.approx(0.03)
     assert summary["mean_return"] == pytest.approx(100.0)
     assert summary["std_return"] == pytest.approx(np.sqrt((0 + 200**2 + 200**2 + 0) / 4))
+
+
+def test_3d_episodes_add_the_mean_elevation_error_normalised_as_a_is() -> None:
+    metrics = EpisodeMetrics("3d", 1)
+    for phi in (0.0, 10.0, 50.0):  # the last one capped at beta
+        metrics.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0, phi)
+    row = metrics.row()
+    assert tuple(row) == SUMMARY_ROW_FIELDS + VERTICAL_ROW_FIELDS
+    assert row["E"] == pytest.approx((10.0 / BETA_DEG + 1.0) / 3)
+    other = EpisodeMetrics("3d", 2)
+    other.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0, BETA_DEG / 2)
+    assert summarise([metrics, other])["E"] == pytest.approx((row["E"] + 0.5) / 2)
+    planar = EpisodeMetrics("planar", 1)
+    planar.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0)
+    assert "E" not in planar.row() and "E" not in summarise([planar])
 
 
 def test_summary_accepts_accumulators_and_refuses_nothing() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import subprocess
 import sys
 import threading
@@ -9,7 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from learner_service.up import LocalSystem, ServiceDied, UpSettings
+from learner_service.learn_settings import LearnCommandSettings
+from learner_service.up import LocalSystem, ServiceDied, UpSettings, child_commands
+from services.cli import checked_settings
 from services.procs import ProcessGroup
 from services.settings import SETTINGS_EXIT_CODE
 
@@ -81,6 +84,8 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
         f"resume training: swimm up --config {run_dir}/up.yaml --resume {run_dir}/final_model.zip",
     ):
         assert line in text, text
+    three_d = dataclasses.replace(settings.learn, task="3d")
+    assert f"--checkpoint {run_dir}/best_model.zip --task 3d --episodes 20" in what_the_run_saved(run_dir, three_d)
     resumed = cli.checked_settings(
         "up", ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
     )
@@ -89,3 +94,11 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
         resumed.learn.resume == str(run_dir / "final_model.zip")
         and resumed.learn.hyperparams == settings.learn.hyperparams
     )
+
+
+@pytest.mark.parametrize("task", ["planar", "3d"])
+def test_the_sims_swim_the_dolphin_of_the_learners_task(task: str) -> None:
+    settings = UpSettings(learn=LearnCommandSettings(obs="state", task=task, envs=4), sims=2)
+    for _, command, arguments in child_commands(settings, "tcp/127.0.0.1:7447", None):
+        assert command == "sim"
+        assert checked_settings(command, arguments, environ={}).world.dolphin.motion == task
