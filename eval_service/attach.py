@@ -19,6 +19,7 @@ from learner_service.proxy_env import ClaimRefused, ProxyEnv, ProxySettings
 from learner_service.task import TaskSettings
 from services.control import survey
 from services.keys import Keys
+from services.messages import InfoReply
 from services.session import build_config, describe_endpoints, open_session
 from services.settings import ZenohSettings
 
@@ -36,21 +37,21 @@ def eval_env_pattern(keys: Keys) -> str:
     return keys.ctl(EVAL_CHANNEL, "*")
 
 
-def discover_eval_envs(session: Any, keys: Keys, wait_s: float) -> list[dict[str, Any]]:
+def discover_eval_envs(session: Any, keys: Keys, wait_s: float) -> list[InfoReply]:
     """The ``info`` of every eval env that answers, waiting (bounded, logged) until at least one does."""
     deadline = time.monotonic() + wait_s
     logged = False
     while True:
-        found = [info for info in survey(session, eval_env_pattern(keys), timeout_s=2.0) if "env" in info]
+        found = survey(session, eval_env_pattern(keys), timeout_s=2.0)
         if found or time.monotonic() >= deadline:
-            return sorted(found, key=lambda info: (str(info.get("sim", "")), str(info["env"])))
+            return sorted(found, key=lambda info: (info.sim, info.env))
         if not logged:
             log.info("no eval env answers on %s yet; waiting up to %.0f s for a sim", eval_env_pattern(keys), wait_s)
             logged = True
         time.sleep(SURVEY_POLL_S)
 
 
-def free_env_ids(infos: list[dict[str, Any]], zenoh: ZenohSettings) -> list[str]:
+def free_env_ids(infos: list[InfoReply], zenoh: ZenohSettings) -> list[str]:
     """Ids of the unheld eval envs, highest first; NoEvalEnv naming the namespace, endpoint or holders when there
     is none."""
     if not infos:
@@ -60,9 +61,9 @@ def free_env_ids(infos: list[dict[str, Any]], zenoh: ZenohSettings) -> list[str]
             f" start `swimm sim --namespace {zenoh.namespace}` or fix --connect/--namespace"
         )
     # highest id first: a training learner's own evaluation callback takes eval/0, so leave it the low ids
-    free = sorted((str(info["env"]) for info in infos if not info.get("holder")), key=_id_order, reverse=True)
+    free = sorted((info.env for info in infos if not info.holder), key=_id_order, reverse=True)
     if not free:
-        held = ", ".join(f"{EVAL_CHANNEL}/{info['env']} by {info['holder']}" for info in infos)
+        held = ", ".join(f"{EVAL_CHANNEL}/{info.env} by {info.holder}" for info in infos)
         raise NoEvalEnv(f"every eval env is held ({held}); wait for one, or start the sim with more --eval-envs")
     return free
 

@@ -19,6 +19,7 @@ import logging
 import queue
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import zenoh
@@ -32,9 +33,13 @@ from services.messages import (
     BadMessage,
     BatchItem,
     BatchMsg,
+    ClaimRequest,
     DiveMode,
+    EnvState,
     LatentMsg,
     ObservationMsg,
+    ReleaseRequest,
+    ResetRequest,
 )
 from services.polling import Inbox, poll_seconds
 from services.presence import Roster, choose_route, member_ident
@@ -105,7 +110,7 @@ class EnvLink:
         self.retries = 0
         self._replies: Inbox[BatchMsg | None] = Inbox(poll_seconds(poll_ms))  # None: an unreadable message
         self._actions: list[tuple[SimAction, DiveMode]] = []  # the step in flight, one per env
-        self._resetting: tuple[int, tuple] | None = None  # the reset in flight: (env index, its arguments)
+        self._resetting: tuple[int, ResetRequest] | None = None  # the reset in flight: (env index, its request)
         self._expected: list[tuple[str, int, int]] = []  # (env, ep, seq) of each item of the awaited reply
         # Steps are answered on the group's key, resets on each env's own (the reset request names no group).
         self._subscribers = [self._replies.subscribe(session, self._reply_key(name), self._read)
@@ -135,8 +140,8 @@ class EnvLink:
             return None
 
     # --- control, per env ------------------------------------------------------------------------
-    def claim(self, timeout_s: float = 5.0, index: int = 0) -> dict:
-        reply = control.request(self.session, self._ctl(index), "claim", timeout_s, holder=self.holder)
+    def claim(self, timeout_s: float = 5.0, index: int = 0) -> EnvState:
+        reply = control.request(self.session, self._ctl(index), ClaimRequest(self.holder), timeout_s)
         self.claimed[index] = True
         return reply
 
@@ -147,7 +152,7 @@ class EnvLink:
                 continue
             self.claimed[each] = False
             try:
-                control.request(self.session, self._ctl(each), "release", 2.0, holder=self.holder)
+                control.request(self.session, self._ctl(each), ReleaseRequest(self.holder), 2.0)
             except control.ControlError as exc:
                 log.warning("%s: release failed: %s", self._env_name(each), exc)
 
@@ -172,7 +177,7 @@ class EnvLink:
         settings), ``latency`` its camera and control delays (a map of sim_service.latency settings) and ``scene``
         its scenery (a map of sim_service.scenery settings); None leaves each as it is."""
         self.ep[index], self.seq[index] = ep, 0
-        self._resetting = (index, (seed, noise, latency, scene))
+        self._resetting = (index, ResetRequest(self.holder, ep, seed, noise=noise, latency=latency, scene=scene))
         self._expected = [(self.envs[index], ep, 0)]
         try:
             self._send()
@@ -193,11 +198,8 @@ class EnvLink:
         """Send the step or reset in flight, routed anew (the same (ep, seq) each time: a retry is a repeat)."""
         route = self._route()
         if self._resetting is not None:
-            index, (seed, noise, latency, scene) = self._resetting
-            world_fields = {key: value for key, value in (("noise", noise), ("latency", latency), ("scene", scene))
-                            if value is not None}  # fmt: skip
-            control.request(self.session, self._ctl(index), "reset", self.step_timeout_s, holder=self.holder,
-                            ep=self.ep[index], seed=seed, route=route, **world_fields)  # fmt: skip
+            index, reset = self._resetting
+            control.request(self.session, self._ctl(index), replace(reset, route=route), self.step_timeout_s)
             return
         items = tuple(
             BatchItem(env, ep, seq, ActionMsg(ep, seq, action, dive_mode, route, self.holder).encode())

@@ -206,7 +206,7 @@ class ProxyEnv(gym.Env):
         except ControlError as exc:
             raise ClaimRefused(f"cannot claim env {self.name}: {exc}") from None
         # The next episode on the wire must come after the sim's current one.
-        self.link.ep[self.index] = int(claimed.get("ep", 0))
+        self.link.ep[self.index] = claimed.ep
 
     def _claim_again(self, refusal: str) -> None:
         """The sim forgot this env (it was restarted): claim it again, so the next reset starts a new episode."""

@@ -1,18 +1,26 @@
-"""Request/reply on ``<ns>/<channel>/<env>/ctl``: claim, release, reset, seed, info.
+"""Request/reply on ``<ns>/<channel>/<env>/ctl``: claim, release, reset, info.
 
 Both ends live here so the protocol is written once: :func:`request` for
-callers, :func:`reply` for the queryable side.
+callers, :func:`reply` for the queryable side. The messages are the typed
+control messages of services/messages.py.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from typing import Any
 
 import zenoh
 
-from services.messages import BadMessage, encode_reply, encode_request, unpack
+from services.messages import (
+    BadMessage,
+    ControlRequest,
+    EnvState,
+    InfoReply,
+    InfoRequest,
+    Refused,
+    decode_reply,
+)
 
 log = logging.getLogger(__name__)
 MATCH_POLL_S = 0.005  # how often request() checks whether a responder is reachable yet
@@ -30,19 +38,20 @@ class ControlTimeout(ControlError):
 ZENOH_TIMEOUT = "Timeout"  # the error reply Zenoh delivers when a query's timeout passes before its responder replies
 
 
-def request(session: zenoh.Session, key: str, op: str, timeout_s: float = 5.0, **args: Any) -> dict[str, Any]:
-    """Send one control request to exactly one responder and return its reply map.
+def request(session: zenoh.Session, key: str, message: ControlRequest, timeout_s: float = 5.0) -> EnvState:
+    """Send one control request to exactly one responder and return its granted reply (``message.REPLY``).
 
     Raises :class:`ControlError` with the responder's reason on refusal, or
     naming the key when nobody answered within ``timeout_s``.
     """
+    op = message.OP
     deadline = time.monotonic() + timeout_s
     querier = session.declare_querier(key, timeout=timeout_s)
     try:
         # A query sent before the responder's route reached this session gets no reply at all; wait (bounded) for it.
         while not querier.matching_status.matching and time.monotonic() < deadline:
             time.sleep(MATCH_POLL_S)
-        replies = list(querier.get(payload=encode_request(op, **args)))
+        replies = list(querier.get(payload=message.encode()))
     finally:
         querier.undeclare()
     for reply in replies:
@@ -52,37 +61,38 @@ def request(session: zenoh.Session, key: str, op: str, timeout_s: float = 5.0, *
                 break
             raise ControlError(f"{op} on {key} failed: {reason}")
         try:
-            body = unpack(reply.ok.payload.to_bytes())
+            answer = decode_reply(reply.ok.payload.to_bytes(), message.REPLY)
         except BadMessage as exc:
             raise ControlError(f"{op} on {key}: unreadable reply ({exc})") from None
-        if not body.get("ok"):
-            raise ControlError(f"{op} on {key} refused: {body.get('error', 'no reason given')}")
-        return body
+        if isinstance(answer, Refused):
+            raise ControlError(f"{op} on {key} refused: {answer.reason}")
+        return answer
     raise ControlTimeout(f"{op} on {key}: no reply within {timeout_s:.1f} s; is `swimm sim` running with this env?")
 
 
-def survey(session: zenoh.Session, key: str, timeout_s: float = 3.0) -> list[dict[str, Any]]:
-    """Ask every responder matching a wildcard key for its ``info`` (discovery of live envs)."""
+def survey(session: zenoh.Session, key: str, timeout_s: float = 3.0) -> list[InfoReply]:
+    """Ask every responder matching a wildcard key for its ``info`` (discovery of live envs); refusals and
+    unreadable replies are left out."""
     found = []
     # Without NONE, Zenoh merges replies that share a key expression, and each env answers on the query's key.
     replies = session.get(
-        key, payload=encode_request("info"), timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
+        key, payload=InfoRequest().encode(), timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE
     )
     for reply in replies:
         if reply.ok is None:
             continue
         try:
-            body = unpack(reply.ok.payload.to_bytes())
+            answer = decode_reply(reply.ok.payload.to_bytes(), InfoReply)
         except BadMessage:
             continue
-        if body.get("ok"):
-            found.append(body)
+        if isinstance(answer, InfoReply):
+            found.append(answer)
     return found
 
 
-def reply(query: zenoh.Query, ok: bool, **fields: Any) -> None:
+def reply(query: zenoh.Query, answer: EnvState | Refused) -> None:
     """Answer a query and release it at once, so the caller is not left waiting for its timeout."""
     try:
-        query.reply(query.key_expr, encode_reply(ok, **fields))
+        query.reply(query.key_expr, answer.encode())
     finally:
         query.drop()

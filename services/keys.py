@@ -12,7 +12,7 @@ no group), so a learner listens on its own group's keys and on each of its envs'
 
 Control and presence::
 
-    <ns>/<channel>/<env>/ctl               queryable: claim, release, reset, seed, info
+    <ns>/<channel>/<env>/ctl               queryable: claim, release, reset, info
     <ns>/@live/<role>/<id>                 liveliness tokens
     <ns>/metrics/<role>/<id>               periodic counters
 

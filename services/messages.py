@@ -1,8 +1,9 @@
-"""Versioned msgpack messages of the step pipeline and their validation.
+"""Versioned msgpack messages of the step pipeline and the control plane, and their validation.
 
-Every message is a msgpack map carrying the protocol version ``v``, the
-episode number ``ep``, the step sequence number ``seq`` and the send time
-``t`` (seconds, ``time.time()``). Decoding validates shape and ranges and
+Every message is a msgpack map carrying the protocol version ``v`` and the
+send time ``t`` (seconds, ``time.time()``); a step message adds the episode
+number ``ep`` and the step sequence number ``seq``, a control request its
+``op`` and a control reply ``ok``. Decoding validates shape and ranges and
 raises :class:`BadMessage` with a reason a human can act on; services turn
 that into a refusal and an error counter, never a crash.
 """
@@ -12,9 +13,9 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from enum import StrEnum
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 import msgpack
 import numpy as np
@@ -336,10 +337,196 @@ def batch_messages(payload: bytes, decode: Callable[[bytes], M]) -> list[tuple[s
     return [(item.env, decode(item.payload)) for item in BatchMsg.decode(payload).items if not item.error]
 
 
-def encode_request(op: str, **args: Any) -> bytes:
-    """A control request (claim, release, reset, info, seed) sent to ``<ns>/<channel>/<env>/ctl``."""
-    return _pack({"v": PROTOCOL_VERSION, "t": time.time(), "op": op, **args})
+# --- the control plane: request/reply on ``<ns>/<channel>/<env>/ctl`` (services/control.py) -------------------------
+# Same codec and refusal rules as the step messages: a version-checked map, every field checked on decoding. A
+# request names its op; a reply carries ``ok``: the request's typed answer, or a Refused with the reason.
 
 
-def encode_reply(ok: bool, **fields_: Any) -> bytes:
-    return _pack({"v": PROTOCOL_VERSION, "t": time.time(), "ok": ok, **fields_})
+def _pack_control(**fields_: Any) -> bytes:
+    return _pack({"v": PROTOCOL_VERSION, "t": time.time(), **fields_})
+
+
+def _optional_str(body: dict[str, Any], name: str) -> str | None:
+    return None if body.get(name) is None else _str(body, name)
+
+
+def _bool(body: dict[str, Any], name: str) -> bool:
+    value = body.get(name)
+    if not isinstance(value, bool):
+        raise BadMessage(f"field {name!r} must be true or false, got {value!r}")
+    return value
+
+
+def _optional_map(body: dict[str, Any], name: str) -> dict | None:
+    value = body.get(name)
+    if value is None or isinstance(value, dict):
+        return value
+    raise BadMessage(f"field {name!r} must be a map or absent, got {value!r}")
+
+
+def _switch_or_map(body: dict[str, Any], name: str) -> bool | dict | None:
+    value = body.get(name)
+    if value is None or isinstance(value, (bool, dict)):
+        return value
+    raise BadMessage(f"field {name!r} must be true, false, a map or absent, got {value!r}")
+
+
+@dataclass(frozen=True)
+class EnvState:
+    """The answer to a granted claim or release, and the start of every other: where the env is and who holds it."""
+
+    channel: str
+    env: str
+    holder: str | None  # None: free
+    ep: int
+    seq: int
+
+    def encode(self) -> bytes:
+        return _pack_control(ok=True, **asdict(self))
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> EnvState:
+        return cls(**cls._state(body))
+
+    @staticmethod
+    def _state(body: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "channel": _str(body, "channel"),
+            "env": _str(body, "env"),
+            "holder": _optional_str(body, "holder"),
+            "ep": _int(body, "ep"),
+            "seq": _int(body, "seq"),
+        }
+
+
+@dataclass(frozen=True)
+class InfoReply(EnvState):
+    """The answer to ``info``: the env's state, the sim serving it and the size of the images it renders."""
+
+    sim: str
+    image_size: int
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> InfoReply:
+        return cls(**cls._state(body), sim=_str(body, "sim"), image_size=_int(body, "image_size"))
+
+
+@dataclass(frozen=True)
+class ResetReply(EnvState):
+    """The answer to ``reset`` (its observation goes out as a step message); ``replayed``: a repeat, from the cache."""
+
+    replayed: bool
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> ResetReply:
+        return cls(**cls._state(body), replayed=_bool(body, "replayed"))
+
+
+@dataclass(frozen=True)
+class Refused:
+    """The answer to a control request that was refused, with the reason."""
+
+    reason: str
+
+    def encode(self) -> bytes:
+        return _pack_control(ok=False, error=self.reason)
+
+
+R = TypeVar("R", bound=EnvState)
+
+
+def decode_reply(payload: bytes, expected: type[R]) -> R | Refused:
+    """A reply to a request whose answer is an ``expected``, or its refusal; BadMessage if unreadable."""
+    body = unpack(payload)
+    return expected.from_body(body) if _bool(body, "ok") else Refused(_str(body, "error"))
+
+
+class ControlRequest:
+    """A control request: its ``OP`` on the wire and the type of its granted reply."""
+
+    OP: ClassVar[str]
+    REPLY: ClassVar[type[EnvState]] = EnvState
+
+    def encode(self) -> bytes:
+        fields_ = {name: value for name, value in asdict(self).items() if value is not None}  # None: absent
+        return _pack_control(op=self.OP, **fields_)
+
+
+@dataclass(frozen=True)
+class InfoRequest(ControlRequest):
+    """Who holds the env and where it is, asked of every env by `swimm status` and evaluators looking for one."""
+
+    OP: ClassVar[str] = "info"
+    REPLY: ClassVar[type[EnvState]] = InfoReply
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> InfoRequest:
+        return cls()
+
+
+@dataclass(frozen=True)
+class ClaimRequest(ControlRequest):
+    """Hold the env for ``holder``: nobody else may drive it until released (or the holder's token lapses)."""
+
+    OP: ClassVar[str] = "claim"
+    holder: str
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> ClaimRequest:
+        return cls(_str(body, "holder"))
+
+
+@dataclass(frozen=True)
+class ReleaseRequest(ControlRequest):
+    """Give back an env ``holder`` holds."""
+
+    OP: ClassVar[str] = "release"
+    holder: str
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> ReleaseRequest:
+        return cls(_str(body, "holder"))
+
+
+@dataclass(frozen=True)
+class ResetRequest(ControlRequest):
+    """Start episode ``ep`` from world seed ``seed``, its observation to ``route``; ``noise``, ``latency`` and
+    ``scene`` (maps of the sim's settings, ``noise`` also on or off) change the world from this episode on, None
+    leaving each as it is."""
+
+    OP: ClassVar[str] = "reset"
+    REPLY: ClassVar[type[EnvState]] = ResetReply
+    holder: str
+    ep: int
+    seed: int
+    route: str = DIRECT_ROUTE
+    noise: bool | dict | None = None
+    latency: dict | None = None
+    scene: dict | None = None
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any]) -> ResetRequest:
+        return cls(
+            holder=_str(body, "holder"),
+            ep=_int(body, "ep"),
+            seed=_int(body, "seed"),
+            route=_str(body, "route", DIRECT_ROUTE),
+            noise=_switch_or_map(body, "noise"),
+            latency=_optional_map(body, "latency"),
+            scene=_optional_map(body, "scene"),
+        )
+
+
+AnyControlRequest = InfoRequest | ClaimRequest | ReleaseRequest | ResetRequest
+CONTROL_REQUESTS: dict[str, type[AnyControlRequest]] = {
+    request.OP: request for request in (InfoRequest, ClaimRequest, ReleaseRequest, ResetRequest)
+}
+
+
+def decode_request(payload: bytes) -> AnyControlRequest:
+    """The control request in ``payload``, of the type its op names; BadMessage naming what is wrong."""
+    body = unpack(payload)
+    op = _str(body, "op")
+    if op not in CONTROL_REQUESTS:
+        raise BadMessage(f"unknown control op {op!r} (known: {', '.join(CONTROL_REQUESTS)})")
+    return CONTROL_REQUESTS[op].from_body(body)

@@ -115,12 +115,9 @@ def gather(settings: StatusSettings, session: zenoh.Session) -> dict[str, Any]:
             if doing := what_it_does(entry["counters"]):
                 entry["doing"] = doing
         services.append(entry)
-    envs = [
-        {key: info.get(key) for key in ("channel", "env", "sim", "holder", "ep", "seq")}
-        for info in survey(session, f"{keys.namespace}/*/*/ctl", timeout_s=2.0)
-        if "env" in info
-    ]
-    envs.sort(key=lambda env: (str(env["channel"]), str(env["env"]).zfill(6), str(env["sim"])))
+    infos = survey(session, f"{keys.namespace}/*/*/ctl", timeout_s=2.0)
+    infos.sort(key=lambda info: (info.channel, info.env.zfill(6), info.sim))
+    envs = [{key: getattr(info, key) for key in ("channel", "env", "sim", "holder", "ep", "seq")} for info in infos]
     return {"namespace": keys.namespace, "services": services, "envs": envs}
 
 

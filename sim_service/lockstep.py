@@ -16,7 +16,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, ObservationMsg
+from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, EnvState, ObservationMsg
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.scenery import SceneSettings
@@ -132,5 +132,5 @@ class LockstepEnv:
         self._last_payload = msg.encode()
         return Outcome(self._last_payload, replayed=False)
 
-    def info(self) -> dict:
-        return {"channel": self.channel, "env": self.env, "holder": self.holder, "ep": self.ep, "seq": self.seq}
+    def state(self) -> EnvState:
+        return EnvState(self.channel, self.env, self.holder, self.ep, self.seq)

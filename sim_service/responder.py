@@ -15,7 +15,7 @@ import os
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import zenoh
 
@@ -24,7 +24,23 @@ from services.control import CLAIMANT_ROLES
 from services.keys import Keys
 from services.lifecycle import serve_until_signalled
 from services.low_latency import largest_low_latency_image_size, low_latency_group_problem, observation_bytes
-from services.messages import DIRECT_ROUTE, ActionMsg, BadMessage, BatchItem, BatchMsg, unpack
+from services.messages import (
+    DIRECT_ROUTE,
+    ActionMsg,
+    AnyControlRequest,
+    BadMessage,
+    BatchItem,
+    BatchMsg,
+    ClaimRequest,
+    EnvState,
+    InfoReply,
+    InfoRequest,
+    Refused,
+    ReleaseRequest,
+    ResetReply,
+    ResetRequest,
+    decode_request,
+)
 from services.metrics import Metrics, MetricsPublisher
 from services.polling import Inbox, poll_seconds
 from services.presence import Roster, announce, live_now
@@ -53,15 +69,33 @@ class SimSettings:
     poll_ms: float = 0.0  # poll the inbox this long, then nap (services/polling.py): faster lock-step for a spare core
 
 
+# The worker's requests. ``received_at``: when one reached the inbox (polling: the worker).
 @dataclass
-class _Request:
-    kind: str  # "step" | "ctl" | "lapse"
-    env: LockstepEnv | None
-    payload: bytes = b""
-    key: str = ""  # a step's key, which names its channel and group
-    query: zenoh.Query | None = None
-    gone: set[str] = field(default_factory=set)
-    received_at: float = field(default_factory=time.perf_counter)  # when it reached the inbox (polling: the worker)
+class _Step:
+    """A group's actions, still encoded; its key names the channel and group."""
+
+    payload: bytes
+    key: str
+    received_at: float = field(default_factory=time.perf_counter)
+
+
+@dataclass
+class _Control:
+    """A control request to ``env``, to decode and answer."""
+
+    env: LockstepEnv
+    query: zenoh.Query
+    received_at: float = field(default_factory=time.perf_counter)
+
+
+@dataclass
+class _Lapse:
+    """Holders whose tokens stayed gone past the grace: their claims lapse."""
+
+    gone: set[str]
+
+
+_Request = _Step | _Control | _Lapse
 
 
 def check_fits_low_latency(settings: SimSettings) -> None:
@@ -110,7 +144,7 @@ class SimResponder:
             self._declared.append(
                 self.session.declare_queryable(
                     self.keys.ctl(env.channel, env.env),
-                    lambda q, e=env: self._inbox.put(_Request("ctl", e, query=q)),
+                    lambda query, env=env: self._inbox.put(_Control(env, query)),
                 )
             )
         for channel in {env.channel for env in self._envs}:
@@ -118,7 +152,7 @@ class SimResponder:
                 self._inbox.subscribe(
                     self.session,
                     self.keys.actions(channel),
-                    lambda sample: _Request("step", None, sample.payload.to_bytes(), key=str(sample.key_expr)),
+                    lambda sample: _Step(sample.payload.to_bytes(), str(sample.key_expr)),
                 )
             )
         self._token = announce(self.session, self.keys, "sim", self.ident)
@@ -151,7 +185,7 @@ class SimResponder:
             return
         back = set().union(*(live_now(self.session, self.keys, role) for role in CLAIMANT_ROLES))
         if left - back:
-            self._inbox.put(_Request("lapse", None, gone=left - back))
+            self._inbox.put(_Lapse(left - back))
 
     # --- the worker -----------------------------------------------------------------------------
     def _build_envs(self) -> None:
@@ -209,18 +243,19 @@ class SimResponder:
 
     def _handle(self, request: _Request) -> None:
         try:
-            if request.kind == "step":
-                self._handle_step(request)
-            elif request.kind == "ctl":
-                self._handle_ctl(request)
-            elif request.kind == "lapse":
-                for env in self._envs:
-                    env.lapse(request.gone)
+            match request:
+                case _Step():
+                    self._handle_step(request)
+                case _Control():
+                    self._handle_control(request)
+                case _Lapse(gone=gone):
+                    for env in self._envs:
+                        env.lapse(gone)
         except Exception:  # a bug in one request must not take the sim down
             self.metrics.count("errors_internal")
-            log.exception("internal error while handling a %s request", request.kind)
+            log.exception("internal error while handling a %s", type(request).__name__)
 
-    def _handle_step(self, request: _Request) -> None:
+    def _handle_step(self, request: _Step) -> None:
         """A group's actions (one env's: a group of one): each env steps in order, and one message answers them all,
         each item its env's observation or refusal. A group is one sim's: one that holds none of this sim's envs is
         left to the others, and an env of it this sim does not serve is refused."""
@@ -280,41 +315,43 @@ class SimResponder:
             if outcome is not None:
                 self._publish(env, env.route, env.holder or "", outcome, time.perf_counter())
 
-    def _handle_ctl(self, request: _Request) -> None:
+    def _handle_control(self, request: _Control) -> None:
+        """Answer a control request with its reply, or with a Refused naming what was wrong."""
         env, query = request.env, request.query
-        assert env is not None and query is not None
+        answer: EnvState | Refused
         try:
-            body = unpack(query.payload.to_bytes()) if query.payload is not None else {}
-            op = body.get("op")
-            holder = str(body.get("holder", ""))
-            if op == "info":
-                control.reply(query, True, sim=self.ident, **env.info(), image_size=self.settings.world.image_size)
-            elif op == "claim":
-                env.claim(holder)
-                control.reply(query, True, **env.info())
-            elif op == "release":
-                env.release(holder)
-                control.reply(query, True, **env.info())
-            elif op == "reset":
-                ep, seed = body.get("ep"), body.get("seed")
-                route = str(body.get("route", "direct"))
-                if not isinstance(ep, int) or not isinstance(seed, int):
-                    raise BadMessage("reset needs integer 'ep' and 'seed'")
-                try:
-                    noise, latency = noise_option(body.get("noise")), latency_option(body.get("latency"))
-                    scene = scene_option(body.get("scene"))
-                except ValueError as exc:
-                    raise BadMessage(f"reset's {exc}") from None
-                outcome = env.reset(holder, ep, seed, route, noise, latency, scene)
-                self._publish(env, route, holder, outcome, request.received_at)
-                control.reply(query, True, **env.info(), replayed=outcome.replayed)
-            else:
-                raise BadMessage(f"unknown control op {op!r} (known: info, claim, release, reset)")
-            self.metrics.count(f"ctl_{op}")
+            message = decode_request(query.payload.to_bytes() if query.payload is not None else b"")
+            answer = self._carry_out(env, message, request.received_at)
+            self.metrics.count(f"ctl_{message.OP}")
         except (BadMessage, Refusal) as exc:
             self.metrics.count("errors_refused")
             log.warning("refused control request on %s: %s", env.name, exc)
-            control.reply(query, False, error=str(exc))
+            answer = Refused(str(exc))
+        control.reply(query, answer)
+
+    def _carry_out(self, env: LockstepEnv, message: AnyControlRequest, received_at: float) -> EnvState:
+        match message:
+            case InfoRequest():
+                return InfoReply(**asdict(env.state()), sim=self.ident, image_size=self.settings.world.image_size)
+            case ClaimRequest(holder=holder):
+                env.claim(holder)
+                return env.state()
+            case ReleaseRequest(holder=holder):
+                env.release(holder)
+                return env.state()
+            case ResetRequest():
+                return self._reset(env, message, received_at)
+
+    def _reset(self, env: LockstepEnv, message: ResetRequest, received_at: float) -> ResetReply:
+        """Start the episode and publish its observation as the env's group of one."""
+        try:
+            noise, latency = noise_option(message.noise), latency_option(message.latency)
+            scene = scene_option(message.scene)
+        except ValueError as exc:  # the maps' settings, which only the sim knows
+            raise BadMessage(f"reset's {exc}") from None
+        outcome = env.reset(message.holder, message.ep, message.seed, message.route, noise, latency, scene)
+        self._publish(env, message.route, message.holder, outcome, received_at)
+        return ResetReply(**asdict(env.state()), replayed=outcome.replayed)
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         publisher = self._publishers.get(key)

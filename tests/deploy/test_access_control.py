@@ -17,7 +17,7 @@ import pytest
 from learner_service.link import EnvLink, new_holder_id
 from services import control
 from services.keys import Keys
-from services.messages import ActionMsg, BatchMsg, batch_messages
+from services.messages import ActionMsg, BatchMsg, ResetRequest, batch_messages
 from services.presence import Roster, announce
 from services.procs import ProcessGroup, free_tcp_port, wait_for_port
 from services.session import StartupTimeout, open_session
@@ -95,7 +95,7 @@ def test_only_learners_drive_the_sim_behind_the_tls_acl_router(secure_router, pr
         # Refused: an encoder may announce only an encoder token.
         intruder_token = announce(intruder, keys, "learner", "learner-intruder")
         with pytest.raises(control.ControlError):  # the query never reaches the sim, so nobody answers
-            control.request(intruder, keys.ctl("train", "0"), "reset", 2.0, holder=holder, ep=2, seed=999)
+            control.request(intruder, keys.ctl("train", "0"), ResetRequest(holder, ep=2, seed=999), 2.0)
         spoofs = intruder.declare_publisher(keys.action("train", "0"))
         for action in actions:
             # The intruder goes first each step: were it let through, the sim would apply its action as this seq.

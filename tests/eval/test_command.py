@@ -34,6 +34,7 @@ from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from services.cli import main as swimm
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
+from services.messages import InfoReply
 from services.settings import ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
@@ -97,14 +98,18 @@ def test_settings_are_checked_before_anything_starts(tmp_path) -> None:
             command.check(settings(tmp_path, **bad))
 
 
+def eval_env(env: str, holder: str | None) -> InfoReply:
+    return InfoReply("eval", env, holder, ep=0, seq=0, sim="sim-1", image_size=64)
+
+
 def test_no_live_sim_and_no_free_env_are_clear_errors() -> None:
     zenoh = ZenohSettings(connect=["tcp/10.0.0.1:7447"], namespace="swimm/x")
     with pytest.raises(NoEvalEnv, match=r"no live sim serves swimm/x/eval/\* \(connected to tcp/10.0.0.1:7447\)"):
         free_env_ids([], zenoh)
-    held = [{"env": "0", "holder": "eval-abc"}, {"env": "1", "holder": "eval-def"}]
+    held = [eval_env("0", "eval-abc"), eval_env("1", "eval-def")]
     with pytest.raises(NoEvalEnv, match="eval/0 by eval-abc, eval/1 by eval-def"):
         free_env_ids(held, zenoh)
-    free = [{"env": env, "holder": None} for env in ("2", "10", "9")]
+    free = [eval_env(env, None) for env in ("2", "10", "9")]
     assert free_env_ids([*held, *free], zenoh) == ["10", "9", "2"]  # eval/0 stays for a learner's own evaluation
 
 

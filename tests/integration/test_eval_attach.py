@@ -108,8 +108,8 @@ def test_eval_attaches_beside_training_without_changing_it(
     kinds = {message["kind"]: message for message in published}
     assert set(kinds) == {"episode", "summary"}
     assert kinds["summary"]["mean_return"] == pytest.approx(scripted["mean_return"])
-    (eval_env,) = [info for info in survey(session, Keys(namespace).ctl("eval", "*")) if info["env"] == "0"]
-    assert eval_env["holder"] is None and eval_env["seq"] == EVAL_STEPS  # it released the env when done
+    (eval_env,) = [info for info in survey(session, Keys(namespace).ctl("eval", "*")) if info.env == "0"]
+    assert eval_env.holder is None and eval_env.seq == EVAL_STEPS  # it released the env when done
 
 
 def test_eval_says_who_holds_the_only_eval_env(group, zenoh_router, namespace, zenoh_settings, tmp_path) -> None:

@@ -13,6 +13,7 @@ import pytest
 import zenoh
 
 from learner_service.link import StepRefused
+from services import control
 from services.low_latency import largest_low_latency_image_size
 from services.messages import (
     DIRECT_ROUTE,
@@ -21,8 +22,12 @@ from services.messages import (
     ActionMsg,
     BatchItem,
     BatchMsg,
+    EnvState,
+    InfoRequest,
     ObservationMsg,
+    Refused,
     batch_messages,
+    decode_reply,
 )
 from services.procs import free_tcp_port, wait_for_port
 from sim_service.settings import WorldSettings
@@ -139,6 +144,49 @@ def test_router_restart_mid_run_loses_and_repeats_no_step(group, connect_client,
     assert link.retries >= 1  # the outage was real and bridged by re-sends
     assert outage is not None and outage < 10.0  # documented bound: resume within 10 s
     (tmp_path / "outage.txt").write_text(f"{outage:.2f}")
+
+
+def test_bad_control_requests_are_refused_naming_what_was_wrong_and_the_sim_keeps_serving(
+    group, connect_client, namespace
+):
+    endpoint = group.start_router()
+    start_sim(group, endpoint, namespace)
+    client = connect_client(endpoint)
+    client.roster("sim").wait_for(1, timeout_s=60)
+    ctl = client.keys.ctl("train", "0")
+
+    def answer(payload: bytes) -> EnvState | Refused:
+        (reply,) = client.session.get(ctl, payload=payload, timeout=10)
+        return decode_reply(reply.ok.payload.to_bytes(), EnvState)
+
+    def refusal(**fields) -> str:
+        """The sim's reason for refusing a control request of these fields (the version unless ``v`` is given)."""
+        refused = answer(msgpack.packb({"v": PROTOCOL_VERSION, "t": 0.0, **fields}))
+        assert isinstance(refused, Refused), refused
+        return refused.reason
+
+    holder = client.holder
+    assert refusal(op="seed", seed=41) == "unknown control op 'seed' (known: info, claim, release, reset)"
+    assert refusal(holder=holder) == "field 'op' must be a string, got None"
+    assert refusal(op="claim") == "field 'holder' must be a string, got None"
+    assert refusal(op="claim", holder=7) == "field 'holder' must be a string, got 7"
+    assert refusal(op="reset", holder=holder, ep=1) == "field 'seed' must be a non-negative integer, got None"
+    assert refusal(op="reset", holder=holder, ep="1", seed=3).startswith("field 'ep' must be a non-negative integer")
+    assert refusal(op="info", v=PROTOCOL_VERSION + 1).startswith(f"unknown protocol version {PROTOCOL_VERSION + 1}")
+    assert "not claimed" in refusal(op="reset", holder=holder, ep=1, seed=3)
+    assert refusal(op="release", holder=holder) == f"env train/0 is not held by {holder} (holder: None)"
+    # The typed requests are granted, each answered with the env's state.
+    link = client.link()
+    assert link.claim() == EnvState("train", "0", holder, ep=0, seq=0)
+    other = connect_client(endpoint)
+    assert "held by " + holder in refusal(op="claim", holder=other.holder)
+    link.send_reset(1, 3)
+    link.wait()
+    (info,) = control.survey(client.session, ctl)
+    assert (info.holder, info.ep, info.seq, info.image_size) == (holder, 1, 0, WorldSettings().image_size)
+    link.close()
+    assert control.request(client.session, ctl, InfoRequest()).holder is None  # released
+    assert group.services[1].alive
 
 
 @pytest.mark.parametrize("poll_ms", [0.0, 2.0], ids=["blocking", "polling"])

@@ -14,7 +14,16 @@ import zenoh
 from services import control
 from services.control import ControlError
 from services.keys import Keys
-from services.messages import unpack
+from services.messages import (
+    AnyControlRequest,
+    ClaimRequest,
+    EnvState,
+    InfoReply,
+    InfoRequest,
+    Refused,
+    ResetRequest,
+    decode_request,
+)
 from services.presence import Roster, announce, live_now
 
 #: Presence changes cross two hops (client -> router -> client); they must show within this bound.
@@ -31,12 +40,13 @@ def wait_until(condition: Callable[[], bool], timeout_s: float = VISIBLE_WITHIN_
     return time.monotonic() - start
 
 
-def serve_ctl(session: zenoh.Session, key: str, answer: Callable[[dict], tuple[bool, dict]]) -> zenoh.Queryable:
-    """A queryable answering each control request with ``answer(request_body)``; keep the result referenced."""
+def serve_ctl(
+    session: zenoh.Session, key: str, answer: Callable[[AnyControlRequest], EnvState | Refused]
+) -> zenoh.Queryable:
+    """A queryable answering each control request with ``answer(request)``; keep the result referenced."""
 
     def on_query(query: zenoh.Query) -> None:
-        ok, fields = answer(unpack(query.payload.to_bytes()))
-        control.reply(query, ok, **fields)
+        control.reply(query, answer(decode_request(query.payload.to_bytes())))
 
     return session.declare_queryable(key, on_query)
 
@@ -46,30 +56,35 @@ def keys(namespace) -> Keys:
     return Keys(namespace)
 
 
-def test_request_gets_the_responders_reply_with_the_request_fields(zenoh_router, zenoh_session, keys):
+def test_request_gets_the_responders_typed_reply_to_the_typed_request(zenoh_router, zenoh_session, keys):
     sim, learner = zenoh_session(zenoh_router), zenoh_session(zenoh_router)
     key = keys.ctl("train", "0")
-    _queryable = serve_ctl(sim, key, lambda body: (True, {"echo_op": body["op"], "echo_seed": body["seed"] + 1}))
+    heard: list[AnyControlRequest] = []
 
-    reply = control.request(learner, key, "seed", timeout_s=5.0, seed=41, holder="learner-1")
-    assert reply["ok"] is True
-    assert (reply["echo_op"], reply["echo_seed"]) == ("seed", 42)
+    def claim(request: AnyControlRequest) -> EnvState:
+        heard.append(request)
+        return EnvState("train", "0", request.holder, ep=4, seq=0)
+
+    _queryable = serve_ctl(sim, key, claim)
+    reply = control.request(learner, key, ClaimRequest("learner-1"), timeout_s=5.0)
+    assert heard == [ClaimRequest("learner-1")]
+    assert reply == EnvState("train", "0", "learner-1", ep=4, seq=0)
 
 
 def test_refusal_raises_with_the_responders_reason(zenoh_router, zenoh_session, keys):
     sim, learner = zenoh_session(zenoh_router), zenoh_session(zenoh_router)
     key = keys.ctl("train", "0")
-    _queryable = serve_ctl(sim, key, lambda body: (False, {"error": f"held by learner-2, not {body['holder']}"}))
+    _queryable = serve_ctl(sim, key, lambda request: Refused(f"held by learner-2, not {request.holder}"))
 
     with pytest.raises(ControlError, match="claim on .*/train/0/ctl refused: held by learner-2, not learner-1"):
-        control.request(learner, key, "claim", holder="learner-1")
+        control.request(learner, key, ClaimRequest("learner-1"))
 
 
 def test_unanswered_request_times_out_retryably_naming_the_key(zenoh_router, zenoh_session, keys):
     learner = zenoh_session(zenoh_router)
     started = time.monotonic()
     with pytest.raises(control.ControlTimeout, match=r"info on .*/eval/9/ctl: no reply within 0.5 s"):
-        control.request(learner, keys.ctl("eval", "9"), "info", timeout_s=0.5)
+        control.request(learner, keys.ctl("eval", "9"), InfoRequest(), timeout_s=0.5)
     assert time.monotonic() - started < 3.0
 
 
@@ -80,11 +95,11 @@ def test_a_responder_slower_than_the_timeout_times_out_retryably(zenoh_router, z
 
     def slow(query: zenoh.Query) -> None:
         time.sleep(1.5)
-        control.reply(query, True)
+        control.reply(query, EnvState("train", "0", None, ep=0, seq=0))
 
     _queryable = sim.declare_queryable(key, slow)
     with pytest.raises(control.ControlTimeout, match="reset on .*/train/0/ctl: no reply within 0.5 s"):
-        control.request(learner, key, "reset", timeout_s=0.5)
+        control.request(learner, key, ResetRequest("learner-1", ep=1, seed=1), timeout_s=0.5)
 
 
 def test_unreadable_reply_is_reported_not_raised_raw(zenoh_router, zenoh_session, keys):
@@ -97,24 +112,28 @@ def test_unreadable_reply_is_reported_not_raised_raw(zenoh_router, zenoh_session
 
     _queryable = sim.declare_queryable(key, garbage)
     with pytest.raises(ControlError, match="info on .*: unreadable reply \\(malformed msgpack"):
-        control.request(learner, key, "info")
+        control.request(learner, key, InfoRequest())
 
 
 def test_survey_collects_info_from_every_env_and_skips_refusals(zenoh_router, zenoh_session, keys):
     sim, learner = zenoh_session(zenoh_router), zenoh_session(zenoh_router)
-    _queryables = [
-        serve_ctl(sim, keys.ctl("eval", env), lambda body, env=env: (True, {"env": env, "op": body["op"]}))
-        for env in ("0", "1", "2")
-    ]
-    _refuser = serve_ctl(sim, keys.ctl("train", "0"), lambda body: (False, {"error": "busy"}))
 
-    def survey() -> list[dict]:
+    def info(env: str) -> Callable[[AnyControlRequest], EnvState | Refused]:
+        """Env ``env``'s info, answered to an info request only."""
+        return lambda request: (
+            InfoReply("eval", env, None, ep=0, seq=0, sim="sim-1", image_size=64)
+            if isinstance(request, InfoRequest)
+            else Refused(f"not an info request: {request}")
+        )
+
+    _queryables = [serve_ctl(sim, keys.ctl("eval", env), info(env)) for env in ("0", "1", "2")]
+    _refuser = serve_ctl(sim, keys.ctl("train", "0"), lambda request: Refused("busy"))
+
+    def survey() -> list[InfoReply]:
         return control.survey(learner, f"{keys.namespace}/*/*/ctl", timeout_s=1.0)
 
     wait_until(lambda: len(survey()) >= 3)  # the queryables reach the learner through the router a moment later
-    found = survey()
-    assert sorted(info["env"] for info in found) == ["0", "1", "2"]
-    assert {info["op"] for info in found} == {"info"}
+    assert sorted(info.env for info in survey()) == ["0", "1", "2"]
 
 
 def test_roster_sees_a_service_join_and_leave_within_the_bound(zenoh_router, zenoh_session, keys):

@@ -1,4 +1,5 @@
-"""The step-pipeline codec: every message survives a round trip, and bad input becomes BadMessage with its reason."""
+"""The message codec: every step and control message survives a round trip, and bad input becomes BadMessage with
+its reason."""
 
 from __future__ import annotations
 
@@ -15,12 +16,20 @@ from services.messages import (
     BadMessage,
     BatchItem,
     BatchMsg,
+    ClaimRequest,
     DiveMode,
+    EnvState,
+    InfoReply,
+    InfoRequest,
     LatentMsg,
     ObservationMsg,
+    Refused,
+    ReleaseRequest,
+    ResetReply,
+    ResetRequest,
     batch_messages,
-    encode_reply,
-    encode_request,
+    decode_reply,
+    decode_request,
     unpack,
 )
 from services.telemetry import Telemetry
@@ -123,16 +132,6 @@ def test_latent_round_trips_every_field():
         sent_at=1700000002.0,
     )
     assert LatentMsg.decode(sent.encode()) == sent
-
-
-def test_control_request_and_reply_carry_version_time_and_fields():
-    request = unpack(encode_request("reset", ep=3, seed=42, holder="learner-1"))
-    assert request["v"] == PROTOCOL_VERSION
-    assert (request["op"], request["ep"], request["seed"], request["holder"]) == ("reset", 3, 42, "learner-1")
-    assert request["t"] > 1.6e9
-    reply = unpack(encode_reply(False, error="env 0 is held by learner-2"))
-    assert reply["ok"] is False
-    assert reply["error"] == "env 0 is held by learner-2"
 
 
 def test_every_message_carries_version_episode_sequence_and_send_time():
@@ -317,3 +316,90 @@ def test_a_bad_batch_is_refused_naming_what_is_wrong(items, reason):
     payload = msgpack.packb({"v": PROTOCOL_VERSION, "ep": 0, "seq": 0, "group": "g", "items": items})
     with pytest.raises(BadMessage, match=reason):
         BatchMsg.decode(payload)
+
+
+# --- the control plane -----------------------------------------------------------------------------------------
+
+CONTROL_REQUESTS = [
+    InfoRequest(),
+    ClaimRequest("learner-1"),
+    ReleaseRequest("learner-1"),
+    ResetRequest("learner-1", ep=3, seed=42),
+    ResetRequest("learner-1", 4, 7, "enc-1", noise={"preset": "murky"}, latency={"camera_ms": 40}, scene={"a": 1}),
+    ResetRequest("learner-1", 5, 8, noise=False),
+]
+
+
+@pytest.mark.parametrize("request_", CONTROL_REQUESTS, ids=repr)
+def test_every_control_request_round_trips_as_its_own_type(request_):
+    assert decode_request(request_.encode()) == request_
+    body = unpack(request_.encode())
+    assert (body["v"], body["op"]) == (PROTOCOL_VERSION, request_.OP) and body["t"] > 1.6e9
+
+
+@pytest.mark.parametrize(
+    "reply",
+    [
+        EnvState("train", "0", "learner-1", ep=3, seq=0),
+        EnvState("eval", "2", None, ep=0, seq=0),  # free
+        InfoReply("eval", "2", None, ep=1, seq=9, sim="sim-1", image_size=64),
+        ResetReply("train", "0", "learner-1", ep=3, seq=0, replayed=True),
+    ],
+    ids=repr,
+)
+def test_every_control_reply_round_trips_as_the_type_its_request_expects(reply):
+    assert decode_reply(reply.encode(), type(reply)) == reply
+
+
+def test_a_refusal_round_trips_whatever_reply_was_expected():
+    assert decode_reply(Refused("env train/0 is held by learner-2").encode(), ResetReply) == Refused(
+        "env train/0 is held by learner-2"
+    )
+
+
+def test_each_request_names_the_reply_it_gets():
+    assert InfoRequest.REPLY is InfoReply and ResetRequest.REPLY is ResetReply
+    assert ClaimRequest.REPLY is EnvState and ReleaseRequest.REPLY is EnvState
+
+
+def _control(**fields) -> bytes:
+    return _pack({"v": PROTOCOL_VERSION, "t": 0.0, **fields})
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (_control(), "field 'op' must be a string, got None"),
+        (_control(op=1), "field 'op' must be a string, got 1"),
+        (_control(op="seed"), "unknown control op 'seed' \\(known: info, claim, release, reset\\)"),
+        (_control(op="claim"), "field 'holder' must be a string, got None"),
+        (_control(op="release", holder=7), "field 'holder' must be a string, got 7"),
+        (_control(op="reset", holder="l", seed=1), "field 'ep' must be a non-negative integer, got None"),
+        (_control(op="reset", holder="l", ep=1, seed=-1), "field 'seed' must be a non-negative integer, got -1"),
+        (_control(op="reset", holder="l", ep=True, seed=1), "field 'ep' must be a non-negative integer, got True"),
+        (_control(op="reset", holder="l", ep=1, seed=1, route=3), "field 'route' must be a string, got 3"),
+        (_control(op="reset", holder="l", ep=1, seed=1, noise="maybe"), "field 'noise' must be true, false, a map"),
+        (_control(op="reset", holder="l", ep=1, seed=1, latency=True), "field 'latency' must be a map or absent"),
+        (_control(op="reset", holder="l", ep=1, seed=1, scene=[1]), "field 'scene' must be a map or absent"),
+        (_pack({"v": PROTOCOL_VERSION + 1, "op": "info"}), f"unknown protocol version {PROTOCOL_VERSION + 1}"),
+        (b"\xc1", "malformed msgpack"),
+    ],
+)
+def test_a_bad_control_request_is_refused_naming_what_is_wrong(payload, reason):
+    with pytest.raises(BadMessage, match=reason):
+        decode_request(payload)
+
+
+@pytest.mark.parametrize(
+    ("payload", "reason"),
+    [
+        (_control(channel="train", env="0", holder=None, ep=0, seq=0), "field 'ok' must be true or false, got None"),
+        (_control(ok=False), "field 'error' must be a string, got None"),
+        (_control(ok=True, channel="train", env="0", holder=None, ep=0), "field 'seq' must be a non-negative"),
+        (_control(ok=True, channel="train", env="0", holder=3, ep=0, seq=0), "field 'holder' must be a string"),
+        (_control(ok=True, channel="eval", env="0", holder=None, ep=0, seq=0, sim="s"), "field 'image_size'"),
+    ],
+)
+def test_a_bad_control_reply_is_refused_naming_what_is_wrong(payload, reason):
+    with pytest.raises(BadMessage, match=reason):
+        decode_reply(payload, InfoReply)

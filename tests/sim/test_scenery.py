@@ -12,7 +12,7 @@ import pytest
 
 from services import control
 from services.keys import Keys
-from services.messages import ObservationMsg, batch_messages
+from services.messages import ClaimRequest, ObservationMsg, ResetRequest, batch_messages
 from services.presence import Roster, announce
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -184,11 +184,11 @@ def test_a_live_sims_reset_takes_a_scene_map(processes, namespace):
         sims = Roster(session, keys, "sim")
         sims.wait_for(1, timeout_s=60)
         ctl = keys.ctl("train", "0")
-        control.request(session, ctl, "claim", timeout_s=30, holder=holder)
-        control.request(session, ctl, "reset", timeout_s=30, holder=holder, ep=1, seed=21, scene={"preset": "varied"})
+        control.request(session, ctl, ClaimRequest(holder), timeout_s=30)
+        control.request(session, ctl, ResetRequest(holder, ep=1, seed=21, scene={"preset": "varied"}), timeout_s=30)
         live = frames.get(timeout=30).image
         with pytest.raises(control.ControlError, match="reset's scene: unknown setting 'fishes'"):
-            control.request(session, ctl, "reset", timeout_s=30, holder=holder, ep=2, seed=21, scene={"fishes": 1})
+            control.request(session, ctl, ResetRequest(holder, ep=2, seed=21, scene={"fishes": 1}), timeout_s=30)
         sims.close()
     finally:
         subscriber.undeclare()
