@@ -11,11 +11,11 @@ import pytest
 
 from learner_service.up import LocalSystem, ServiceDied, UpSettings
 from services.procs import ProcessGroup
-from services.settings import SETTINGS_EXIT_CODE
+from services.settings import SETTINGS_EXIT_CODE, from_command_line
 
 
 def swimm(*argv: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", *argv], capture_output=True, text=True, timeout=60)
+    return subprocess.run([sys.executable, "-m", "swimm", *argv], capture_output=True, text=True, timeout=60)
 
 
 @pytest.mark.parametrize(
@@ -42,7 +42,7 @@ def test_a_yaml_key_and_a_variable_are_named_as_written(tmp_path: Path) -> None:
     assert result.returncode == SETTINGS_EXIT_CODE
     assert f"settings file {config}: setting 'demo_steps' got -3: must be >= 0" in result.stderr
     env = {**__import__("os").environ, "SWIMM_ENVS": "0"}
-    result = subprocess.run([sys.executable, "-m", "services.cli", "learn"], capture_output=True, text=True,
+    result = subprocess.run([sys.executable, "-m", "swimm", "learn"], capture_output=True, text=True,
                             timeout=60, env=env)  # fmt: skip
     assert "environment variable SWIMM_ENVS: setting 'envs' got 0: must be >= 1" in result.stderr
 
@@ -64,7 +64,6 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
     """A real (tiny, in-process) run folder; the resume command's settings file loads back as this run's."""
     from learner_service.command import Training
     from learner_service.up import what_the_run_saved, write_up_config
-    from services import cli
     from tests.learner.test_command import tiny_settings
 
     run_dir = tmp_path / "run"
@@ -81,8 +80,8 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
         f"resume training: swimm up --config {run_dir}/up.yaml --resume {run_dir}/final_model.zip",
     ):
         assert line in text, text
-    resumed = cli.checked_settings(
-        "up", ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
+    resumed = from_command_line(
+        UpSettings, ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
     )
     assert resumed.learn.run_dir == str(run_dir) and resumed.learn.steps == 300 and resumed.port == 0
     assert (
