@@ -50,17 +50,21 @@ install_gl_libraries() {
 VENV=${SWIMM_VENV:-.venv}
 VENV_PYTHON="$VENV/bin/python"
 
-# True when the environment already holds this checkout (editable) and the extras' heavy packages: re-running
-# pip would then change nothing we need.
+# True when the environment already holds this checkout (editable), installed with its present commands (an
+# install made before the `swimm` entry point moved would run code that is gone), and the extras' heavy packages:
+# re-running pip would then change nothing we need.
 already_installed() {
     local location
     [ -x "$VENV_PYTHON" ] || return 1
     location=$("$VENV_PYTHON" -m pip show swimm 2>/dev/null | sed -n 's/^Editable project location: //p')
     [ -n "$location" ] && [ "$location" -ef . ] && "$VENV_PYTHON" -c '
-import importlib.util, sys
+import importlib.metadata, importlib.util, sys, tomllib
+scripts = importlib.metadata.distribution("swimm").entry_points.select(group="console_scripts")
+with open("pyproject.toml", "rb") as f:
+    current = {script.name: script.value for script in scripts} == tomllib.load(f)["project"]["scripts"]
 extras = ("zenoh", "mujoco", "cv2", "torch", "stable_baselines3", "gymnasium", "pandas", "scipy", "onnx", "onnxruntime",
           "pytest_timeout", "ruff", "importlinter")
-sys.exit(not all(importlib.util.find_spec(name) for name in extras))'
+sys.exit(not (current and all(importlib.util.find_spec(name) for name in extras)))'
 }
 
 install_python_packages() {

@@ -78,20 +78,20 @@ on_b() {
 }
 common=(--mode peer --connect "tcp/$A_IP:7447" --namespace "$NAMESPACE")
 
-"$PYTHON" -m services.cli router --listen "tcp/$A_IP:7447" > "$OUT/logs/router.log" 2>&1 &
+"$PYTHON" -m swimm router --listen "tcp/$A_IP:7447" > "$OUT/logs/router.log" 2>&1 &
 pids+=($!)
 sleep 2
 share=$((ENVS / SIMS))
 for ((i = 0; i < SIMS; i++)); do
-    on_b "$PYTHON" -m services.cli sim "${common[@]}" --listen "tcp/$B_IP:0" --train-envs "$share" \
+    on_b "$PYTHON" -m swimm sim "${common[@]}" --listen "tcp/$B_IP:0" --train-envs "$share" \
         --first-train-env $((i * share)) --eval-envs 0 --ident "sim-$i" > "$OUT/logs/sim-$i.log" 2>&1 &
     pids+=($!)
 done
-on_b "$PYTHON" -m services.cli encoder "${common[@]}" --listen "tcp/$B_IP:0" --threads 1 --ident enc-b \
+on_b "$PYTHON" -m swimm encoder "${common[@]}" --listen "tcp/$B_IP:0" --threads 1 --ident enc-b \
     > "$OUT/logs/encoder.log" 2>&1 &
 pids+=($!)
 
-"$PYTHON" -m services.cli learn "${common[@]}" --listen "tcp/$A_IP:0" --envs "$ENVS" --group-size "$share" \
+"$PYTHON" -m swimm learn "${common[@]}" --listen "tcp/$A_IP:0" --envs "$ENVS" --group-size "$share" \
     --steps "$STEPS" --resume learner_service/models/sac_cmvae.zip --no-eval-enabled --checkpoint-every 0 \
     --no-save-replay-buffer --run-dir "$OUT/learner" --no-progress-bar > "$OUT/logs/learner.log" 2>&1
 cat "$OUT/learner/result.json"

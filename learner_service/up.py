@@ -48,7 +48,6 @@ from learner_service.progress import (
     describe_progress,
     read_progress,
 )
-from services import cli
 from services import settings as settings_mod
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
@@ -68,6 +67,7 @@ from services.settings import (
     to_dict,
 )
 from sim_service.responder import SimSettings
+from sim_service.responder import check as check_sim
 
 log = logging.getLogger(__name__)
 
@@ -339,13 +339,23 @@ def check(settings: UpSettings) -> UpSettings:
     endpoint = f"tcp/127.0.0.1:{settings.port}"  # its real port is known once the router listens; not checked
     for name, command, argv in child_commands(settings, endpoint, encoder_checkpoint(settings.learn)):
         try:
-            cli.checked_settings(command, argv)
-        except SettingsError as exc:
+            check_child(command, argv)
+        except (ValueError, FileNotFoundError) as exc:
             raise SettingsError(f"the {name} it would start refuses its settings: {exc}") from None
     from learner_service.command import check as check_learner  # stable-baselines3: only once the rest passed
 
     check_learner(learner_settings(settings, endpoint, Path(".")))
     return settings
+
+
+def check_child(command: str, argv: list[str]) -> None:
+    """Refuse a sim's or an encoder's arguments as `swimm sim` or `swimm encoder` would refuse them."""
+    if command == "sim":
+        check_sim(settings_mod.from_command_line(SimSettings, argv))
+    else:  # an encoder: its settings load as its command loads them, or are refused
+        from encoder_service.service import EncoderSettings  # torch: not for `swimm up --help`
+
+        settings_mod.from_command_line(EncoderSettings, argv)
 
 
 def learner_settings(settings: UpSettings, endpoint: str, run_dir: Path) -> LearnCommandSettings:

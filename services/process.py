@@ -15,7 +15,7 @@ first thing that reads it:
   small to share out, so 0 (draw on the calling thread) renders twice as fast on a CPU (0.17 against 0.39 ms
   per frame on 2 cores). A GPU's EGL driver ignores the variable.
 
-Library code (links, responders, sessions, the World) never sets them: `swimm`'s main (services/cli.py) calls
+Library code (links, responders, sessions, the World) never sets them: `swimm`'s main (swimm/cli.py) calls
 :func:`configure_process` with :meth:`ProcessSettings.of` its command's settings before the command runs, and any
 other entry point (``python -m bench.sim``, a test's fixture) calls it itself. Code that builds those objects
 without it runs with Python's, Zenoh's and Mesa's defaults (or whatever the environment says).

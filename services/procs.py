@@ -2,7 +2,7 @@
 
 Used by `swimm up` (the embedded default system), the benchmarks (which
 must measure real processes talking over a real router) and the
-integration tests. Each service is ``python -m services.cli <command> ...``
+integration tests. Each service is ``python -m swimm <command> ...``
 with its log in a file, so a failure can be shown with its own words.
 """
 
@@ -89,7 +89,7 @@ class ProcessGroup:
 
     def start(self, name: str, command: str, *args: str) -> Service:
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        argv = (sys.executable, "-m", "services.cli", command, *args)
+        argv = (sys.executable, "-m", "swimm", command, *args)
         service = Service(name, self._spawn(argv, self.log_dir / f"{name}.log"), self.log_dir / f"{name}.log", argv)
         self.services.append(service)
         log.info("started %s (pid %d), log %s", name, service.process.pid, service.log_path)

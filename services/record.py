@@ -1,4 +1,5 @@
-"""`swimm record` and `swimm replay`: every sample of a namespace kept in an MCAP file, and published back.
+"""What `swimm record` and `swimm replay` do: every sample of a namespace kept in an MCAP file, and published
+back (their commands: swimm/record.py).
 
 Zenoh keeps only the latest value of a key; a dive, a training run or an evaluation is worth keeping whole.
 `swimm record` subscribes to ``<ns>/**`` and writes each sample to MCAP (the mcap library) on a channel named
@@ -20,7 +21,6 @@ import base64
 import json
 import logging
 import queue
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -33,7 +33,6 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from services.lifecycle import stop_on_signals
 from services.messages import BadMessage, ObservationMsg, batch_messages
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -229,18 +228,3 @@ def replay(settings: ReplaySettings, stop: threading.Event) -> int:
         session.close()
     log.info("replayed %d of %d samples from %s into %s", published, len(samples), settings.file, target)
     return published
-
-
-def run_record(settings: RecordSettings) -> int:
-    stop = threading.Event()
-    with stop_on_signals(stop, "finishing the recording"):
-        summary = record(settings, stop)
-    sys.stdout.write(json.dumps(summary) + "\n")
-    return 0
-
-
-def run_replay(settings: ReplaySettings) -> int:
-    stop = threading.Event()
-    with stop_on_signals(stop, "stopping the replay"):
-        replay(settings, stop)
-    return 0

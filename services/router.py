@@ -1,4 +1,4 @@
-"""`swimm router`: a Zenoh router in a Python process, so no extra binary is needed."""
+"""A Zenoh router in a Python process, so no extra binary is needed (`swimm router`: swimm/router.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,6 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
-from services.lifecycle import serve_until_signalled
 from services.session import open_session
 from services.settings import LOCAL_ROUTER, NonNegInt, ZenohSettings
 
@@ -43,7 +42,3 @@ class Router:
     def stop(self) -> None:
         self.session.close()
         log.info("router stopped")
-
-
-def run(settings: RouterSettings) -> None:
-    serve_until_signalled(Router(settings))

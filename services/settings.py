@@ -356,6 +356,16 @@ def load(
     return settings
 
 
+def from_command_line(cls: type[T], argv: typing.Sequence[str], environ: typing.Mapping[str, str] | None = None) -> T:
+    """``cls`` as a command reads it from its arguments ``argv`` (its flags and ``--config FILE``), then the
+    ``SWIMM_*`` variables and the defaults: how `swimm up` reads each process's settings before it starts any."""
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--config")
+    add_arguments(parser, cls)
+    args = parser.parse_args(argv)
+    return load(cls, args, args.config, environ)
+
+
 def to_dict(settings: Any) -> dict[str, Any]:
     """A YAML-friendly view of settings, for run folders."""
     return dataclasses.asdict(settings)

@@ -72,7 +72,7 @@ def processes(tmp_path) -> Iterator[ProcessGroup]:
 
 @pytest.fixture
 def spawn(processes: ProcessGroup) -> Callable[..., Service]:
-    """Start any swimm sub-command as ``python -m services.cli <command> <args>`` in its own process.
+    """Start any swimm sub-command as ``python -m swimm <command> <args>`` in its own process.
 
     Usage: ``service = spawn("sim", "--connect", endpoint, "--namespace", ns, name="sim-a")``.
     The returned :class:`services.procs.Service` has ``process`` (the Popen), ``alive`` and

@@ -63,21 +63,21 @@ def test_cutting_an_encoders_link_loses_and_repeats_no_step(lan, processes: Proc
     encoder_endpoint = f"tcp/{addresses[routers[-1]]}:7447"
     common = ["--connect", endpoint, "--namespace", namespace]
 
-    lan.start(processes, "router-a", "router-a", ["-m", "services.cli", "router", "--listen", endpoint])
+    lan.start(processes, "router-a", "router-a", ["-m", "swimm", "router", "--listen", endpoint])
     encoder_args = ["--connect", encoder_endpoint, "--namespace", namespace]
     if sites == 2:
         site_config = str(ZENOH_DIR / "router-site.json5")
         lan.start(
             processes, "router-b", "router-b",
-            ["-m", "services.cli", "router", "--zenoh-config", site_config, "--listen", encoder_endpoint,
+            ["-m", "swimm", "router", "--zenoh-config", site_config, "--listen", encoder_endpoint,
              "--connect", endpoint],
         )  # fmt: skip
         encoder_args += ["--zenoh-config", str(ZENOH_DIR / "client-lan.json5")]
-    lan.start(processes, "sim", "sim", ["-m", "services.cli", "sim", *common, "--train-envs", str(ENVS)])
+    lan.start(processes, "sim", "sim", ["-m", "swimm", "sim", *common, "--train-envs", str(ENVS)])
     for ident in ENCODERS:
         lan.start(
             processes, ident, ident,
-            ["-m", "services.cli", "encoder", *encoder_args, "--checkpoint", str(checkpoint), "--ident", ident,
+            ["-m", "swimm", "encoder", *encoder_args, "--checkpoint", str(checkpoint), "--ident", ident,
              "--threads", "1"],
         )  # fmt: skip
     log_path = tmp_path / "replies.jsonl"

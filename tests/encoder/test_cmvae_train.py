@@ -173,7 +173,7 @@ def test_ctrl_c_or_sigterm_keeps_the_finished_epochs_and_writes_the_summary(
 ) -> None:
     """SIGINT or SIGTERM to a running `swimm train-encoder`: exit 130, checkpoints kept, a summary that says so."""
     out = tmp_path / "interrupted"
-    command = [sys.executable, "-m", "services.cli", "train-encoder", "--dataset", str(dataset_dir), "--out", str(out)]
+    command = [sys.executable, "-m", "swimm", "train-encoder", "--dataset", str(dataset_dir), "--out", str(out)]
     command += ["--epochs", "1000", "--val-fraction", "0.25", "--device", "cpu", "--no-tensorboard"]
     # As from a terminal: a test run started in the background by a script ignores SIGINT, and children inherit that.
     restore_ctrl_c = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731

@@ -32,13 +32,13 @@ from learner_service.inprocess_env import TrackingEnv
 from learner_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
-from services.cli import main as swimm
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 from services.messages import InfoReply
 from services.settings import ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
 from sim_service.settings import WorldSettings
+from swimm.cli import main as swimm
 
 STEPS = 60
 EPISODES = 2

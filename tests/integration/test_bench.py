@@ -25,7 +25,7 @@ pytestmark = pytest.mark.slow
 
 def bench(*args: str, timeout_s: float = 300.0) -> dict:
     result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "bench", *args, "--json"], capture_output=True, text=True,
+        [sys.executable, "-m", "swimm", "bench", *args, "--json"], capture_output=True, text=True,
         timeout=timeout_s,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]

@@ -16,7 +16,7 @@ ROBUST = "encoder_service/models/cmvae_robust.pt"
 
 def swimm(command: str, endpoint: str, namespace: str, *flags: str) -> subprocess.CompletedProcess:
     """A real `swimm <command>` on the cmvae observation against the test's router and namespace."""
-    argv = [sys.executable, "-m", "services.cli", command, "--obs", "cmvae", "--connect", endpoint,
+    argv = [sys.executable, "-m", "swimm", command, "--obs", "cmvae", "--connect", endpoint,
             "--namespace", namespace, "--no-progress-bar", *flags]  # fmt: skip
     return subprocess.run(argv, capture_output=True, text=True, timeout=240)
 

@@ -19,7 +19,7 @@ pytestmark = pytest.mark.slow
 
 def status(endpoint: str, namespace: str, *extra: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", "status", "--connect", endpoint, "--namespace", namespace, *extra],
+        [sys.executable, "-m", "swimm", "status", "--connect", endpoint, "--namespace", namespace, *extra],
         capture_output=True, text=True, timeout=120,
     )  # fmt: skip
 

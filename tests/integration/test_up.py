@@ -17,10 +17,10 @@ import pytest
 import torch
 
 from encoder_service.model import CMVAE, make_checkpoint
-from services import cli
 from services.keys import Keys
 from services.presence import live_now
 from services.procs import Service
+from swimm import cli
 
 TINY_SAC = "{learning_starts: 50, gradient_steps: 1, batch_size: 32, buffer_size: 2000}"
 
@@ -192,7 +192,7 @@ def test_up_refuses_bad_settings_before_any_process_or_folder(tmp_path, flags, m
     sim_yaml = tmp_path / "sim.yaml"
     sim_yaml.write_text("train_envs: -3\n")  # a child's own setting, refused by that child's check
     flags = [str(sim_yaml) if flag == "SIM_YAML" else flag for flag in flags]
-    argv = [sys.executable, "-m", "services.cli", "up", "--run-dir", str(tmp_path / "run"), "--obs", "state", *flags]
+    argv = [sys.executable, "-m", "swimm", "up", "--run-dir", str(tmp_path / "run"), "--obs", "state", *flags]
     started = time.monotonic()
     result = subprocess.run(argv, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2, result.stderr

@@ -20,8 +20,8 @@ from learner_service.envs import make_vec_env
 from learner_service.learn_settings import EvalSettings
 from learner_service.progress import BEST_MODEL, BEST_MODEL_SCORE, FINAL_MODEL, latest_evaluation
 from learner_service.task import TaskSettings
-from services import cli
 from services import settings as settings_mod
+from swimm import cli
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*Box observation space (minimum|maximum) value is")
 

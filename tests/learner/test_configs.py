@@ -10,7 +10,7 @@ import pytest
 from learner_service.command import check, parse_hyperparams
 from learner_service.up import UpSettings, sim_shares
 from services import settings as settings_mod
-from services.cli import build_parser, config_file
+from swimm.cli import build_parser, config_file
 
 ROOT = Path(__file__).parents[2]
 CONFIGS = sorted((ROOT / "learner_service" / "configs").glob("*.yaml"))

@@ -12,13 +12,13 @@ import pytest
 
 from learner_service.learn_settings import LearnCommandSettings
 from learner_service.up import LocalSystem, ServiceDied, UpSettings, child_commands
-from services.cli import checked_settings
 from services.procs import ProcessGroup
-from services.settings import SETTINGS_EXIT_CODE
+from services.settings import SETTINGS_EXIT_CODE, from_command_line
+from sim_service.responder import SimSettings
 
 
 def swimm(*argv: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", *argv], capture_output=True, text=True, timeout=60)
+    return subprocess.run([sys.executable, "-m", "swimm", *argv], capture_output=True, text=True, timeout=60)
 
 
 @pytest.mark.parametrize(
@@ -45,7 +45,7 @@ def test_a_yaml_key_and_a_variable_are_named_as_written(tmp_path: Path) -> None:
     assert result.returncode == SETTINGS_EXIT_CODE
     assert f"settings file {config}: setting 'demo_steps' got -3: must be >= 0" in result.stderr
     env = {**__import__("os").environ, "SWIMM_ENVS": "0"}
-    result = subprocess.run([sys.executable, "-m", "services.cli", "learn"], capture_output=True, text=True,
+    result = subprocess.run([sys.executable, "-m", "swimm", "learn"], capture_output=True, text=True,
                             timeout=60, env=env)  # fmt: skip
     assert "environment variable SWIMM_ENVS: setting 'envs' got 0: must be >= 1" in result.stderr
 
@@ -67,7 +67,6 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
     """A real (tiny, in-process) run folder; the resume command's settings file loads back as this run's."""
     from learner_service.command import Training
     from learner_service.up import what_the_run_saved, write_up_config
-    from services import cli
     from tests.learner.test_command import tiny_settings
 
     run_dir = tmp_path / "run"
@@ -86,8 +85,8 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
         assert line in text, text
     three_d = dataclasses.replace(settings.learn, task="3d")
     assert f"--checkpoint {run_dir}/best_model.zip --task 3d --episodes 20" in what_the_run_saved(run_dir, three_d)
-    resumed = cli.checked_settings(
-        "up", ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
+    resumed = from_command_line(
+        UpSettings, ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
     )
     assert resumed.learn.run_dir == str(run_dir) and resumed.learn.steps == 300 and resumed.port == 0
     assert (
@@ -101,4 +100,4 @@ def test_the_sims_swim_the_dolphin_of_the_learners_task(task: str) -> None:
     settings = UpSettings(learn=LearnCommandSettings(obs="state", task=task, envs=4), sims=2)
     for _, command, arguments in child_commands(settings, "tcp/127.0.0.1:7447", None):
         assert command == "sim"
-        assert checked_settings(command, arguments, environ={}).world.dolphin.motion == task
+        assert from_command_line(SimSettings, arguments, environ={}).world.dolphin.motion == task

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import subprocess
 import sys
@@ -9,17 +10,17 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import COMMANDS
 from services.procs import wait_for_port
+from swimm.cli import COMMANDS
 
 #: The command line DESIGN.md promises.
 DESIGNED_COMMANDS = ("router", "sim", "encoder", "learn", "eval", "dataset", "train-encoder", "up", "bench")
 
 
 def swimm(*args: str, timeout_s: float = 30.0, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
-    """Run ``python -m services.cli <args>`` to completion and capture its output."""
+    """Run ``python -m swimm <args>`` to completion and capture its output."""
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True, timeout=timeout_s, env=env
+        [sys.executable, "-m", "swimm", *args], capture_output=True, text=True, timeout=timeout_s, env=env
     )
 
 
@@ -49,20 +50,30 @@ def test_a_sub_commands_help_lists_its_settings_as_flags_with_defaults_and_varia
         assert text in shown
 
 
-def test_help_imports_neither_torch_nor_mujoco():
+@pytest.mark.parametrize(
+    ("argv", "heavy"), [(["--help"], ("torch", "mujoco")), (["router", "--help"], ("torch", "mujoco")),
+                        (["sim", "--help"], ("torch",))],
+)  # fmt: skip
+def test_help_imports_no_heavy_package_the_command_does_not_need(argv: list[str], heavy: tuple[str, ...]) -> None:
     probe = (
         "import sys\n"
-        "from services import cli\n"
-        "for argv in (['--help'], ['router', '--help']):\n"
-        "    try:\n"
-        "        cli.main(argv)\n"
-        "    except SystemExit:\n"
-        "        pass\n"
-        "print(sorted(m for m in ('torch', 'mujoco') if m in sys.modules))\n"
+        "from swimm import cli\n"
+        "try:\n"
+        f"    cli.main({argv!r})\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        f"print(sorted(m for m in {heavy!r} if m in sys.modules))\n"
     )
-    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=30)
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_every_command_loads_its_settings_check_and_run_function(name: str) -> None:
+    entry = COMMANDS[name].load()
+    assert dataclasses.is_dataclass(entry.settings) and callable(entry.run)
+    assert entry.check is None or callable(entry.check)
 
 
 def test_console_script_is_installed():
@@ -119,7 +130,7 @@ def test_flags_override_the_yaml_file(spawn, free_port, tmp_path):
 def test_up_runs_the_shipped_recipe_unless_given_a_settings_file(tmp_path) -> None:
     from learner_service.up import UpSettings
     from services import settings as settings_mod
-    from services.cli import build_parser, config_file
+    from swimm.cli import build_parser, config_file
 
     def up_settings(*argv: str) -> UpSettings:
         args = build_parser("up").parse_args(["up", *argv])

@@ -29,11 +29,11 @@ SIDES = {
     "torch image (no MuJoCo)": (
         {"mujoco"},
         ["learner_service.command", "learner_service.proxy_env", "eval_service.command", "eval_service.attach",
-         "encoder_service.service", "services.cli"],
+         "encoder_service.service", "swimm.cli"],
     ),
     "sim image (no torch)": (
         {"torch", "stable_baselines3", "gymnasium"},
-        ["sim_service.responder", "sim_service.dataset", "sim_service.world", "services.cli", "learner_service.up"],
+        ["sim_service.responder", "sim_service.dataset", "sim_service.world", "swimm.cli", "learner_service.up"],
     ),
     "shared core (neither)": (
         {"torch", "mujoco", "stable_baselines3", "gymnasium", "cv2"},

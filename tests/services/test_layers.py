@@ -7,6 +7,10 @@ import sys
 import tomllib
 from pathlib import Path
 
+import grimp
+
+from swimm.commands import COMMANDS
+
 ROOT = Path(__file__).resolve().parents[2]
 #: import-linter's command beside this interpreter: the project's virtual environment need not be on PATH.
 LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
@@ -16,6 +20,17 @@ def test_each_layer_imports_only_the_layers_below_it() -> None:
     result = subprocess.run([str(LINT_IMPORTS), "--no-cache"], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
     assert "1 kept, 0 broken" in result.stdout
+
+
+def test_the_import_check_sees_every_command() -> None:
+    """Each command's loader imports its module where import-linter's graph (grimp) reads it: a command named by a
+    string instead would escape the contract."""
+    contract = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    imported = grimp.build_graph(*contract["root_packages"], cache_dir=None).find_modules_directly_imported_by(
+        "swimm.commands"
+    )
+    for name, command in COMMANDS.items():
+        assert command.load().run.__module__ in imported, name
 
 
 def test_the_architecture_picture_draws_the_contract_s_layers() -> None:

@@ -20,7 +20,7 @@ from sim_service.settings import WorldSettings
 #: process it starts (through services.procs' environment) sees.
 WHAT_A_COMMAND_RUNS_WITH = """
 import dataclasses, json, os, subprocess, sys
-from services import cli
+from swimm import cli
 from services.process import child_environment
 
 seen = {}
@@ -35,9 +35,9 @@ def report(settings):
                 render=os.environ.get("LP_NUM_THREADS"), child=json.loads(child.stdout))
     return 0
 
-sys.modules["__main__"].report = report
 command = sys.argv[1]
-cli.COMMANDS[command] = dataclasses.replace(cli.COMMANDS[command], run="__main__:report")
+spec = cli.COMMANDS[command]
+cli.COMMANDS[command] = dataclasses.replace(spec, load=lambda: dataclasses.replace(spec.load(), run=report))
 code = cli.main(sys.argv[1:])
 print(json.dumps({"code": code, **seen}))
 """

@@ -10,7 +10,7 @@ import time
 def test_status_without_a_router_says_so_in_one_line_within_5_s(free_port) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
     started = time.monotonic()
-    result = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", endpoint],
+    result = subprocess.run([sys.executable, "-m", "swimm", "status", "--connect", endpoint],
                             capture_output=True, text=True, timeout=30)  # fmt: skip
     assert time.monotonic() - started < 5
     assert result.returncode == 1 and result.stdout == ""
@@ -23,7 +23,7 @@ def test_status_without_a_router_says_so_in_one_line_within_5_s(free_port) -> No
 def test_wait_s_waits_as_long_as_asked(free_port) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     started = time.monotonic()
-    result = subprocess.run([sys.executable, "-m", "services.cli", "status", "--connect", endpoint, "--wait-s", "4"],
+    result = subprocess.run([sys.executable, "-m", "swimm", "status", "--connect", endpoint, "--wait-s", "4"],
                             capture_output=True, text=True, timeout=30)  # fmt: skip
     assert 2 < time.monotonic() - started < 8 and result.returncode == 1  # retries stop before a wait past 4 s
     assert "within 4 s" in result.stderr

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from services.cli import main
 from services.geometry import ALPHA_DEG
 from sim_service.dataset import LABEL_NAMES, POSE_NAMES, write_dataset
+from swimm.cli import main
 
 
 def load(directory):

@@ -1,0 +1,7 @@
+"""``python -m swimm``: the `swimm` command line."""
+
+import sys
+
+from swimm.cli import main
+
+sys.exit(main())
