@@ -465,27 +465,28 @@ class InfoRequest(ControlRequest):
 
 
 @dataclass(frozen=True)
-class ClaimRequest(ControlRequest):
-    """Hold the env for ``holder``: nobody else may drive it until released (or the holder's token lapses)."""
+class HolderRequest(ControlRequest):
+    """A request that names only the learner (``holder``) it is made for."""
 
-    OP: ClassVar[str] = "claim"
     holder: str
 
     @classmethod
-    def from_body(cls, body: dict[str, Any]) -> ClaimRequest:
+    def from_body(cls, body: dict[str, Any]) -> HolderRequest:
         return cls(_str(body, "holder"))
 
 
 @dataclass(frozen=True)
-class ReleaseRequest(ControlRequest):
+class ClaimRequest(HolderRequest):
+    """Hold the env for ``holder``: nobody else may drive it until released (or the holder's token lapses)."""
+
+    OP: ClassVar[str] = "claim"
+
+
+@dataclass(frozen=True)
+class ReleaseRequest(HolderRequest):
     """Give back an env ``holder`` holds."""
 
     OP: ClassVar[str] = "release"
-    holder: str
-
-    @classmethod
-    def from_body(cls, body: dict[str, Any]) -> ReleaseRequest:
-        return cls(_str(body, "holder"))
 
 
 @dataclass(frozen=True)
