@@ -27,7 +27,7 @@ from encoder_service import DEFAULT_CHECKPOINT
 from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.service import EncoderSettings
 from services.keys import Keys
-from services.messages import BatchMsg, LatentMsg, ObservationMsg
+from services.messages import BatchItem, BatchMsg, LatentMsg, ObservationMsg
 from services.presence import Roster
 from services.procs import ProcessGroup
 from services.session import open_session
@@ -64,9 +64,9 @@ def checkpoint_for_bench(tmp: Path) -> tuple[Path, str]:
     return path, "freshly initialised (no shipped model found)"
 
 
-def _only_item(payload: bytes) -> bytes:
-    """The payload of a group of one's item (each env here is a group of its own)."""
-    return BatchMsg.decode(payload).items[0].payload
+def _only_item(payload: bytes) -> BatchItem:
+    """A group of one's item (each env here is a group of its own)."""
+    return BatchMsg.decode(payload).items[0]
 
 
 class LockstepFeeder:
@@ -77,7 +77,7 @@ class LockstepFeeder:
         self.latents: queue.Queue[LatentMsg] = queue.Queue()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._subscriber = session.declare_subscriber(
-            keys.latent("train", "*"), lambda s: self.latents.put(LatentMsg.decode(_only_item(s.payload.to_bytes())))
+            keys.latent("train", "*"), lambda s: self.latents.put(LatentMsg.from_item(_only_item(s.payload.to_bytes())))
         )
         self._images = np.random.default_rng(0).integers(0, 256, size=(32, 64, 64, 3), dtype=np.uint8)
         self._seq = 0
@@ -89,8 +89,8 @@ class LockstepFeeder:
             )
         self._seq += 1
         image = self._images[self._seq % len(self._images)]
-        frame = ObservationMsg(env, 1, self._seq, _STILL, image).encode()
-        self._publishers[env].put(BatchMsg.alone(env, 1, self._seq, frame).encode())  # as a sim answers one env
+        frame = ObservationMsg(env, 1, self._seq, _STILL, image)
+        self._publishers[env].put(BatchMsg.alone(BatchItem.of(env, frame)).encode())  # as a sim answers one env
 
     def feed(self, envs: int, seconds: float, limit: int = 0) -> tuple[int, int]:
         """Drive ``envs`` lock-step environments for ``seconds`` (or ``limit`` latents, if given), then drain.

@@ -213,10 +213,7 @@ class EncoderService:
                 observations.append(item.error)
                 continue
             try:
-                obs = ObservationMsg.decode(item.payload, IMAGE_SHAPE)
-                if obs.env != item.env:
-                    raise BadMessage(f"the frame of env {obs.env!r} came as env {item.env!r}'s")
-                observations.append(obs)
+                observations.append(ObservationMsg.from_item(item, IMAGE_SHAPE))
             except BadMessage as exc:
                 self.metrics.count("errors_refused")
                 log.warning("refused the frame of %s/%s in group %s: %s", channel, item.env, batch.group, exc)
@@ -238,7 +235,7 @@ class EncoderService:
                     items.append(BatchItem(source.env, source.ep, source.seq, error=obs))
                     continue
                 row = next(rows)
-                items.append(BatchItem(obs.env, obs.ep, obs.seq, self._latent(obs, mu[row], logvar[row]).encode()))
+                items.append(BatchItem.of(obs.env, self._latent(obs, mu[row], logvar[row])))
             reply = BatchMsg(group.batch.group, self.ident, tuple(items), group.batch.to)
             self._publisher(self.keys.latent(group.channel, group.batch.group)).put(reply.encode())
             self.metrics.observe_ms("latency", (time.perf_counter() - group.frame.received_at) * 1e3)

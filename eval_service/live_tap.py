@@ -71,7 +71,7 @@ class EnvTap:
     def _on_action(self, sample: zenoh.Sample) -> None:
         try:
             actions = [
-                msg for env, msg in batch_messages(sample.payload.to_bytes(), ActionMsg.decode) if env == self.env
+                msg for env, msg in batch_messages(sample.payload.to_bytes(), ActionMsg.from_item) if env == self.env
             ]
         except BadMessage:
             return  # the sim refuses and logs bad actions; the viewer just ignores them
@@ -82,7 +82,7 @@ class EnvTap:
 
     def _on_obs(self, sample: zenoh.Sample) -> None:
         try:
-            frames = [msg for env, msg in batch_messages(sample.payload.to_bytes(), ObservationMsg.decode)
+            frames = [msg for env, msg in batch_messages(sample.payload.to_bytes(), ObservationMsg.from_item)
                       if env == self.env]  # fmt: skip
         except BadMessage:
             return

@@ -50,10 +50,10 @@ def recorded_episodes(path: str | Path) -> dict[tuple[str, str, int], RecordedEp
         channel, kind = parts[0], parts[2]
         try:
             if kind == "obs":
-                for env, msg in batch_messages(payload, ObservationMsg.decode):
+                for env, msg in batch_messages(payload, ObservationMsg.from_item):
                     episodes[(channel, env, msg.ep)].telemetry.setdefault(msg.seq, msg.telemetry)
             elif kind == "action":
-                for env, action in batch_messages(payload, ActionMsg.decode):
+                for env, action in batch_messages(payload, ActionMsg.from_item):
                     episodes[(channel, env, action.ep)].actions.setdefault(
                         action.seq, (action.action[2], action.action[3])
                     )

@@ -57,12 +57,12 @@ class StepRefused(RuntimeError):
     """The sim refused a step or reset; the message carries its reason."""
 
 
-def decode_reply(payload: bytes, encoded: bool) -> Frame:
+def decode_reply(item: BatchItem, encoded: bool) -> Frame:
     """One env's reply: the encoder's latent (``encoded``) or the sim's observation; BadMessage if unreadable."""
     if encoded:
-        msg = LatentMsg.decode(payload)
+        msg = LatentMsg.from_item(item)
         return Frame(msg.telemetry, mu=np.asarray(msg.mu, np.float32), logvar=np.asarray(msg.logvar, np.float32))
-    obs = ObservationMsg.decode(payload)
+    obs = ObservationMsg.from_item(item)
     return Frame(obs.telemetry, image=obs.image)
 
 
@@ -202,7 +202,7 @@ class EnvLink:
             control.request(self.session, self._ctl(index), replace(reset, route=route), self.step_timeout_s)
             return
         items = tuple(
-            BatchItem(env, ep, seq, ActionMsg(ep, seq, action, dive_mode, route, self.holder).encode())
+            BatchItem.of(env, ActionMsg(ep, seq, action, dive_mode, route, self.holder))
             for (env, ep, seq), (action, dive_mode) in zip(self._expected, self._actions, strict=True)
         )
         self._publisher.put(BatchMsg(self.group, self.holder, items).encode())
@@ -242,7 +242,7 @@ class EnvLink:
             if item.error:
                 raise StepRefused(f"{self.channel}/{item.env}: {item.error}")
             try:
-                replies.append(decode_reply(item.payload, self.encoded))
+                replies.append(decode_reply(item, self.encoded))
             except BadMessage as exc:
                 log.warning("%s: unreadable reply for env %s: %s; waiting for a re-send", self.name, item.env, exc)
                 return None

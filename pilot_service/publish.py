@@ -18,7 +18,7 @@ import numpy as np
 import zenoh
 
 from services.keys import Keys
-from services.messages import DIRECT_ROUTE, BatchMsg, ObservationMsg
+from services.messages import DIRECT_ROUTE, BatchItem, BatchMsg, ObservationMsg
 from services.presence import Roster, rendezvous_choice
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -43,10 +43,12 @@ class FramePublisher:
         members = self.encoders.members()
         route = rendezvous_choice(f"{CHANNEL}/{self.env}", members) if members else DIRECT_ROUTE
         telemetry = Telemetry.unknown(time.monotonic() - self.started)
-        message = ObservationMsg(env=self.env, ep=1, seq=number, telemetry=telemetry, image=frame).encode()
+        message = ObservationMsg(env=self.env, ep=1, seq=number, telemetry=telemetry, image=frame)
+        payload = BatchMsg.alone(BatchItem.of(self.env, message)).encode()
         # DROP: a congested network loses a frame of the feed rather than stalling the control loop.
-        self.session.put(self.keys.obs(CHANNEL, self.env, route), BatchMsg.alone(self.env, 1, number, message).encode(),
-                         congestion_control=zenoh.CongestionControl.DROP)  # fmt: skip
+        self.session.put(
+            self.keys.obs(CHANNEL, self.env, route), payload, congestion_control=zenoh.CongestionControl.DROP
+        )
 
     def close(self) -> None:
         self.encoders.close()

@@ -4,6 +4,7 @@ launcher and the benches check their sizes against these before anything starts.
 
 from __future__ import annotations
 
+import functools
 import math
 
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
@@ -28,6 +29,7 @@ def largest_low_latency_group(image_size: int) -> int:
     return LOW_LATENCY_MAX_MESSAGE_BYTES // observation_bytes(image_size)
 
 
+@functools.cache  # the sim asks on every step
 def low_latency_group_problem(group_size: int, image_size: int) -> str | None:
     """Why a group of ``group_size`` observations cannot cross a low-latency session as one message, or None.
 

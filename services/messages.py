@@ -26,7 +26,8 @@ M = TypeVar("M")
 
 #: 2: every step message is a BatchMsg of N items (a single env is a group of one), on the keys of the group it
 #: steps; ErrorMsg and the err key are gone, a refusal travelling as its env's error item (docs/architecture.md).
-PROTOCOL_VERSION = 2
+#: 3: an item carries its message's fields as a map, not the message encoded on its own (one msgpack pass).
+PROTOCOL_VERSION = 3
 #: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)
@@ -54,11 +55,6 @@ class DiveMode(StrEnum):
 
 def _pack(body: dict[str, Any]) -> bytes:
     return msgpack.packb(body, use_bin_type=True)
-
-
-def _pack_stamped(ep: int, seq: int, sent_at: float, **fields_: Any) -> bytes:
-    """A message of one step: the version, the (episode, seq) it belongs to and when it was sent, then its fields."""
-    return _pack({"v": PROTOCOL_VERSION, "ep": ep, "seq": seq, "t": sent_at, **fields_})
 
 
 def unpack(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
@@ -130,20 +126,18 @@ class ActionMsg:
     sender: str = ""  # the claimant's id; the sim refuses actions from anyone but the holder
     sent_at: float = field(default_factory=time.time)
 
-    def encode(self) -> bytes:
-        return _pack_stamped(
-            self.ep,
-            self.seq,
-            self.sent_at,
-            action=list(self.action),
-            dive_mode=self.dive_mode.value,
-            route=self.route,
-            sender=self.sender,
-        )
+    def fields(self) -> dict[str, Any]:
+        return {
+            "t": self.sent_at,
+            "action": list(self.action),
+            "dive_mode": self.dive_mode.value,
+            "route": self.route,
+            "sender": self.sender,
+        }
 
     @classmethod
-    def decode(cls, payload: bytes) -> ActionMsg:
-        body = unpack(payload)
+    def from_item(cls, item: BatchItem) -> ActionMsg:
+        body = item.body
         action = _float_list(body, "action", ACTION_SIZE)
         if any(abs(a) > 1.0 for a in action):
             raise BadMessage(f"action components must lie in [-1, 1], got {list(action)}")
@@ -152,8 +146,8 @@ class ActionMsg:
         except ValueError:
             raise BadMessage(f"unknown dive_mode {body.get('dive_mode')!r}") from None
         return cls(
-            ep=_int(body, "ep"),
-            seq=_int(body, "seq"),
+            ep=item.ep,
+            seq=item.seq,
             action=action,  # type: ignore[arg-type]
             dive_mode=dive_mode,
             route=_str(body, "route", DIRECT_ROUTE),
@@ -197,20 +191,20 @@ class ObservationMsg:
     image: np.ndarray | None  # HxWx3 uint8; None from a sim that does not render (state observations)
     sent_at: float = field(default_factory=time.time)
 
-    def encode(self) -> bytes:
+    def fields(self) -> dict[str, Any]:
         image = image_to_fields(self.image) if self.image is not None else {}
-        return _pack_stamped(self.ep, self.seq, self.sent_at, env=self.env, telemetry=self.telemetry.to_dict(), **image)
+        return {"t": self.sent_at, "telemetry": self.telemetry.to_dict(), **image}
 
     @classmethod
-    def decode(cls, payload: bytes, expected_shape: tuple[int, ...] | None = None) -> ObservationMsg:
+    def from_item(cls, item: BatchItem, expected_shape: tuple[int, ...] | None = None) -> ObservationMsg:
         """``expected_shape`` given: the image is required and must have it; otherwise a missing image is None."""
-        body = unpack(payload)
+        body = item.body
         if "image" not in body and expected_shape is not None:
             raise BadMessage(f"observation carries no image, expected {list(expected_shape)} (does the sim render?)")
         return cls(
-            env=_str(body, "env"),
-            ep=_int(body, "ep"),
-            seq=_int(body, "seq"),
+            env=item.env,
+            ep=item.ep,
+            seq=item.seq,
             telemetry=_telemetry(body),
             image=image_from_fields(body, expected_shape) if "image" in body else None,
             sent_at=_time(body),
@@ -240,26 +234,23 @@ class LatentMsg:
     encoder: str
     sent_at: float = field(default_factory=time.time)
 
-    def encode(self) -> bytes:
-        return _pack_stamped(
-            self.ep,
-            self.seq,
-            self.sent_at,
-            env=self.env,
-            telemetry=self.telemetry.to_dict(),
-            mu=list(self.mu),
-            logvar=list(self.logvar),
-            encoder=self.encoder,
-        )
+    def fields(self) -> dict[str, Any]:
+        return {
+            "t": self.sent_at,
+            "telemetry": self.telemetry.to_dict(),
+            "mu": list(self.mu),
+            "logvar": list(self.logvar),
+            "encoder": self.encoder,
+        }
 
     @classmethod
-    def decode(cls, payload: bytes) -> LatentMsg:
-        body = unpack(payload)
+    def from_item(cls, item: BatchItem) -> LatentMsg:
+        body = item.body
         mu = _float_list(body, "mu", None)
         return cls(
-            env=_str(body, "env"),
-            ep=_int(body, "ep"),
-            seq=_int(body, "seq"),
+            env=item.env,
+            ep=item.ep,
+            seq=item.seq,
             telemetry=_telemetry(body),
             mu=mu,
             logvar=_float_list(body, "logvar", len(mu)),
@@ -268,15 +259,22 @@ class LatentMsg:
         )
 
 
+StepMsg = ActionMsg | ObservationMsg | LatentMsg
+
+
 @dataclass(frozen=True)
 class BatchItem:
-    """One env's part of a :class:`BatchMsg`: its message as it would travel alone, or why it was refused."""
+    """One env's part of a :class:`BatchMsg`: its message's fields, or why the sender refused its step."""
 
     env: str
     ep: int
     seq: int
-    payload: bytes = b""  # an encoded ActionMsg, ObservationMsg or LatentMsg
-    error: str = ""  # set instead of ``payload`` when the sender refused this env's step
+    body: dict[str, Any] = field(default_factory=dict)  # an ActionMsg's, ObservationMsg's or LatentMsg's fields()
+    error: str = ""  # set instead of ``body`` when the sender refused this env's step
+
+    @classmethod
+    def of(cls, env: str, message: StepMsg) -> BatchItem:
+        return cls(env, message.ep, message.seq, message.fields())
 
 
 @dataclass(frozen=True)
@@ -287,7 +285,7 @@ class BatchMsg:
     order and answers with one message of their observations; an encoder encodes those in one forward pass and
     answers with one of latents. Each item keeps its env's own (ep, seq), so retries and duplicate dropping work
     per env; ``to`` names the learner an answer is for, so a refusal of somebody else's actions is not taken for
-    a refusal of its own.
+    a refusal of its own. The items' fields travel inside the one map, so a step costs one msgpack pass each way.
     """
 
     group: str
@@ -297,13 +295,16 @@ class BatchMsg:
     sent_at: float = field(default_factory=time.time)
 
     @classmethod
-    def alone(cls, env: str, ep: int, seq: int, payload: bytes, sender: str = "", to: str = "") -> BatchMsg:
-        """One env's message as its own group of one, the group named after the env."""
-        return cls(env, sender, (BatchItem(env, ep, seq, payload),), to)
+    def alone(cls, item: BatchItem, sender: str = "", to: str = "") -> BatchMsg:
+        """One env's item as its own group of one, the group named after the env."""
+        return cls(item.env, sender, (item,), to)
 
     def encode(self) -> bytes:
-        items = [[item.env, item.ep, item.seq, item.payload, item.error] for item in self.items]
-        return _pack_stamped(0, 0, self.sent_at, group=self.group, sender=self.sender, to=self.to, items=items)
+        items = [[item.env, item.ep, item.seq, item.body, item.error] for item in self.items]
+        return _pack(
+            {"v": PROTOCOL_VERSION, "t": self.sent_at, "group": self.group, "sender": self.sender, "to": self.to,
+             "items": items}
+        )  # fmt: skip
 
     @classmethod
     def decode(cls, payload: bytes) -> BatchMsg:
@@ -311,30 +312,27 @@ class BatchMsg:
         raw = body.get("items")
         if not isinstance(raw, list) or not raw:
             raise BadMessage("field 'items' must be a non-empty list")
-        items = []
-        for index, entry in enumerate(raw):
-            if not isinstance(entry, list) or len(entry) != 5:
-                raise BadMessage(f"item {index} must be [env, ep, seq, payload, error], got {entry!r:.80}")
-            env, ep, seq, item_payload, error = entry
-            fields_ = {"env": env, "ep": ep, "seq": seq, "error": error}
-            if not isinstance(item_payload, bytes):
-                raise BadMessage(f"item {index}'s payload must be bytes, got {type(item_payload).__name__}")
-            items.append(
-                BatchItem(
-                    _str(fields_, "env"),
-                    _int(fields_, "ep"),
-                    _int(fields_, "seq"),
-                    item_payload,
-                    _str(fields_, "error"),
-                )  # fmt: skip
-            )
-        return cls(_str(body, "group"), _str(body, "sender", ""), tuple(items), _str(body, "to", ""), _time(body))
+        items = tuple(map(_item, raw, range(len(raw))))
+        return cls(_str(body, "group"), _str(body, "sender", ""), items, _str(body, "to", ""), _time(body))
 
 
-def batch_messages(payload: bytes, decode: Callable[[bytes], M]) -> list[tuple[str, M]]:
+def _item(entry: Any, index: int) -> BatchItem:
+    if not isinstance(entry, list) or len(entry) != 5:
+        raise BadMessage(f"item {index} must be [env, ep, seq, fields, error], got {entry!r:.80}")
+    env, ep, seq, fields_, error = entry
+    if not isinstance(env, str) or not isinstance(error, str):
+        raise BadMessage(f"item {index}'s env and error must be strings, got {env!r:.40} and {error!r:.80}")
+    if type(ep) is not int or type(seq) is not int or ep < 0 or seq < 0:
+        raise BadMessage(f"item {index}'s ep and seq must be non-negative integers, got {ep!r} and {seq!r}")
+    if not isinstance(fields_, dict):
+        raise BadMessage(f"item {index}'s fields must be a map, got {type(fields_).__name__}")
+    return BatchItem(env, ep, seq, fields_, error)
+
+
+def batch_messages(payload: bytes, read: Callable[[BatchItem], M]) -> list[tuple[str, M]]:
     """(env, message) of each item of a step message that carries one (a refused item has none), for readers that
     follow envs rather than groups (recordings, the live view); BadMessage if any of it is unreadable."""
-    return [(item.env, decode(item.payload)) for item in BatchMsg.decode(payload).items if not item.error]
+    return [(item.env, read(item)) for item in BatchMsg.decode(payload).items if not item.error]
 
 
 # --- the control plane: request/reply on ``<ns>/<channel>/<env>/ctl`` (services/control.py) -------------------------

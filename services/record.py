@@ -118,7 +118,7 @@ class McapRecorder:
 
     def _write_image(self, key: str, payload: bytes, received_ns: int) -> None:
         try:
-            frames = batch_messages(payload, ObservationMsg.decode)
+            frames = batch_messages(payload, ObservationMsg.from_item)
         except BadMessage:
             return  # not readable observations: kept raw above
         for env, msg in frames:  # a group's frames share its key's image channel, each named by its env

@@ -16,7 +16,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, EnvState, ObservationMsg
+from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, BatchItem, EnvState, ObservationMsg
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.scenery import SceneSettings
@@ -31,7 +31,7 @@ class Refusal(Exception):
 
 @dataclass
 class Outcome:
-    payload: bytes  # the encoded observation to publish
+    item: BatchItem  # the observation to publish, as its env's item of a step message
     replayed: bool  # True when answered from the cache without stepping
 
 
@@ -44,7 +44,7 @@ class LockstepEnv:
         self.ep = 0
         self.seq = 0
         self.seed: int | None = None
-        self._last_payload: bytes | None = None
+        self._last: BatchItem | None = None
         self.route = DIRECT_ROUTE  # where this env's observations go (set by reset and each action)
         self.action = (0.0, 0.0, 0.0, 0.0)  # held between steps in real-time mode
         self.pending: ActionMsg | None = None  # real-time mode: the latest action, applied at the next tick
@@ -90,9 +90,9 @@ class LockstepEnv:
     ) -> Outcome:
         self._check_holder(sender)
         self.route = route
-        if ep == self.ep and self.seq == 0 and self._last_payload is not None and seed == self.seed:
-            return Outcome(self._last_payload, replayed=True)
-        if ep <= self.ep and self._last_payload is not None:
+        if ep == self.ep and self.seq == 0 and self._last is not None and seed == self.seed:
+            return Outcome(self._last, replayed=True)
+        if ep <= self.ep and self._last is not None:
             raise Refusal(f"env {self.name}: episode {ep} is not after the current episode {self.ep}")
         if latency is not None:
             self.world.configure_latency(latency)
@@ -104,10 +104,10 @@ class LockstepEnv:
     def act(self, msg: ActionMsg) -> Outcome:
         self._check_holder(msg.sender)
         self.route = msg.route
-        if msg.ep != self.ep or self._last_payload is None:
+        if msg.ep != self.ep or self._last is None:
             raise Refusal(f"env {self.name}: action for episode {msg.ep}, but the current episode is {self.ep}")
         if msg.seq == self.seq:
-            return Outcome(self._last_payload, replayed=True)
+            return Outcome(self._last, replayed=True)
         if msg.seq != self.seq + 1:
             raise Refusal(f"env {self.name}: action seq {msg.seq} out of order (expected {self.seq + 1})")
         telemetry, image = self.world.step(msg.action, msg.dive_mode)
@@ -116,7 +116,7 @@ class LockstepEnv:
 
     def step_realtime(self) -> Outcome | None:
         """Real-time mode: advance once with the latest action (held when none came)."""
-        if self._last_payload is None:
+        if self._last is None:
             return None
         if self.pending is not None:
             self._check_holder(self.pending.sender)
@@ -129,8 +129,8 @@ class LockstepEnv:
         msg = ObservationMsg(
             env=self.env, ep=self.ep, seq=self.seq, telemetry=telemetry, image=image, sent_at=time.time()
         )
-        self._last_payload = msg.encode()
-        return Outcome(self._last_payload, replayed=False)
+        self._last = BatchItem.of(self.env, msg)
+        return Outcome(self._last, replayed=False)
 
     def state(self) -> EnvState:
         return EnvState(self.channel, self.env, self.holder, self.ep, self.seq)

@@ -273,7 +273,7 @@ class SimResponder:
         for item in batch.items:
             env = self._by_name.get((channel, item.env))
             try:
-                msg = ActionMsg.decode(item.payload)
+                msg = ActionMsg.from_item(item)
                 route = msg.route
                 if env is None:
                     raise Refusal(f"env {channel}/{item.env} is not served by sim {self.ident}")
@@ -290,7 +290,7 @@ class SimResponder:
                 log.warning("refused the action of %s/%s in group %s: %s", channel, item.env, group, exc)
                 items.append(BatchItem(item.env, item.ep, item.seq, error=str(exc)))
                 continue
-            items.append(BatchItem(item.env, item.ep, item.seq, outcome.payload))
+            items.append(outcome.item)
             self.metrics.count("replays" if outcome.replayed else "steps")
             self._unprepared.add(env)
         self._answer(channel, group, route, batch.sender, items)
@@ -367,7 +367,7 @@ class SimResponder:
 
     def _publish(self, env: LockstepEnv, route: str, to: str, outcome: Outcome, received_at: float) -> None:
         """One env's observation outside a step (a reset's, a real-time tick's): as its own group of one."""
-        reply = BatchMsg.alone(env.env, env.ep, env.seq, outcome.payload, self.ident, to)
+        reply = BatchMsg.alone(outcome.item, self.ident, to)
         self._publisher(self.keys.obs(env.channel, env.env, route)).put(reply.encode())
         self.metrics.count("replays" if outcome.replayed else "steps")
         self.metrics.observe_ms("step", (time.perf_counter() - received_at) * 1e3)

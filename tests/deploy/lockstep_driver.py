@@ -55,7 +55,7 @@ def main() -> None:
 
     def note_encoder(sample) -> None:
         with lock:
-            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.from_item):
                 encoded_by.setdefault((env, msg.ep, msg.seq), msg.encoder)
 
     latent_sub = session.declare_subscriber(f"{args.namespace}/train/*/latent", note_encoder)

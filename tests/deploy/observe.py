@@ -52,7 +52,7 @@ class LatentLog:
 
     def _on_latent(self, sample) -> None:
         with self._lock:
-            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.from_item):
                 self.rows.append((env, msg.ep, msg.seq, msg.telemetry.sim_time, msg.encoder))
 
     def snapshot(self) -> list[tuple[str, int, int, float, str]]:

@@ -17,7 +17,7 @@ import pytest
 from learner_service.link import EnvLink, new_holder_id
 from services import control
 from services.keys import Keys
-from services.messages import ActionMsg, BatchMsg, ResetRequest, batch_messages
+from services.messages import ActionMsg, BatchItem, BatchMsg, ResetRequest, batch_messages
 from services.presence import Roster, announce
 from services.procs import ProcessGroup, free_tcp_port, wait_for_port
 from services.session import StartupTimeout, open_session
@@ -80,7 +80,7 @@ def test_only_learners_drive_the_sim_behind_the_tls_acl_router(secure_router, pr
         seen_metrics: queue.Queue[bytes] = queue.Queue()
         action_sub = monitor.declare_subscriber(
             keys.action("train", "0"),
-            lambda s: [seen_actions.put(msg) for _, msg in batch_messages(s.payload.to_bytes(), ActionMsg.decode)],
+            lambda s: [seen_actions.put(msg) for _, msg in batch_messages(s.payload.to_bytes(), ActionMsg.from_item)],
         )
         metrics_sub = monitor.declare_subscriber(keys.all_metrics(), lambda s: seen_metrics.put(bytes(s.payload)))
         learners_seen = Roster(monitor, keys, "learner")
@@ -99,8 +99,8 @@ def test_only_learners_drive_the_sim_behind_the_tls_acl_router(secure_router, pr
         spoofs = intruder.declare_publisher(keys.action("train", "0"))
         for action in actions:
             # The intruder goes first each step: were it let through, the sim would apply its action as this seq.
-            spoof = ActionMsg(1, link.seq[0] + 1, (1.0, 1.0, 1.0, -1.0), sender=holder).encode()
-            spoofs.put(BatchMsg.alone("0", 1, link.seq[0] + 1, spoof, holder).encode())
+            spoof = ActionMsg(1, link.seq[0] + 1, (1.0, 1.0, 1.0, -1.0), sender=holder)
+            spoofs.put(BatchMsg.alone(BatchItem.of("0", spoof), holder).encode())
             link.send([action])
             telemetry.append(link.wait()[0].telemetry)
         intruder.put(keys.metrics("encoder", "intruder"), b"the intruder is connected and may publish metrics")

@@ -26,7 +26,7 @@ from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
 from learner_service.live_encoders import check_live_encoders
 from services.keys import Keys
-from services.messages import PROTOCOL_VERSION, BatchItem, BatchMsg, LatentMsg, ObservationMsg, image_to_fields
+from services.messages import BatchItem, BatchMsg, LatentMsg, ObservationMsg, image_to_fields
 from services.presence import Roster, ask_about
 from services.results import file_sha256
 from services.settings import ZenohSettings
@@ -97,18 +97,18 @@ class Feeder:
             if item.error:
                 self.errors.put(item)
             else:
-                self.latents.put(LatentMsg.decode(item.payload))
+                self.latents.put(LatentMsg.from_item(item))
 
-    def send(self, env: str, payload: bytes, channel: str = "train", ep: int = 1, seq: int = 0) -> None:
-        """``payload`` as env ``env``'s group of one, as the sim sends a reset's observation."""
-        self.send_raw(env, BatchMsg.alone(env, ep, seq, payload).encode(), channel)
+    def send(self, env: str, item: BatchItem, channel: str = "train") -> None:
+        """``item`` as env ``env``'s group of one, as the sim sends a reset's observation."""
+        self.send_raw(env, BatchMsg.alone(item).encode(), channel)
 
     def send_raw(self, group: str, payload: bytes, channel: str = "train") -> None:
         self._encoders.wait_for(1, timeout_s=20)  # the encoder announces itself once it listens
         self.session.put(self.keys.obs(channel, group, IDENT), payload, congestion_control=BLOCK)  # as the sim does
 
-    def frame(self, env: str, seq: int, image: np.ndarray) -> bytes:
-        return ObservationMsg(env=env, ep=1, seq=seq, telemetry=telemetry(seq), image=image).encode()
+    def frame(self, env: str, seq: int, image: np.ndarray) -> BatchItem:
+        return BatchItem.of(env, ObservationMsg(env=env, ep=1, seq=seq, telemetry=telemetry(seq), image=image))
 
     def take_latents(self, count: int, timeout_s: float = 20.0) -> list[LatentMsg]:
         deadline = time.monotonic() + timeout_s
@@ -134,7 +134,7 @@ def test_latents_match_the_encoder_on_the_same_images(start_service, feeder: Fee
     start_service(max_wait_ms=5.0)
     frames = images(12, seed=4)
     for seq, image in enumerate(frames):
-        feeder.send(str(seq % 3), feeder.frame(str(seq % 3), seq, image), "eval" if seq % 2 else "train", seq=seq)
+        feeder.send(str(seq % 3), feeder.frame(str(seq % 3), seq, image), "eval" if seq % 2 else "train")
     by_seq = {msg.seq: msg for msg in feeder.take_latents(len(frames))}
     assert sorted(by_seq) == list(range(len(frames)))  # each frame encoded once
     expected_mu, expected_logvar = LatentEncoder(checkpoint, threads=1).encode(frames)
@@ -154,7 +154,7 @@ def test_frames_arriving_together_are_encoded_in_batches(start_service, feeder: 
     )
     count = 48
     for seq, image in enumerate(images(count, seed=5)):
-        feeder.send(str(seq % 16), feeder.frame(str(seq % 16), seq, image), seq=seq)
+        feeder.send(str(seq % 16), feeder.frame(str(seq % 16), seq, image))
     assert sorted(msg.seq for msg in feeder.take_latents(count)) == list(range(count))
     snap: dict = {}
     deadline = time.monotonic() + 10
@@ -171,25 +171,27 @@ def test_bad_frames_are_refused_with_reasons_and_the_service_keeps_serving(start
     service = start_service()
     good = images(1, seed=6)[0]
 
-    def body(frame: np.ndarray, **overrides) -> bytes:
-        fields = {"v": PROTOCOL_VERSION, "env": "2", "ep": 4, "seq": 9, "t": 0.0, "telemetry": telemetry(9).to_dict()}
-        fields.update(image_to_fields(frame))
-        fields.update(overrides)
-        return msgpack.packb(fields, use_bin_type=True)
+    def item(frame: np.ndarray, **overrides) -> BatchItem:
+        fields = {"t": 0.0, "telemetry": telemetry(9).to_dict(), **image_to_fields(frame)}
+        return BatchItem("2", 4, 9, fields | overrides)
 
     bad = {
-        "msgpack": b"\xc1\xff not msgpack",
-        "shape": body(images(1, seed=7)[0, :32]),  # a 32x64 frame
-        "dtype": body(good, dtype="float32"),
-        "bytes": body(good, image=good.tobytes()[:-5]),
-        "version": body(good, v=99),
-        "telemetry": body(good, telemetry={"rover_pos": [0, 0, 0]}),
-        "env": body(good, env="7"),  # a frame claiming another env than its key
+        "shape": item(images(1, seed=7)[0, :32]),  # a 32x64 frame
+        "dtype": item(good, dtype="float32"),
+        "bytes": item(good, image=good.tobytes()[:-5]),
+        "telemetry": item(good, telemetry={"rover_pos": [0, 0, 0]}),
+        "'t'": item(good, t="noon"),
     }
     feeder.send("2", feeder.frame("2", 9, good), channel="replay")  # not a channel: refused, with no one to tell
-    feeder.send_raw("2", feeder.frame("2", 9, good))  # not a group's message: refused, with no one to tell
-    for payload in bad.values():
-        feeder.send("2", payload, ep=4, seq=9)
+    # Not a group's message, not msgpack, another version: no env's item to answer, so refused with no one to tell.
+    for unreadable in (
+        msgpack.packb(feeder.frame("2", 9, good).body),
+        b"\xc1\xff not msgpack",
+        msgpack.packb({"v": 99, "items": []}),
+    ):
+        feeder.send_raw("2", unreadable)
+    for refused_item in bad.values():
+        feeder.send("2", refused_item)
     refused = [feeder.errors.get(timeout=10) for _ in bad]
     for what, item in zip(bad, refused, strict=True):
         assert what in item.error.lower(), (what, item.error)
@@ -197,11 +199,11 @@ def test_bad_frames_are_refused_with_reasons_and_the_service_keeps_serving(start
     sim_refused = BatchItem("2", 4, 10, error="env train/2 is held by learner-1")
     feeder.send_raw("2", BatchMsg("2", "sim-1", (sim_refused,), to="learner-1").encode())
     assert feeder.errors.get(timeout=10) == sim_refused  # the sim's refusal passed on as it came
-    feeder.send("2", feeder.frame("2", 10, good), seq=10)
+    feeder.send("2", feeder.frame("2", 10, good))
     (latent,) = feeder.take_latents(1)
     assert (latent.env, latent.seq) == ("2", 10)
     snap = service.metrics.snapshot()
-    assert snap["errors_refused"] == len(bad) + 2 and snap["images"] == 1
+    assert snap["errors_refused"] == len(bad) + 4 and snap["images"] == 1
     assert feeder.errors.empty()
 
 

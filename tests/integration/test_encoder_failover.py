@@ -49,7 +49,7 @@ class LatentTap:
 
     def _on_latent(self, sample) -> None:
         with self._lock:
-            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+            for env, msg in batch_messages(sample.payload.to_bytes(), LatentMsg.from_item):
                 self.seen.setdefault((env, msg.ep, msg.seq), []).append(msg.encoder)
 
     def close(self) -> None:

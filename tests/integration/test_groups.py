@@ -171,7 +171,7 @@ def test_ungrouped_envs_spread_evenly_over_the_encoders_and_play_the_in_process_
     encoder_of: dict[str, set[str]] = {}  # env -> the encoders that sent its latents
 
     def tap_latent(sample) -> None:
-        for env, latent in batch_messages(sample.payload.to_bytes(), LatentMsg.decode):
+        for env, latent in batch_messages(sample.payload.to_bytes(), LatentMsg.from_item):
             encoder_of.setdefault(env, set()).add(latent.encoder)
 
     tap = remote_env.session.declare_subscriber(f"{namespace}/train/*/latent", tap_latent)

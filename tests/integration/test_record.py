@@ -79,7 +79,7 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
         by_key.setdefault(key, []).append(payload)
     prefix = f"{namespace}/train/0"
     assert len(by_key[f"{prefix}/action"]) == STEPS and len(by_key[f"{prefix}/obs/enc-0"]) == STEPS + 1
-    recorded_latents = [only(payload, LatentMsg.decode) for payload in by_key[f"{prefix}/latent"]]
+    recorded_latents = [only(payload, LatentMsg.from_item) for payload in by_key[f"{prefix}/latent"]]
     assert [(m.ep, m.seq) for m in recorded_latents] == [(1, seq) for seq in range(STEPS + 1)]
     for reply, msg in zip(live, recorded_latents, strict=True):
         assert np.array_equal(reply.mu, np.asarray(msg.mu, np.float32))
@@ -90,7 +90,7 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
     first = json.loads(images[0][1].data)
     png = np.frombuffer(base64.b64decode(first["data"]), np.uint8)
     frame = cv2.cvtColor(cv2.imdecode(png, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
-    observed = only(by_key[f"{prefix}/obs/enc-0"][0], ObservationMsg.decode).image
+    observed = only(by_key[f"{prefix}/obs/enc-0"][0], ObservationMsg.from_item).image
     assert first["format"] == "png" and np.array_equal(frame, observed)
 
     # Scored offline as `swimm eval --recording` does: the return the live steps earned, step by step.
@@ -127,7 +127,7 @@ def test_a_recorded_episode_replays_bit_exact_and_through_a_new_encoder(group, c
     subscriber.undeclare()
     assert heard[f"{target}/train/0/obs/enc-0"] == by_key[f"{prefix}/obs/enc-0"]  # bit-exact, in order
     assert f"{target}/train/0/action" not in heard  # --keys kept the actions out
-    replayed = sorted((only(p, LatentMsg.decode) for p in heard[f"{target}/train/0/latent"]), key=lambda m: m.seq)
+    replayed = sorted((only(p, LatentMsg.from_item) for p in heard[f"{target}/train/0/latent"]), key=lambda m: m.seq)
     for again, recorded in zip(replayed, recorded_latents, strict=True):
         assert (again.ep, again.seq) == (recorded.ep, recorded.seq)
         np.testing.assert_allclose(again.mu, recorded.mu, atol=1e-5)

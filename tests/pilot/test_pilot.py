@@ -131,11 +131,11 @@ def test_published_frames_reach_a_live_encoder_as_a_sims_observations(
     while (frame := source.read()) is not None:
         seen.append(as_sim_frame(frame, HFOV_DEG, 64))
     source.close()
-    published = [msg for payload in observations for _, msg in batch_messages(payload, ObservationMsg.decode)]
+    published = [msg for payload in observations for _, msg in batch_messages(payload, ObservationMsg.from_item)]
     assert [msg.seq for msg in published] == list(range(1, FRAMES + 1))
     assert all(np.array_equal(msg.image, frame) for msg, frame in zip(published, seen, strict=True))
     assert all(np.isnan(msg.telemetry.rover_pos[0]) for msg in published)  # a real camera has no ground truth
-    answered = {msg.seq: msg for payload in latents for _, msg in batch_messages(payload, LatentMsg.decode)}
+    answered = {msg.seq: msg for payload in latents for _, msg in batch_messages(payload, LatentMsg.from_item)}
     assert len(answered) >= FRAMES - 5  # the first frames may leave before the pilot has seen the encoder
     encoder = LatentEncoder()
     for seq, msg in answered.items():

@@ -54,21 +54,26 @@ def _image(shape: tuple[int, int, int] = (64, 64, 3), seed: int = 0) -> np.ndarr
     return np.random.default_rng(seed).integers(0, 256, size=shape, dtype=np.uint8)
 
 
-def _observation_body(**overrides) -> dict:
-    """The map an ObservationMsg encodes to, with fields replaced to make it bad."""
-    body = unpack(ObservationMsg("0", 1, 2, TELEMETRY, _image()).encode())
-    body.update(overrides)
-    return body
+def _wire(message, env: str = "0") -> BatchItem:
+    """``message`` as its env's item after a trip over the wire, alone in its group."""
+    return BatchMsg.decode(BatchMsg.alone(BatchItem.of(env, message)).encode()).items[0]
 
 
-def _action_body(**overrides) -> dict:
-    body = unpack(ActionMsg(ep=1, seq=2, action=(0.0, 0.0, 0.5, -0.5)).encode())
-    body.update(overrides)
-    return body
+def _observation_item(**overrides) -> BatchItem:
+    """An observation's item, with fields replaced to make it bad."""
+    return BatchItem("0", 1, 2, ObservationMsg("0", 1, 2, TELEMETRY, _image()).fields() | overrides)
+
+
+def _action_item(**overrides) -> BatchItem:
+    return BatchItem("0", 1, 2, ActionMsg(ep=1, seq=2, action=(0.0, 0.0, 0.5, -0.5)).fields() | overrides)
 
 
 def _pack(body) -> bytes:
     return msgpack.packb(body, use_bin_type=True)
+
+
+def _batch_payload(**overrides) -> bytes:
+    return _pack({"v": PROTOCOL_VERSION, "t": 1.0, "group": "g", "items": [["0", 1, 2, {}, ""]]} | overrides)
 
 
 # --- round trips -----------------------------------------------------------------------------------------------
@@ -84,11 +89,11 @@ def test_action_round_trips_every_field():
         sender="learner-ab12",
         sent_at=1700000000.5,
     )
-    assert ActionMsg.decode(sent.encode()) == sent
+    assert ActionMsg.from_item(_wire(sent)) == sent
 
 
 def test_action_defaults_to_depth_hold_and_direct_route():
-    received = ActionMsg.decode(_pack({"v": PROTOCOL_VERSION, "ep": 0, "seq": 0, "action": [0, 0, 1, 0]}))
+    received = ActionMsg.from_item(BatchItem("0", 0, 0, {"action": [0, 0, 1, 0]}))
     assert received.dive_mode is DiveMode.DEPTH_HOLD
     assert received.route == "direct"
     assert received.action == (0.0, 0.0, 1.0, 0.0)
@@ -97,7 +102,7 @@ def test_action_defaults_to_depth_hold_and_direct_route():
 def test_observation_round_trips_image_bytes_and_telemetry():
     image = _image(seed=7)
     sent = ObservationMsg(env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25)
-    received = ObservationMsg.decode(sent.encode(), expected_shape=(64, 64, 3))
+    received = ObservationMsg.from_item(_wire(sent, "3"), expected_shape=(64, 64, 3))
     assert (received.env, received.ep, received.seq, received.sent_at) == ("3", 2, 99, 1700000001.25)
     assert received.telemetry == TELEMETRY
     assert received.image.dtype == np.uint8
@@ -107,17 +112,17 @@ def test_observation_round_trips_image_bytes_and_telemetry():
 
 def test_observation_carries_any_hxwx3_size_when_no_shape_is_expected():
     image = _image((36, 64, 3), seed=1)
-    received = ObservationMsg.decode(ObservationMsg("0", 0, 0, TELEMETRY, image).encode())
+    received = ObservationMsg.from_item(_wire(ObservationMsg("0", 0, 0, TELEMETRY, image)))
     assert received.image.shape == (36, 64, 3)
     assert np.array_equal(received.image, image)
 
 
 def test_observation_of_a_sim_that_does_not_render_carries_no_image():
-    payload = ObservationMsg("0", 1, 5, TELEMETRY, None).encode()
-    received = ObservationMsg.decode(payload)
+    item = _wire(ObservationMsg("0", 1, 5, TELEMETRY, None))
+    received = ObservationMsg.from_item(item)
     assert received.image is None and received.telemetry == TELEMETRY
     with pytest.raises(BadMessage, match="observation carries no image, expected \\[64, 64, 3\\]"):
-        ObservationMsg.decode(payload, expected_shape=(64, 64, 3))  # what an encoder asks for
+        ObservationMsg.from_item(item, expected_shape=(64, 64, 3))  # what an encoder asks for
 
 
 def test_latent_round_trips_every_field():
@@ -131,17 +136,19 @@ def test_latent_round_trips_every_field():
         encoder="enc-1",
         sent_at=1700000002.0,
     )
-    assert LatentMsg.decode(sent.encode()) == sent
+    assert LatentMsg.from_item(_wire(sent, "1")) == sent
 
 
-def test_every_message_carries_version_episode_sequence_and_send_time():
-    for payload in (
-        ActionMsg(ep=1, seq=2, action=(0, 0, 0, 0), sent_at=10.0).encode(),
-        ObservationMsg("0", 1, 2, TELEMETRY, _image(), sent_at=10.0).encode(),
-        LatentMsg("0", 1, 2, TELEMETRY, (0.0,), (0.0,), "enc-1", sent_at=10.0).encode(),
+def test_a_step_message_carries_version_and_send_time_and_each_item_its_episode_and_sequence():
+    for message in (
+        ActionMsg(ep=1, seq=2, action=(0, 0, 0, 0), sent_at=10.0),
+        ObservationMsg("0", 1, 2, TELEMETRY, _image(), sent_at=10.0),
+        LatentMsg("0", 1, 2, TELEMETRY, (0.0,), (0.0,), "enc-1", sent_at=10.0),
     ):
-        body = unpack(payload)
-        assert (body["v"], body["ep"], body["seq"], body["t"]) == (PROTOCOL_VERSION, 1, 2, 10.0)
+        body = unpack(BatchMsg("g", "s", (BatchItem.of("0", message),), sent_at=20.0).encode())
+        assert (body["v"], body["t"]) == (PROTOCOL_VERSION, 20.0)
+        env, ep, seq, fields, error = body["items"][0]
+        assert (env, ep, seq, fields["t"], error) == ("0", 1, 2, 10.0, "")
 
 
 # --- refusals: envelope ----------------------------------------------------------------------------------------
@@ -151,7 +158,7 @@ def test_malformed_msgpack_is_refused():
     with pytest.raises(BadMessage, match="malformed msgpack"):
         unpack(b"\xc1")  # 0xc1 is the one byte msgpack never uses
     with pytest.raises(BadMessage, match="malformed msgpack"):
-        ActionMsg.decode(_pack(_action_body())[:-3])  # truncated
+        BatchMsg.decode(_batch_payload()[:-3])  # truncated
 
 
 def test_a_payload_that_is_not_a_map_is_refused():
@@ -159,18 +166,16 @@ def test_a_payload_that_is_not_a_map_is_refused():
         unpack(_pack([PROTOCOL_VERSION, 1, 2]))
 
 
-@pytest.mark.parametrize("version", [0, PROTOCOL_VERSION + 1, "1", None])
+@pytest.mark.parametrize("version", [0, PROTOCOL_VERSION - 1, PROTOCOL_VERSION + 1, "1", None])
 def test_unknown_protocol_version_is_refused_naming_both_versions(version):
-    body = _action_body(v=version)
     with pytest.raises(BadMessage, match=rf"unknown protocol version {version!r}.*speaks {PROTOCOL_VERSION}"):
-        ActionMsg.decode(_pack(body))
+        BatchMsg.decode(_batch_payload(v=version))
 
 
 def test_missing_protocol_version_is_refused():
-    body = _action_body()
-    del body["v"]
+    body = {"t": 1.0, "group": "g", "items": [["0", 1, 2, {}, ""]]}
     with pytest.raises(BadMessage, match="unknown protocol version None"):
-        ActionMsg.decode(_pack(body))
+        BatchMsg.decode(_pack(body))
 
 
 def test_oversized_payload_is_refused_before_decoding_with_its_size():
@@ -181,9 +186,9 @@ def test_oversized_payload_is_refused_before_decoding_with_its_size():
 
 def test_a_large_frame_under_the_limit_is_accepted():
     image = _image((1080, 1920, 3), seed=3)  # the paper's largest frame, ~6.2 MB
-    payload = ObservationMsg("0", 0, 0, TELEMETRY, image).encode()
+    payload = BatchMsg.alone(BatchItem.of("0", ObservationMsg("0", 0, 0, TELEMETRY, image))).encode()
     assert len(payload) < MAX_PAYLOAD_BYTES
-    assert np.array_equal(ObservationMsg.decode(payload).image, image)
+    assert np.array_equal(ObservationMsg.from_item(BatchMsg.decode(payload).items[0]).image, image)
 
 
 # --- refusals: actions -----------------------------------------------------------------------------------------
@@ -204,34 +209,34 @@ def test_a_large_frame_under_the_limit_is_accepted():
 )
 def test_bad_action_is_refused(action, reason):
     with pytest.raises(BadMessage, match=reason):
-        ActionMsg.decode(_pack(_action_body(action=action)))
+        ActionMsg.from_item(_action_item(action=action))
 
 
 def test_action_at_the_bounds_is_accepted():
-    received = ActionMsg.decode(_pack(_action_body(action=[-1.0, 1.0, -1.0, 1.0])))
+    received = ActionMsg.from_item(_action_item(action=[-1.0, 1.0, -1.0, 1.0]))
     assert received.action == (-1.0, 1.0, -1.0, 1.0)
 
 
-@pytest.mark.parametrize(("field", "value"), [("seq", -1), ("seq", 1.5), ("ep", True), ("ep", "3"), ("seq", None)])
-def test_episode_and_sequence_must_be_non_negative_integers(field, value):
-    with pytest.raises(BadMessage, match=f"field '{field}' must be a non-negative integer"):
-        ActionMsg.decode(_pack(_action_body(**{field: value})))
+@pytest.mark.parametrize(("ep", "seq"), [(1, -1), (1, 1.5), (True, 2), ("3", 2), (1, None)])
+def test_episode_and_sequence_must_be_non_negative_integers(ep, seq):
+    with pytest.raises(BadMessage, match="item 0's ep and seq must be non-negative integers"):
+        BatchMsg.decode(_batch_payload(items=[["0", ep, seq, {}, ""]]))
 
 
 def test_unknown_dive_mode_is_refused():
     with pytest.raises(BadMessage, match="unknown dive_mode 'turbo'"):
-        ActionMsg.decode(_pack(_action_body(dive_mode="turbo")))
+        ActionMsg.from_item(_action_item(dive_mode="turbo"))
 
 
 def test_non_string_route_is_refused():
     with pytest.raises(BadMessage, match="field 'route' must be a string"):
-        ActionMsg.decode(_pack(_action_body(route=7)))
+        ActionMsg.from_item(_action_item(route=7))
 
 
 @pytest.mark.parametrize("sent_at", ["yesterday", None])
 def test_bad_send_time_is_refused_as_bad_message(sent_at):
     with pytest.raises(BadMessage, match="'t'"):
-        ActionMsg.decode(_pack(_action_body(t=sent_at)))
+        ActionMsg.from_item(_action_item(t=sent_at))
 
 
 # --- refusals: images and telemetry ----------------------------------------------------------------------------
@@ -252,53 +257,53 @@ def test_bad_send_time_is_refused_as_bad_message(sent_at):
 )
 def test_bad_image_is_refused(overrides, reason):
     with pytest.raises(BadMessage, match=reason):
-        ObservationMsg.decode(_pack(_observation_body(**overrides)))
+        ObservationMsg.from_item(_observation_item(**overrides))
 
 
 def test_image_of_an_unexpected_size_is_refused_naming_both_shapes():
-    payload = ObservationMsg("0", 0, 0, TELEMETRY, _image((128, 128, 3))).encode()
+    item = _wire(ObservationMsg("0", 0, 0, TELEMETRY, _image((128, 128, 3))))
     with pytest.raises(BadMessage, match=r"image shape \[128, 128, 3\] differs from the expected \[64, 64, 3\]"):
-        ObservationMsg.decode(payload, expected_shape=(64, 64, 3))
+        ObservationMsg.from_item(item, expected_shape=(64, 64, 3))
 
 
 def test_observation_without_telemetry_field_is_refused_naming_it():
     telemetry = TELEMETRY.to_dict()
     del telemetry["target_pos"]
     with pytest.raises(BadMessage, match="telemetry lacks field 'target_pos'"):
-        ObservationMsg.decode(_pack(_observation_body(telemetry=telemetry)))
+        ObservationMsg.from_item(_observation_item(telemetry=telemetry))
 
 
 def test_observation_with_malformed_telemetry_is_refused():
     with pytest.raises(BadMessage, match="'telemetry' must be a map"):
-        ObservationMsg.decode(_pack(_observation_body(telemetry=[1, 2, 3])))
+        ObservationMsg.from_item(_observation_item(telemetry=[1, 2, 3]))
     bad_quat = {**TELEMETRY.to_dict(), "rover_quat": [1.0, 0.0, 0.0]}
     with pytest.raises(BadMessage, match="'rover_quat' must have 4 numbers"):
-        ObservationMsg.decode(_pack(_observation_body(telemetry=bad_quat)))
+        ObservationMsg.from_item(_observation_item(telemetry=bad_quat))
 
 
 def test_latent_with_mismatched_logvar_or_nan_mean_is_refused():
-    body = unpack(LatentMsg("0", 0, 0, TELEMETRY, (0.0, 1.0), (0.0, 0.0), "enc-1").encode())
+    fields = LatentMsg("0", 0, 0, TELEMETRY, (0.0, 1.0), (0.0, 0.0), "enc-1").fields()
     with pytest.raises(BadMessage, match="field 'logvar' must be 2 numbers"):
-        LatentMsg.decode(_pack({**body, "logvar": [0.0, 0.0, 0.0]}))
+        LatentMsg.from_item(BatchItem("0", 0, 0, fields | {"logvar": [0.0, 0.0, 0.0]}))
     with pytest.raises(BadMessage, match="field 'mu' holds NaN or infinity"):
-        LatentMsg.decode(_pack({**body, "mu": [math.nan, 0.0]}))
+        LatentMsg.from_item(BatchItem("0", 0, 0, fields | {"mu": [math.nan, 0.0]}))
 
 
-def test_a_batch_round_trips_its_items_payloads_errors_and_addressee():
-    action = ActionMsg(ep=3, seq=7, action=(0.0, 0.1, 0.5, -0.25), route="enc-1", sender="learner-x").encode()
-    items = (BatchItem("0", 3, 7, action), BatchItem("1", 2, 9, error="held"))
+def test_a_batch_round_trips_its_items_fields_errors_and_addressee():
+    action = ActionMsg(ep=3, seq=7, action=(0.0, 0.1, 0.5, -0.25), route="enc-1", sender="learner-x")
+    items = (BatchItem.of("0", action), BatchItem("1", 2, 9, error="held"))
     batch = BatchMsg("learner-x.0", "sim-1", items, to="learner-x")
     decoded = BatchMsg.decode(batch.encode())
     assert decoded == batch
-    assert ActionMsg.decode(decoded.items[0].payload).action == (0.0, 0.1, 0.5, -0.25)
-    assert [(env, msg.seq) for env, msg in batch_messages(batch.encode(), ActionMsg.decode)] == [("0", 7)]
+    assert ActionMsg.from_item(decoded.items[0]) == action
+    assert [(env, msg.seq) for env, msg in batch_messages(batch.encode(), ActionMsg.from_item)] == [("0", 7)]
 
 
 def test_a_single_env_travels_as_a_group_of_one_named_after_it():
-    action = ActionMsg(ep=1, seq=2, action=(0.0, 0.0, 0.5, 0.0), sender="learner-x").encode()
-    alone = BatchMsg.decode(BatchMsg.alone("4", 1, 2, action, "learner-x").encode())
+    action = ActionMsg(ep=1, seq=2, action=(0.0, 0.0, 0.5, 0.0), sender="learner-x")
+    alone = BatchMsg.decode(BatchMsg.alone(BatchItem.of("4", action), "learner-x").encode())
     assert (alone.group, alone.sender, alone.to) == ("4", "learner-x", "")
-    assert alone.items == (BatchItem("4", 1, 2, action),)
+    assert alone.items == (BatchItem("4", 1, 2, action.fields()),)
 
 
 @pytest.mark.parametrize(
@@ -306,16 +311,16 @@ def test_a_single_env_travels_as_a_group_of_one_named_after_it():
     [
         ([], "non-empty list"),
         ("0", "non-empty list"),
-        ([["0", 1, 2, b""]], r"item 0 must be \[env, ep, seq, payload, error\]"),
-        ([["0", -1, 2, b"", ""]], "'ep' must be a non-negative integer"),
-        ([["0", 1, 2, "text", ""]], "item 0's payload must be bytes"),
-        ([["0", 1, 2, b"", 5]], "'error' must be a string"),
+        ([["0", 1, 2, {}]], r"item 0 must be \[env, ep, seq, fields, error\]"),
+        ([["0", -1, 2, {}, ""]], "item 0's ep and seq must be non-negative integers"),
+        ([["0", 1, 2, b"packed", ""]], "item 0's fields must be a map, got bytes"),
+        ([["0", 1, 2, {}, 5]], "item 0's env and error must be strings"),
+        ([[7, 1, 2, {}, ""]], "item 0's env and error must be strings"),
     ],
 )
 def test_a_bad_batch_is_refused_naming_what_is_wrong(items, reason):
-    payload = msgpack.packb({"v": PROTOCOL_VERSION, "ep": 0, "seq": 0, "group": "g", "items": items})
     with pytest.raises(BadMessage, match=reason):
-        BatchMsg.decode(payload)
+        BatchMsg.decode(_batch_payload(items=items))
 
 
 # --- the control plane -----------------------------------------------------------------------------------------

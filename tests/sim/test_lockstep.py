@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.messages import ActionMsg, ObservationMsg
+from services.messages import ActionMsg, BatchItem, ObservationMsg
 from sim_service.lockstep import LockstepEnv, Refusal
 from sim_service.settings import WorldSettings
 from sim_service.world import World
@@ -25,13 +25,13 @@ def action(seq: int, ep: int = 1, sender: str = HOLDER, values=SURGE) -> ActionM
     return ActionMsg(ep=ep, seq=seq, action=values, sender=sender)
 
 
-def observed(payload: bytes) -> ObservationMsg:
-    return ObservationMsg.decode(payload)
+def observed(item: BatchItem) -> ObservationMsg:
+    return ObservationMsg.from_item(item)
 
 
 def started(env: LockstepEnv, ep: int = 1, seed: int = 7) -> ObservationMsg:
     env.claim(HOLDER)
-    return observed(env.reset(HOLDER, ep, seed).payload)
+    return observed(env.reset(HOLDER, ep, seed).item)
 
 
 def test_only_the_holder_drives_and_a_second_claimant_hears_who_holds_it(env):
@@ -63,11 +63,11 @@ def test_a_lapsed_claim_frees_the_env_only_for_a_gone_holder(env):
 def test_the_next_seq_steps_once_and_a_repeat_is_answered_from_the_cache(env):
     reset = started(env)
     first = env.act(action(1))
-    assert not first.replayed and observed(first.payload).seq == 1
-    assert observed(first.payload).telemetry.sim_time == pytest.approx(reset.telemetry.sim_time + env.world.dt)
+    assert not first.replayed and observed(first.item).seq == 1
+    assert observed(first.item).telemetry.sim_time == pytest.approx(reset.telemetry.sim_time + env.world.dt)
     again = env.act(action(1, values=(0.0, 0.0, -1.0, 0.0)))  # a retry: its action is not applied
-    assert again.replayed and again.payload == first.payload
-    second = observed(env.act(action(2)).payload)
+    assert again.replayed and again.item == first.item
+    second = observed(env.act(action(2)).item)
     assert second.seq == 2
     assert second.telemetry.sim_time == pytest.approx(reset.telemetry.sim_time + 2 * env.world.dt)
 
@@ -77,11 +77,11 @@ def test_the_same_actions_give_the_same_steps_with_or_without_retries(env):
     with_retries = []
     for seq in range(1, 6):
         env.act(action(seq))
-        with_retries.append(observed(env.act(action(seq)).payload).telemetry)  # every step sent twice
+        with_retries.append(observed(env.act(action(seq)).item).telemetry)  # every step sent twice
     fresh = LockstepEnv("train", "1", World(WorldSettings(render=False)))
     try:
         started(fresh)
-        assert [observed(fresh.act(action(seq)).payload).telemetry for seq in range(1, 6)] == with_retries
+        assert [observed(fresh.act(action(seq)).item).telemetry for seq in range(1, 6)] == with_retries
     finally:
         fresh.world.close()
 
@@ -99,9 +99,9 @@ def test_episodes_only_move_forward_and_a_repeated_reset_replays(env):
         env.act(action(1))
     first = started(env, ep=2, seed=11)
     replay = env.reset(HOLDER, 2, 11)
-    assert replay.replayed and observed(replay.payload) == first
+    assert replay.replayed and observed(replay.item) == first
     with pytest.raises(Refusal, match="episode 1 is not after the current episode 2"):
         env.reset(HOLDER, 1, 11)
     with pytest.raises(Refusal, match="action for episode 1, but the current episode is 2"):
         env.act(action(1, ep=1))
-    assert observed(env.reset(HOLDER, 3, 11).payload).ep == 3
+    assert observed(env.reset(HOLDER, 3, 11).item).ep == 3

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from services.low_latency import OBSERVATION_OVERHEAD_BYTES
-from services.messages import ObservationMsg
+from services.messages import BatchItem, BatchMsg, ObservationMsg
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
 from services.settings import ZenohSettings
 from sim_service.responder import SimSettings, check_fits_low_latency
@@ -31,7 +31,8 @@ def test_the_overhead_allowed_for_covers_a_real_observation_with_the_longest_sta
     world = World(WorldSettings(image_size=16))
     try:
         telemetry, image = world.reset(3)
-        payload = ObservationMsg(env="999", ep=2**63, seq=2**63, telemetry=telemetry, image=image).encode()
+        observation = ObservationMsg(env="999", ep=2**63, seq=2**63, telemetry=telemetry, image=image)
+        payload = BatchMsg.alone(BatchItem.of("999", observation), "sim-" + "f" * 32, "learner-" + "f" * 32).encode()
     finally:
         world.close()
     assert len(payload) - image.nbytes <= OBSERVATION_OVERHEAD_BYTES

@@ -178,7 +178,9 @@ def test_a_live_sims_reset_takes_a_scene_map(processes, namespace):
     frames: queue.Queue[ObservationMsg] = queue.Queue()
     subscriber = session.declare_subscriber(
         keys.obs("train", "0", "direct"),
-        lambda sample: [frames.put(obs) for _, obs in batch_messages(sample.payload.to_bytes(), ObservationMsg.decode)],
+        lambda sample: [
+            frames.put(obs) for _, obs in batch_messages(sample.payload.to_bytes(), ObservationMsg.from_item)
+        ],
     )
     try:
         sims = Roster(session, keys, "sim")
