@@ -1,9 +1,9 @@
 """Versioned msgpack messages of the step pipeline and the control plane, and their validation.
 
 Every message is a msgpack map carrying the protocol version ``v`` and the
-send time ``t`` (seconds, ``time.time()``); a step message adds the episode
-number ``ep`` and the step sequence number ``seq``, a control request its
-``op`` and a control reply ``ok``. Decoding validates shape and ranges and
+send time ``t`` (seconds, ``time.time()``); a step message (:class:`BatchMsg`)
+adds its items, each an env with its episode ``ep``, step ``seq`` and fields,
+a control request its ``op`` and a control reply ``ok``. Decoding validates shape and ranges and
 raises :class:`BadMessage` with a reason a human can act on; services turn
 that into a refusal and an error counter, never a crash.
 """
