@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from encoder_service.model import IMAGE_SHAPE, LABEL_NAMES
+from encoder_service.model import IMAGE_SHAPE, LABEL_SETS
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +34,7 @@ class DatasetFormatError(ValueError):
 @dataclass(frozen=True)
 class Batch:
     images: np.ndarray  # uint8 (B, 64, 64, 3) RGB
-    labels: np.ndarray  # float32 (B, 3): d m, theta deg (signed azimuth), psi deg
+    labels: np.ndarray  # float32 (B, labels): d m, theta deg (signed azimuth), psi deg[, elevation deg]
     indices: np.ndarray  # int64 (B,): dataset rows, to pair a frame with its twin in another dataset
     clean: np.ndarray | None = None  # uint8 (B, 64, 64, 3): paired datasets' frames before noise, else None
     masks: np.ndarray | None = None  # bool (B, 64, 64): the dolphin's pixels, datasets written with --masks, else None
@@ -51,7 +51,7 @@ class CMVAEDataset:
         self._clean: list[np.ndarray] = []
         self._masks: list[np.ndarray] = []
         for shard in self.meta["shards"]:
-            images, labels = _open_shard(self.root, shard)
+            images, labels = _open_shard(self.root, shard, len(self.label_names))
             self._images.append(images)
             self._labels.append(labels)
             if self.paired:
@@ -74,6 +74,11 @@ class CMVAEDataset:
         return int(self.meta["seed"])
 
     @property
+    def label_names(self) -> tuple[str, ...]:
+        """(d, theta, psi), or with elevation for a `swimm dataset --vertical` folder."""
+        return tuple(self.meta["label_names"])
+
+    @property
     def paired(self) -> bool:
         """True when each (noisy) frame has its clean render beside it (`swimm dataset --paired`)."""
         return bool(self.meta.get("paired", False))
@@ -84,10 +89,10 @@ class CMVAEDataset:
         return bool(self.meta.get("masks", False))
 
     def read_labels(self, indices: np.ndarray) -> np.ndarray:
-        """Labels of rows ``indices`` only (no image reads), float32 (len, 3)."""
+        """Labels of rows ``indices`` only (no image reads), float32 (len, labels)."""
         indices = np.asarray(indices, dtype=np.int64)
         shard_of = np.searchsorted(self._starts, indices, side="right") - 1
-        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        labels = np.empty((len(indices), len(self.label_names)), dtype=np.float32)
         for shard in np.unique(shard_of):
             chosen = shard_of == shard
             labels[chosen] = self._labels[shard][indices[chosen] - self._starts[shard]]
@@ -117,7 +122,7 @@ class CMVAEDataset:
         if indices.size and (indices.min() < 0 or indices.max() >= len(self)):
             raise IndexError(f"row indices must lie in [0, {len(self)}), got {indices.min()}..{indices.max()}")
         images = np.empty((len(indices), *IMAGE_SHAPE), dtype=np.uint8)
-        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        labels = np.empty((len(indices), len(self.label_names)), dtype=np.float32)
         clean = np.empty_like(images) if self.paired else None
         masks = np.empty(images.shape[:3], dtype=bool) if self.has_masks else None
         order = np.argsort(indices, kind="stable")
@@ -143,6 +148,11 @@ class DatasetUnion:
     def __init__(self, parts: list[CMVAEDataset]) -> None:
         if not parts:
             raise ValueError("a dataset union needs at least one folder")
+        if len({part.label_names for part in parts}) > 1:
+            labels = ", ".join(f"{part.root}: {list(part.label_names)}" for part in parts)
+            raise DatasetFormatError(
+                f"cannot mix datasets with different labels ({labels}); write all --vertical or none"
+            )
         if len({part.paired for part in parts}) > 1:
             paired = [str(part.root) for part in parts if part.paired]
             raise DatasetFormatError(
@@ -159,6 +169,10 @@ class DatasetUnion:
     @property
     def seed(self) -> int:
         return self.parts[0].seed
+
+    @property
+    def label_names(self) -> tuple[str, ...]:
+        return self.parts[0].label_names
 
     @property
     def paired(self) -> bool:
@@ -180,7 +194,7 @@ class DatasetUnion:
             yield self.parts[part], positions, indices[positions] - self._starts[part]
 
     def read_labels(self, indices: np.ndarray) -> np.ndarray:
-        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        labels = np.empty((len(indices), len(self.label_names)), dtype=np.float32)
         for part, positions, rows in self._by_part(indices):
             labels[positions] = part.read_labels(rows)
         return labels
@@ -194,7 +208,7 @@ class DatasetUnion:
     def read(self, indices: np.ndarray) -> Batch:
         indices = np.asarray(indices, dtype=np.int64)
         images = np.empty((len(indices), *IMAGE_SHAPE), dtype=np.uint8)
-        labels = np.empty((len(indices), len(LABEL_NAMES)), dtype=np.float32)
+        labels = np.empty((len(indices), len(self.label_names)), dtype=np.float32)
         clean = np.empty_like(images) if self.paired else None
         masks = np.empty(images.shape[:3], dtype=bool) if self.has_masks else None
         for part, positions, rows in self._by_part(indices):
@@ -237,15 +251,13 @@ def _read_meta(root: Path) -> dict[str, Any]:
         meta = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise DatasetFormatError(f"{path} is not valid JSON: {exc}") from None
-    expected = {
-        "format": DATASET_FORMAT,
-        "version": DATASET_VERSION,
-        "image_shape": list(IMAGE_SHAPE),
-        "label_names": list(LABEL_NAMES),
-    }
+    expected = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "image_shape": list(IMAGE_SHAPE)}
     for key, value in expected.items():
         if meta.get(key) != value:
             raise DatasetFormatError(f"{path}: {key} is {meta.get(key)!r}, expected {value!r}")
+    if not any(meta.get("label_names") == list(labels) for labels in LABEL_SETS):
+        sets = " or ".join(str(list(labels)) for labels in LABEL_SETS)
+        raise DatasetFormatError(f"{path}: label_names is {meta.get('label_names')!r}, expected {sets}")
     for key in ("count", "seed"):
         if not isinstance(meta.get(key), int):
             raise DatasetFormatError(f"{path}: {key} must be an integer, got {meta.get(key)!r}")
@@ -254,9 +266,9 @@ def _read_meta(root: Path) -> dict[str, Any]:
     return meta
 
 
-def _open_shard(root: Path, shard: str) -> tuple[np.ndarray, np.ndarray]:
+def _open_shard(root: Path, shard: str, label_count: int) -> tuple[np.ndarray, np.ndarray]:
     arrays = []
-    for part, dtype, shape in (("images", np.uint8, IMAGE_SHAPE), ("labels", np.float32, (len(LABEL_NAMES),))):
+    for part, dtype, shape in (("images", np.uint8, IMAGE_SHAPE), ("labels", np.float32, (label_count,))):
         path = root / f"{shard}.{part}.npy"
         if not path.is_file():
             raise DatasetFormatError(f"shard file {path} is missing")

@@ -28,10 +28,10 @@ from encoder_service.inference import DEFAULT_CHECKPOINT
 from encoder_service.model import (
     CMVAE,
     LABEL_NAMES,
-    LABEL_RANGES,
     denormalise_labels,
     images_to_tensor,
     label_errors,
+    label_ranges,
     load_model,
     tensor_to_images,
 )
@@ -40,7 +40,7 @@ from services.geometry import camera_centred
 
 log = logging.getLogger(__name__)
 
-UNIT_SUFFIX = {"d": "d_m", "theta": "theta_deg", "psi": "psi_deg"}
+UNIT_SUFFIX = {"d": "d_m", "theta": "theta_deg", "psi": "psi_deg", "elevation": "elevation_deg"}
 N_SHOWN = 8  # frames per reconstruction figure
 SWEEP = np.linspace(-3.0, 3.0, 9)  # the prior's +-3 sigma, for the per-dimension sweeps
 
@@ -61,10 +61,11 @@ class EncodedSet:
     """One pass of the model over some rows: latents, decoded states and reconstruction errors."""
 
     mu: np.ndarray  # (N, n_z)
-    predicted: np.ndarray  # (N, 3) physical units
-    labels: np.ndarray  # (N, 3) physical units
+    predicted: np.ndarray  # (N, labels) physical units
+    labels: np.ndarray  # (N, labels) physical units
     image_mae: float  # mean |reconstruction - input| in 0-255
     image_mae_vs_reference: float | None  # the same against the reference dataset's frames, when one is given
+    names: tuple[str, ...] = LABEL_NAMES  # the labels' names, the model's
 
 
 @torch.inference_mode()
@@ -77,7 +78,11 @@ def encode_rows(
     reference: CMVAEDataset | None = None,
     desc: str = "encoding",
 ) -> EncodedSet:
-    """Run ``model`` (z = mu) over ``rows``; ``reference`` (same poses) adds the reconstruction error against it."""
+    """Run ``model`` (z = mu) over ``rows``; ``reference`` (same poses) adds the reconstruction error against it.
+
+    A planar model reads a vertical dataset's frames for its own labels (the elevation column is left out)."""
+    if dataset.label_names[: len(model.labels)] != model.labels:
+        raise ValueError(f"the model reads {list(model.labels)} but {dataset.root} labels {list(dataset.label_names)}")
     mus, predictions, labels = [], [], []
     abs_error, abs_error_reference, pixels = 0.0, 0.0, 0
     batches = prefetch(iter_batches(dataset, rows, batch_size))
@@ -90,14 +95,15 @@ def encode_rows(
             twin = reference.read(batch.indices)
             abs_error_reference += float(np.abs(reconstructions - twin.images).sum())
         mus.append(outputs.mu.float().cpu().numpy())
-        predictions.append(denormalise_labels(outputs.state.float().cpu().numpy()))
-        labels.append(batch.labels)
+        predictions.append(denormalise_labels(outputs.state.float().cpu().numpy(), model.labels))
+        labels.append(batch.labels[:, : len(model.labels)])
     return EncodedSet(
         mu=np.concatenate(mus),
         predicted=np.concatenate(predictions),
         labels=np.concatenate(labels),
         image_mae=abs_error / pixels,
         image_mae_vs_reference=abs_error_reference / pixels if reference is not None else None,
+        names=model.labels,
     )
 
 
@@ -121,10 +127,11 @@ def state_metrics(encoded: EncodedSet) -> dict[str, Any]:
     """
     errors = label_errors(encoded.predicted, encoded.labels)
     mae = errors.mean(axis=0)
-    widths = LABEL_RANGES[:, 1] - LABEL_RANGES[:, 0]
+    low, high = label_ranges(encoded.names).T
+    widths = high - low
 
     def named(values: np.ndarray) -> dict[str, float]:
-        return {UNIT_SUFFIX[name]: float(value) for name, value in zip(LABEL_NAMES, values, strict=True)}
+        return {UNIT_SUFFIX[name]: float(value) for name, value in zip(encoded.names, values, strict=True)}
 
     distance = encoded.labels[:, 0]
     by_distance = {}
@@ -134,7 +141,7 @@ def state_metrics(encoded: EncodedSet) -> dict[str, Any]:
             by_distance[f"{low:g}-{high:.0f}m"] = named(errors[inside].mean(axis=0))
     return {
         "mae": named(mae),
-        "mae_normalised": {name: float(value) for name, value in zip(LABEL_NAMES, mae / widths, strict=True)},
+        "mae_normalised": {name: float(value) for name, value in zip(encoded.names, mae / widths, strict=True)},
         "mae_by_distance": by_distance,
     }
 
@@ -239,7 +246,7 @@ def _write_figures(
             col_labels=[f"{value:+.1f}" for value in SWEEP],
         )
     )
-    paths.append(figures.state_scatter(encoded.predicted, encoded.labels, LABEL_NAMES, out / "state_scatter.png"))
+    paths.append(figures.state_scatter(encoded.predicted, encoded.labels, encoded.names, out / "state_scatter.png"))
     return [str(path) for path in paths]
 
 
@@ -260,7 +267,7 @@ def _noise_report(
         **state_metrics(noisy_set),
         "image_mae_255": noisy_set.image_mae,
         "image_mae_255_vs_clean": noisy_set.image_mae_vs_reference,
-        "latent_drift": {f"z{dim}": float(drift[dim]) for dim in range(len(LABEL_NAMES))},
+        "latent_drift": {f"z{dim}": float(drift[dim]) for dim in range(len(model.labels))},
         "latent_drift_all": [float(value) for value in drift],
     }
     shown = rows[:N_SHOWN]

@@ -130,5 +130,5 @@ class LatentEncoder:
         if mu.ndim != 2 or mu.shape[1] != self.n_z:
             raise ValueError(f"latents must be shaped (N, {self.n_z}), got {mu.shape}")
         normalised = self._model.decode_state(torch.from_numpy(mu).to(self.device)).float().cpu().numpy()
-        physical = denormalise_labels(normalised)
+        physical = denormalise_labels(normalised, self._model.labels)
         return physical[:, 0], physical[:, 1], physical[:, 2]

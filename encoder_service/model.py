@@ -1,9 +1,9 @@
-"""The cross-modal VAE (CMVAE): one image encoder, an image decoder and three state decoders.
+"""The cross-modal VAE (CMVAE): one image encoder, an image decoder and a state decoder per label.
 
 The encoder compresses a 64x64 RGB frame into a small latent z; the image
 decoder keeps z faithful to the picture, and the state decoders tie the first
-three latent dimensions to the physical quantities the policy cares about
-(z[0] -> d, z[1] -> theta, z[2] -> psi). That tie is what lets a policy read
+latent dimensions to the physical quantities the policy cares about
+(z[0] -> d, z[1] -> theta, z[2] -> psi, and for the 3d task z[3] -> elevation). That tie is what lets a policy read
 distance and bearing straight off z. Shapes and sizes follow SPEC.md
 ("CMVAE"); the checkpoint format lives here too, because a checkpoint is only
 meaningful together with the architecture that reads it.
@@ -21,12 +21,19 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from services.geometry import ALPHA_DEG
+from services.geometry import ALPHA_DEG, BETA_DEG, LABEL_NAMES, VERTICAL_LABEL_NAMES
 from services.messages import IMAGE_SHAPE as IMAGE_SHAPE  # re-exported: encoder_service.data reads it here
 
-LABEL_NAMES = ("d", "theta", "psi")
-#: Physical range of each label (d metres, theta and psi degrees); each maps linearly onto [-1, 1].
-LABEL_RANGES = np.array([[2.0, 10.0], [-ALPHA_DEG, ALPHA_DEG], [-180.0, 180.0]], dtype=np.float64)
+#: Physical range of every label a CMVAE can learn (d metres, angles degrees); each maps linearly onto [-1, 1].
+LABEL_RANGES = {
+    "d": (2.0, 10.0),
+    "theta": (-ALPHA_DEG, ALPHA_DEG),
+    "psi": (-180.0, 180.0),
+    "elevation": (-BETA_DEG, BETA_DEG),
+}
+#: The label sets a CMVAE learns: the planar task's frames' (the paper's), or the 3d task's, elevation added.
+LABEL_SETS = (LABEL_NAMES, VERTICAL_LABEL_NAMES)
+PSI = LABEL_NAMES.index("psi")  # the one circular label
 
 CHECKPOINT_FORMAT = "swimm-cmvae"
 CHECKPOINT_VERSION = 1
@@ -35,22 +42,35 @@ CHECKPOINT_VERSION = 1
 # ---------------------------------------------------------------- labels and pixels
 
 
-def normalise_labels(labels: np.ndarray) -> np.ndarray:
-    """Physical (d m, theta deg, psi deg) rows -> [-1, 1] per column, float32."""
-    lo, hi = LABEL_RANGES[:, 0], LABEL_RANGES[:, 1]
+def label_ranges(names: tuple[str, ...] = LABEL_NAMES) -> np.ndarray:
+    """(len(names), 2) physical (low, high) of each label, in the order named."""
+    return np.array([LABEL_RANGES[name] for name in names], dtype=np.float64)
+
+
+def check_label_names(names: tuple[str, ...] | list[str], where: str) -> tuple[str, ...]:
+    """``names`` as a tuple if it is one of the label sets, else a ValueError naming ``where`` it came from."""
+    if tuple(names) not in LABEL_SETS:
+        sets = " or ".join(str(list(labels)) for labels in LABEL_SETS)
+        raise ValueError(f"{where}: labels {list(names)!r}, expected {sets}")
+    return tuple(names)
+
+
+def normalise_labels(labels: np.ndarray, names: tuple[str, ...] = LABEL_NAMES) -> np.ndarray:
+    """Physical rows (columns as ``names``: d m, theta deg, psi deg[, elevation deg]) -> [-1, 1] per column."""
+    lo, hi = label_ranges(names).T
     return (2.0 * (np.asarray(labels, dtype=np.float64) - lo) / (hi - lo) - 1.0).astype(np.float32)
 
 
-def denormalise_labels(normalised: np.ndarray) -> np.ndarray:
+def denormalise_labels(normalised: np.ndarray, names: tuple[str, ...] = LABEL_NAMES) -> np.ndarray:
     """Inverse of :func:`normalise_labels`: [-1, 1] columns -> physical units, float32."""
-    lo, hi = LABEL_RANGES[:, 0], LABEL_RANGES[:, 1]
+    lo, hi = label_ranges(names).T
     return ((np.asarray(normalised, dtype=np.float64) + 1.0) * 0.5 * (hi - lo) + lo).astype(np.float32)
 
 
 def label_errors(predicted: np.ndarray, true: np.ndarray) -> np.ndarray:
     """Absolute errors per label in physical units; psi's error wraps to [0, 180] since yaw is circular."""
     errors = np.abs(np.asarray(predicted, dtype=np.float64) - np.asarray(true, dtype=np.float64))
-    errors[:, 2] = np.abs((errors[:, 2] + 180.0) % 360.0 - 180.0)
+    errors[:, PSI] = np.abs((errors[:, PSI] + 180.0) % 360.0 - 180.0)
     return errors
 
 
@@ -222,22 +242,25 @@ class CMVAEOutput:
     logvar: torch.Tensor  # (N, n_z)
     z: torch.Tensor  # (N, n_z): a sample in training, mu in eval
     image: torch.Tensor  # (N, 3, 64, 64) in [-1, 1]
-    state: torch.Tensor  # (N, 3) normalised (d, theta, psi)
+    state: torch.Tensor  # (N, labels) normalised (d, theta, psi[, elevation])
     mask: torch.Tensor | None = None  # (N, 8, 8) mask logits, models with a mask head only
 
 
 class CMVAE(nn.Module):
-    """Image encoder, image decoder and the three state decoders, trained jointly."""
+    """Image encoder, image decoder and a state decoder per label, trained jointly."""
 
-    def __init__(self, n_z: int = 10, input_norm: str = "none", mask_head: bool = False) -> None:
+    def __init__(
+        self, n_z: int = 10, input_norm: str = "none", mask_head: bool = False, labels: tuple[str, ...] = LABEL_NAMES
+    ) -> None:
         super().__init__()
-        if n_z < len(LABEL_NAMES):
-            raise ValueError(f"n_z must be at least {len(LABEL_NAMES)} (one latent per label), got {n_z}")
+        self.labels = check_label_names(labels, "CMVAE")
+        if n_z < len(self.labels):
+            raise ValueError(f"n_z must be at least {len(self.labels)} (one latent per label), got {n_z}")
         self.n_z = n_z
         self.input_norm = input_norm
         self.encoder = ImageEncoder(n_z, input_norm)
         self.image_decoder = ImageDecoder(n_z)
-        self.state_decoders = nn.ModuleList(StateDecoder() for _ in LABEL_NAMES)
+        self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
         # made last, so a model without it draws every other weight as before the head existed
         self.mask_head = MaskHead() if mask_head else None
 
@@ -255,7 +278,7 @@ class CMVAE(nn.Module):
         return self.image_decoder(z)
 
     def decode_state(self, z: torch.Tensor) -> torch.Tensor:
-        """Normalised (d, theta, psi) from z[0], z[1], z[2]."""
+        """Normalised labels from the first latent dimensions: (d, theta, psi[, elevation]) from z[0], z[1], ..."""
         return torch.cat([decoder(z[:, i : i + 1]) for i, decoder in enumerate(self.state_decoders)], dim=1)
 
     def forward(self, images: torch.Tensor, sample: bool | None = None) -> CMVAEOutput:
@@ -283,7 +306,7 @@ class LossParts:
 
 
 def state_errors(predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-    """Normalised (d, theta, psi) errors, psi's taken the short way round the circle, into [-1, 1).
+    """Normalised label errors, psi's taken the short way round the circle, into [-1, 1).
 
     psi = +180 and -180 deg are one pose, normalised to +1 and -1. A plain difference calls a dolphin
     seen from behind at 179 deg and predicted at -179 wrong by almost the whole range, so whenever the
@@ -292,8 +315,8 @@ def state_errors(predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     answers are right.
     """
     errors = predicted - labels
-    psi = torch.remainder(errors[:, 2:] + 1.0, 2.0) - 1.0
-    return torch.cat([errors[:, :2], psi], dim=1)
+    psi = torch.remainder(errors[:, PSI : PSI + 1] + 1.0, 2.0) - 1.0
+    return torch.cat([errors[:, :PSI], psi, errors[:, PSI + 1 :]], dim=1)
 
 
 PSI_LOSSES = ("mse", "l1")
@@ -310,7 +333,8 @@ class StateLoss:
     """How the state decoders' errors are scored: psi's square (the SPEC's) or absolute error, and a weight per label.
 
     The normalised labels' squares are small next to psi's absolute error, so with ``psi="l1"`` psi's pull on the
-    shared encoder dwarfs distance's; ``weights`` (d, theta, psi) let a training stage set that balance.
+    shared encoder dwarfs distance's; ``weights`` (d, theta, psi) let a training stage set that balance. A model
+    with more labels (elevation) weighs each of those 1.
     """
 
     psi: str = "mse"
@@ -332,9 +356,10 @@ class StateLoss:
     def __call__(self, predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         """The weighted mean over frames and labels of the squared normalised errors (psi's absolute with ``l1``)."""
         errors = state_errors(predicted, labels)
-        psi_term = errors[:, 2].abs() if self.psi == "l1" else errors[:, 2].pow(2)
-        terms = torch.cat([errors[:, :2].pow(2), psi_term[:, None]], dim=1)
-        return (terms * terms.new_tensor(self.weights)).mean()
+        psi_term = errors[:, PSI : PSI + 1].abs() if self.psi == "l1" else errors[:, PSI : PSI + 1].pow(2)
+        terms = torch.cat([errors[:, :PSI].pow(2), psi_term, errors[:, PSI + 1 :].pow(2)], dim=1)
+        weights = self.weights + (1.0,) * (terms.shape[1] - len(self.weights))
+        return (terms * terms.new_tensor(weights)).mean()
 
 
 #: The SPEC's state error: every label's square, equally weighted.
@@ -475,6 +500,7 @@ def make_checkpoint(
             "beta": float(beta),
             "input_norm": model.input_norm,
             "mask_head": model.mask_head is not None,
+            "labels": list(model.labels),
         },
         "state_dict": state_dict,
         "epoch": int(epoch),
@@ -502,7 +528,10 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CM
     checkpoint = read_checkpoint(path)
     config = checkpoint["config"]
     model = CMVAE(
-        n_z=int(config["n_z"]), input_norm=config.get("input_norm", "none"), mask_head=config.get("mask_head", False)
+        n_z=int(config["n_z"]),
+        input_norm=config.get("input_norm", "none"),
+        mask_head=config.get("mask_head", False),
+        labels=check_label_names(config.get("labels", LABEL_NAMES), str(path)),  # older checkpoints: planar
     )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()

@@ -208,7 +208,7 @@ def _loss(
         inputs = jitter(inputs, jitter_rng, settings.augment)
     if jitter_rng is not None and settings.augment_bands > 0:
         inputs = bands(inputs, jitter_rng, settings.augment_bands)
-    labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
+    labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
     images = images_to_tensor(inputs, device)
     masks = _masks_tensor(batch, settings.mask_weight, device)
     mask_args = {"masks": masks, "mask_weight": settings.mask_weight}
@@ -328,12 +328,12 @@ def validate(
     """
     model.eval()
     totals: dict[str, float] = {}
-    errors = np.zeros(len(LABEL_NAMES))
+    errors = np.zeros(len(model.labels))
     seen, overlap = 0, np.zeros(2)
     for batch in prefetch(iter_batches(dataset, indices, batch_size)):
         chosen = np.full(len(batch.indices), feed_clean)
         inputs, targets = inputs_and_targets(batch, chosen)
-        labels = torch.from_numpy(normalise_labels(batch.labels)).to(device)
+        labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
         images, targets_t = images_to_tensor(inputs, device), images_to_tensor(targets, device)
         masks = _masks_tensor(batch, mask_weight, device)
         mask_args = {"masks": masks, "mask_weight": mask_weight}
@@ -351,11 +351,11 @@ def validate(
             overlap += mask_overlap(mask_logits, masks)
         for key, value in parts.as_floats().items():
             totals[key] = totals.get(key, 0.0) + value * len(batch.indices)
-        predicted = denormalise_labels(state.float().cpu().numpy())
+        predicted = denormalise_labels(state.float().cpu().numpy(), model.labels)
         errors += label_errors(predicted, batch.labels).sum(axis=0)
         seen += len(batch.indices)
     metrics = _mean(totals, seen)
-    for name, error in zip(LABEL_NAMES, errors, strict=True):
+    for name, error in zip(model.labels, errors, strict=True):
         metrics[f"mae_{name}"] = float(error / max(seen, 1))
     if mask_weight > 0:
         metrics["mask_iou"] = float(overlap[0] / max(overlap[1], 1.0))
@@ -410,25 +410,32 @@ def _load_weights(model: CMVAE, path: str, n_z: int) -> None:
     if checkpoint["config"]["n_z"] != n_z:
         raise ValueError(f"--init {path} has n_z={checkpoint['config']['n_z']}, settings say {n_z}")
     weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
-    model.load_state_dict(_with_models_mask_head(weights, model))
+    model.load_state_dict(_matched_to(weights, model))
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
 
 
-def _with_models_mask_head(weights: dict[str, torch.Tensor], model: CMVAE) -> dict[str, torch.Tensor]:
-    """``weights`` with the mask head matched to ``model``'s: its fresh head where the checkpoint has none, the
-    checkpoint's head dropped where the model has none (the head is a training aid; the encoder is what carries over).
-    """
-    head = {name: tensor for name, tensor in weights.items() if name.startswith("mask_head.")}
-    rest = {name: tensor for name, tensor in weights.items() if name not in head}
-    if model.mask_head is None:
-        return rest
-    return rest | (head or {f"mask_head.{name}": tensor for name, tensor in model.mask_head.state_dict().items()})
+#: Parts a CMVAE has or lacks by its settings: the mask head and the elevation label's state decoder.
+OPTIONAL_PARTS = ("mask_head.", f"state_decoders.{len(LABEL_NAMES)}.")
+
+
+def _matched_to(weights: dict[str, torch.Tensor], model: CMVAE) -> dict[str, torch.Tensor]:
+    """``weights`` with the optional parts matched to ``model``'s: its fresh part where the checkpoint has none,
+    the checkpoint's dropped where the model has none (the encoder is what carries over)."""
+    own = model.state_dict()
+    kept = {name: tensor for name, tensor in weights.items() if name in own or not name.startswith(OPTIONAL_PARTS)}
+    fresh = {name: tensor for name, tensor in own.items() if name.startswith(OPTIONAL_PARTS) and name not in weights}
+    return kept | fresh
 
 
 def _teacher(settings: TrainEncoderSettings, dataset: AnyDataset, device: torch.device) -> CMVAE | None:
     """The frozen teacher of a distillation run, or None; refused unless every frame has its clean twin."""
     if not settings.teacher:
         return None
+    if dataset.label_names != LABEL_NAMES:
+        raise ValueError(
+            f"--teacher distils a planar CMVAE's latent, whose z[{len(LABEL_NAMES)}] is not the elevation that "
+            f"{settings.dataset}'s labels ask for: train a --vertical dataset without --teacher"
+        )
     if not dataset.paired:
         raise ValueError(
             f"--teacher needs a paired dataset (each noisy frame with its clean twin, `swimm dataset --paired`); "
@@ -482,7 +489,7 @@ def run(settings: TrainEncoderSettings) -> int:
         device,
     )
 
-    model = CMVAE(n_z=settings.n_z, input_norm=settings.input_norm, mask_head=settings.mask_weight > 0)
+    model = CMVAE(settings.n_z, settings.input_norm, settings.mask_weight > 0, dataset.label_names)
     model.to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
     if teacher is not None:
@@ -495,6 +502,10 @@ def run(settings: TrainEncoderSettings) -> int:
         last = read_checkpoint(last_path)
         if last["config"]["n_z"] != settings.n_z:
             raise ValueError(f"{last_path} has n_z={last['config']['n_z']}, settings say {settings.n_z}")
+        if tuple(last["config"].get("labels", LABEL_NAMES)) != model.labels:
+            raise ValueError(
+                f"{last_path} learns labels {last['config'].get('labels')}, the dataset {list(model.labels)}"
+            )
         model.load_state_dict(last["state_dict"])
         optimiser.load_state_dict(last["optimizer"])
         torch.set_rng_state(last["torch_rng_state"])

@@ -20,6 +20,10 @@ VFOV_DEG = math.degrees(2 * math.atan(CAMERA_SENSOR_MM[1] / (2 * CAMERA_FOCAL_MM
 ALPHA_DEG = HFOV_DEG / 2
 #: beta: half the vertical field of view, the largest elevation that keeps the target in view (the 3d task).
 BETA_DEG = VFOV_DEG / 2
+#: What a CMVAE dataset labels each frame with (`swimm dataset`): the planar task's d m, signed azimuth deg and
+#: psi deg, and for the 3d task's frames (`--vertical`) the signed elevation deg too.
+LABEL_NAMES = ("d", "theta", "psi")
+VERTICAL_LABEL_NAMES = (*LABEL_NAMES, "elevation")
 
 OPT_D = 6.0
 MAX_D = 4.0

@@ -6,7 +6,8 @@ On-disk format (version 1), a directory::
                                 "image_shape", "shard_size", "label_names", "pose_names", "shards",
                                 "paired", "ranges", "world", "masks"}
     shard-00000.images.npy     uint8   (n, 64, 64, 3) RGB
-    shard-00000.labels.npy     float32 (n, 3): d (m), theta (signed azimuth, deg, + = left), psi (deg)
+    shard-00000.labels.npy     float32 (n, 3): d (m), theta (signed azimuth, deg, + = left), psi (deg); with
+                               ``vertical`` (n, 4): elevation (deg, + = above the camera's level) added
     shard-00000.poses.npy      float32 (n, 12): see POSE_NAMES
     shard-00000.clean.npy      uint8   (n, 64, 64, 3): paired datasets only (``"paired": true``), the same
                                frames before image noise, the target a denoising encoder reconstructs
@@ -20,7 +21,9 @@ recognisable (no meta.json). Readers ``np.load(..., mmap_mode="r")`` shards.
 
 Sampling follows the SPEC's generation ranges (the paper's Table 6): rover
 anywhere in +-30 m with a depth band, any heading; target 2-10 m away within
-the camera's half field of view, any yaw, any turn weight and tail phase.
+the camera's half field of view, any yaw, any turn weight and tail phase. A
+``vertical`` dataset (the 3d task's frames) puts the target anywhere in the
+vertical field of view too, within the dolphin's depth band.
 Sample ``i`` is drawn from its own generator seeded by (seed, i), so a
 dataset is reproducible and any sample can be regenerated alone.
 """
@@ -37,7 +40,17 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from services.geometry import ALPHA_DEG, quat_to_euler, relative_geometry
+from services.geometry import (
+    ALPHA_DEG,
+    BETA_DEG,
+    CAMERA_ABOVE_M,
+    CAMERA_AHEAD_M,
+    LABEL_NAMES,
+    VERTICAL_LABEL_NAMES,
+    quat_to_euler,
+    relative_geometry,
+    vertical_geometry,
+)
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -45,7 +58,6 @@ log = logging.getLogger(__name__)
 
 FORMAT = "swimm-cmvae-dataset"
 VERSION = 1
-LABEL_NAMES = ("d", "theta", "psi")
 POSE_NAMES = (
     "rover_x", "rover_y", "rover_z", "rover_roll", "rover_pitch", "rover_yaw",
     "target_x", "target_y", "target_z", "target_roll", "target_pitch", "target_yaw",
@@ -62,6 +74,22 @@ class SamplingRanges:
     azimuth_deg: float = ALPHA_DEG
     target_depth_offset: float = 0.5  # the target swims within +-0.5 m of the rover's depth
     turn_weight: float = 1.3
+    #: Vertical datasets: the target's elevation, U[-max, max] degrees (the camera's vertical half field of view),
+    #: its depth kept within the band (the 3d dolphin's) by choosing the rover's depth; 0 = planar.
+    elevation_deg: float = 0.0
+    target_depth: tuple[float, float] = (0.3, 8.0)
+
+    @property
+    def vertical(self) -> bool:
+        return self.elevation_deg > 0.0
+
+    @property
+    def label_names(self) -> tuple[str, ...]:
+        return VERTICAL_LABEL_NAMES if self.vertical else LABEL_NAMES
+
+
+#: What ``swimm dataset --vertical`` samples.
+VERTICAL_RANGES = SamplingRanges(elevation_deg=BETA_DEG)
 
 
 @dataclass
@@ -73,6 +101,7 @@ class DatasetSettings:
     workers: int = 1  # processes rendering shards in parallel; the bytes do not depend on it
     paired: bool = False  # also keep each noisy frame's clean render (needs noise on, e.g. --noise-preset harsh)
     masks: bool = False  # also write which pixels show the dolphin, for the encoder's mask head (train --mask-weight)
+    vertical: bool = False  # the target anywhere in the vertical field of view too, labelled with its elevation
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
 
 
@@ -89,12 +118,26 @@ def sample_pose(world: World, rng: np.random.Generator, ranges: SamplingRanges):
     target_yaw = rng.uniform(-math.pi, math.pi)
     turn_weight = rng.uniform(-ranges.turn_weight, ranges.turn_weight)
     phase = rng.uniform(0.0, 1.0)
+    if ranges.vertical:  # drawn after the planar draws, so a planar dataset's samples stay what they were
+        camera = rover[:2] + CAMERA_AHEAD_M * np.array([math.cos(rover_yaw), math.sin(rover_yaw)])
+        elevation = math.radians(rng.uniform(-ranges.elevation_deg, ranges.elevation_deg))
+        rise = CAMERA_ABOVE_M + math.dist(target[:2], camera) * math.tan(elevation)  # above the rover's centre
+        rover[2] = -_rover_depth_for(rise, rng, ranges)
+        target[2] = rover[2] + rise
     return world.place(rover, rover_yaw, target, target_yaw, turn_weight, phase, noise_rng=rng)
 
 
-def labels_and_pose(telemetry) -> tuple[np.ndarray, np.ndarray]:
+def _rover_depth_for(depth_offset: float, rng: np.random.Generator, ranges: SamplingRanges) -> float:
+    """A rover depth within its range that puts a target ``depth_offset`` m above it inside the target's band."""
+    low = max(ranges.rover_depth[0], ranges.target_depth[0] + depth_offset)
+    high = min(ranges.rover_depth[1], ranges.target_depth[1] + depth_offset)
+    return rng.uniform(low, high)
+
+
+def labels_and_pose(telemetry, vertical: bool = False) -> tuple[np.ndarray, np.ndarray]:
     geometry = relative_geometry(telemetry)
-    labels = np.array([geometry.d, geometry.azimuth, geometry.psi], dtype=np.float32)
+    elevation = [vertical_geometry(telemetry).elevation] if vertical else []
+    labels = np.array([geometry.d, geometry.azimuth, geometry.psi, *elevation], dtype=np.float32)
     rover_euler = np.degrees(quat_to_euler(telemetry.rover_quat))
     target_euler = np.degrees(quat_to_euler(telemetry.target_quat))
     pose = np.concatenate([telemetry.rover_pos, rover_euler, telemetry.target_pos, target_euler]).astype(np.float32)
@@ -117,7 +160,7 @@ def _write_shard(
     size = world.settings.image_size
     name = f"shard-{index:05d}"
     images = np.lib.format.open_memmap(out / f"{name}.images.npy", "w+", np.uint8, (n, size, size, 3))
-    labels = np.lib.format.open_memmap(out / f"{name}.labels.npy", "w+", np.float32, (n, 3))
+    labels = np.lib.format.open_memmap(out / f"{name}.labels.npy", "w+", np.float32, (n, len(ranges.label_names)))
     poses = np.lib.format.open_memmap(out / f"{name}.poses.npy", "w+", np.float32, (n, 12))
     arrays = [images, labels, poses]
     if paired:
@@ -133,7 +176,7 @@ def _write_shard(
             clean[j] = world.clean_frame
         if masks:
             target_masks[j] = world.target_mask()  # the pose just placed; noise never moves pixels
-        labels[j], poses[j] = labels_and_pose(telemetry)
+        labels[j], poses[j] = labels_and_pose(telemetry, ranges.vertical)
         if bar is not None:
             bar.update(1)
     for array in arrays:
@@ -205,7 +248,7 @@ def write_dataset(
         "seed": seed,
         "image_shape": [settings.image_size, settings.image_size, 3],
         "shard_size": shard_size,
-        "label_names": list(LABEL_NAMES),
+        "label_names": list(ranges.label_names),
         "pose_names": list(POSE_NAMES),
         "shards": shards,
         "paired": paired,
@@ -221,7 +264,8 @@ def write_dataset(
 
 def run(settings: DatasetSettings) -> int:
     write_dataset(
-        settings.out, settings.count, settings.seed, settings.shard_size, settings.world, workers=settings.workers,
-        paired=settings.paired, masks=settings.masks,
+        settings.out, settings.count, settings.seed, settings.shard_size, settings.world,
+        ranges=VERTICAL_RANGES if settings.vertical else None, workers=settings.workers, paired=settings.paired,
+        masks=settings.masks,
     )  # fmt: skip
     return 0

@@ -8,18 +8,20 @@ import torch
 
 from encoder_service.model import (
     CMVAE,
-    LABEL_RANGES,
+    LABEL_NAMES,
+    VERTICAL_LABEL_NAMES,
     CMVAEOutput,
     StateLoss,
     cmvae_loss,
     denormalise_labels,
     images_to_tensor,
     label_errors,
+    label_ranges,
     normalise_labels,
     state_errors,
     tensor_to_images,
 )
-from services.geometry import ALPHA_DEG
+from services.geometry import ALPHA_DEG, BETA_DEG
 
 
 @pytest.fixture(scope="module")
@@ -111,8 +113,17 @@ def test_label_normalisation_maps_the_ranges_to_minus_one_one_and_back() -> None
     edges = np.array([[2.0, -ALPHA_DEG, -180.0], [10.0, ALPHA_DEG, 180.0], [6.0, 0.0, 0.0]])
     normalised = normalise_labels(edges)
     np.testing.assert_allclose(normalised, [[-1, -1, -1], [1, 1, 1], [0, 0, 0]], atol=1e-6)
-    labels = np.random.default_rng(1).uniform(LABEL_RANGES[:, 0], LABEL_RANGES[:, 1], size=(100, 3))
-    np.testing.assert_allclose(denormalise_labels(normalise_labels(labels)), labels, atol=1e-4)
+    for names in (LABEL_NAMES, VERTICAL_LABEL_NAMES):
+        low, high = label_ranges(names).T
+        labels = np.random.default_rng(1).uniform(low, high, size=(100, len(names)))
+        np.testing.assert_allclose(denormalise_labels(normalise_labels(labels, names), names), labels, atol=1e-4)
+
+
+def test_the_elevation_label_spans_the_vertical_field_of_view() -> None:
+    vertical = normalise_labels(np.array([[6.0, 0.0, 0.0, -BETA_DEG], [6.0, 0.0, 0.0, BETA_DEG]]), VERTICAL_LABEL_NAMES)
+    np.testing.assert_allclose(vertical[:, 3], [-1.0, 1.0], atol=1e-6)
+    with pytest.raises(ValueError, match=r"labels \['d', 'theta', 'elevation'\]"):
+        CMVAE(labels=("d", "theta", "elevation"))
 
 
 def test_psi_error_wraps_around_the_circle() -> None:

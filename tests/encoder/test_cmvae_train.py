@@ -17,7 +17,7 @@ import torch
 
 from encoder_service.data import Batch, CMVAEDataset, DatasetFormatError, split_indices
 from encoder_service.inference import DEFAULT_CHECKPOINT
-from encoder_service.model import CMVAE, StateLoss
+from encoder_service.model import CMVAE, StateLoss, load_model
 from encoder_service.train import (
     EarlyStopping,
     TrainEncoderSettings,
@@ -68,7 +68,13 @@ def test_two_epochs_lower_the_validation_loss_and_write_safe_checkpoints(dataset
     best = torch.load(out / "best.pt", weights_only=True)
     last = torch.load(out / "last.pt", weights_only=True)
     assert best["format"] == "swimm-cmvae" and best["version"] == 1
-    assert best["config"] == {"n_z": 10, "beta": 8.0, "input_norm": "none", "mask_head": False}
+    assert best["config"] == {
+        "n_z": 10,
+        "beta": 8.0,
+        "input_norm": "none",
+        "mask_head": False,
+        "labels": ["d", "theta", "psi"],
+    }
     assert best["epoch"] == 2 and best["val_loss"] == pytest.approx(second["val_loss"])
     assert set(best["metrics"]) >= {"total", "image", "state", "kl", "mae_d", "mae_theta", "mae_psi"}
     assert "optimizer" not in best  # only last.pt carries the resume state
@@ -357,3 +363,37 @@ def test_a_teacher_on_its_own_clean_frames_matches_exactly(paired_dir: Path) -> 
 def test_distillation_needs_a_paired_dataset(dataset_dir: Path, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="--teacher needs a paired dataset"):
         run(_settings(dataset_dir, tmp_path / "run", teacher=str(DEFAULT_CHECKPOINT)))
+
+
+@pytest.fixture(scope="module")
+def vertical_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from sim_service.dataset import VERTICAL_RANGES, write_dataset
+
+    root = tmp_path_factory.mktemp("cmvae-vertical") / "frames"
+    return write_dataset(root, count=64, seed=3, shard_size=32, progress=False, ranges=VERTICAL_RANGES)
+
+
+def test_a_vertical_dataset_trains_an_elevation_decoder_on_a_planar_models_encoder(
+    vertical_dir: Path, tmp_path: Path
+) -> None:
+    """--init from the shipped planar model: its weights carry over, z[3] gains a fresh decoder for the elevation."""
+    out = tmp_path / "vertical"
+    run(_settings(vertical_dir, out, epochs=1, lr=0.0, init=str(DEFAULT_CHECKPOINT)))
+    shipped = torch.load(DEFAULT_CHECKPOINT, weights_only=True)["state_dict"]
+    tuned = torch.load(out / "last.pt", weights_only=True)
+    assert tuned["config"]["labels"] == ["d", "theta", "psi", "elevation"]
+    assert "mae_elevation" in tuned["metrics"] and tuned["metrics"]["mae_elevation"] > 0
+    for name, _ in CMVAE().named_parameters():
+        torch.testing.assert_close(tuned["state_dict"][name], shipped[name].float(), rtol=0, atol=0)
+    assert "state_decoders.3.mlp.0.weight" in tuned["state_dict"]
+    model, _ = load_model(out / "last.pt")
+    assert model.labels == ("d", "theta", "psi", "elevation") and model.decode_state(torch.zeros(2, 10)).shape == (2, 4)
+
+
+def test_a_vertical_dataset_is_refused_where_its_labels_cannot_serve(
+    dataset_dir: Path, vertical_dir: Path, tmp_path: Path
+) -> None:
+    with pytest.raises(DatasetFormatError, match="cannot mix datasets with different labels"):
+        run(_settings(dataset_dir, tmp_path / "mixed", dataset=[str(dataset_dir), str(vertical_dir)], epochs=1))
+    with pytest.raises(ValueError, match="--teacher distils a planar CMVAE"):
+        run(_settings(vertical_dir, tmp_path / "distil", epochs=1, teacher=str(DEFAULT_CHECKPOINT)))

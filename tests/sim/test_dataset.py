@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from services.geometry import ALPHA_DEG
-from sim_service.dataset import LABEL_NAMES, POSE_NAMES, write_dataset
+from services.geometry import ALPHA_DEG, BETA_DEG, LABEL_NAMES, VERTICAL_LABEL_NAMES
+from sim_service.dataset import POSE_NAMES, VERTICAL_RANGES, write_dataset
 from swimm.cli import main
 
 
@@ -119,3 +119,23 @@ def test_masks_do_not_depend_on_workers_or_noise_and_are_off_by_default(tmp_path
     np.testing.assert_array_equal(_masks(paired), _masks(one))  # noise never moves the dolphin's pixels
     plain = write_dataset(tmp_path / "plain", count=3, seed=5, progress=False)
     assert "masks" not in json.loads((plain / "meta.json").read_text()) and not list(plain.glob("*.masks.npy"))
+
+
+def test_a_vertical_dataset_labels_the_elevation_across_the_vertical_field_of_view(tmp_path):
+    planar = write_dataset(tmp_path / "planar", count=40, seed=3, shard_size=40, progress=False)  # the same draws
+    out = write_dataset(tmp_path / "vertical", count=40, seed=3, shard_size=16, progress=False, ranges=VERTICAL_RANGES)
+    meta, arrays = load(out)
+    assert meta["label_names"] == list(VERTICAL_LABEL_NAMES) and arrays["labels"].shape == (40, 4)
+    assert meta["ranges"]["elevation_deg"] == pytest.approx(BETA_DEG)
+    d, theta, _, elevation = arrays["labels"].T
+    assert d.min() >= 2.0 and d.max() <= 10.0 and np.abs(theta).max() <= ALPHA_DEG + 1e-4
+    # Anywhere in the vertical view, above and below, where the planar frames keep within a few degrees.
+    assert elevation.min() < -BETA_DEG / 2 and elevation.max() > BETA_DEG / 2
+    assert np.abs(elevation).max() <= BETA_DEG + 1e-3
+    # The target within its depth band; the planar frames' (the same seed's poses but for depth) keep level.
+    poses = arrays["poses"]
+    planar_poses = load(planar)[1]["poses"]
+    assert np.allclose(planar_poses[:, [0, 1, 5, 6, 7, 11]], poses[:, [0, 1, 5, 6, 7, 11]], atol=1e-3)
+    assert np.abs(planar_poses[:, 8] - planar_poses[:, 2]).max() <= 0.5 + 1e-4
+    assert (-poses[:, 8] >= VERTICAL_RANGES.target_depth[0] - 1e-4).all()
+    assert (-poses[:, 8] <= VERTICAL_RANGES.target_depth[1] + 1e-4).all()
