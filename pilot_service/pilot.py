@@ -34,7 +34,7 @@ from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
 
-CONTROL_FIELDS = ("time_s", "frame", "surge", "yaw", "neutral", "sent")
+CONTROL_FIELDS = ("time_s", "frame", "surge", "heave", "yaw", "neutral", "sent")
 SESSION_FILE = "session.mcap"
 SESSION_NAMESPACE = "pilot"  # the recording's metadata: it holds no wire samples for `swimm replay` to publish
 CAMERA_TOPIC, CONTROLS_TOPIC = "pilot/camera", "pilot/controls"
@@ -46,6 +46,7 @@ CONTROL_SCHEMA = {
         "time_s": {"type": "number"},
         "frame": {"type": "integer"},
         "surge": {"type": "number"},
+        "heave": {"type": "number"},
         "yaw": {"type": "number"},
         "neutral": {"type": "boolean"},
         "sent": {"type": "string"},
@@ -67,6 +68,7 @@ class PilotSettings:
     frame_timeout_s: float = 0.5  # no new frame for this long: neutral controls until frames return
     max_surge: float = 0.5  # limit on |surge| sent, as a share of full
     max_yaw: float = 0.5  # limit on |yaw| sent, as a share of full
+    max_heave: float = 0.5  # limit on |heave| sent by a policy that drives heave (the 3d task), as a share of full
     duration_s: float = 0.0  # stop after this many seconds; 0 = until the source ends or Ctrl-C
     heartbeat_timeout_s: float = 10.0  # how long to wait for the vehicle's first HEARTBEAT
     stream_timeout_s: float = 5.0  # a stream silent this long has stopped: the pilot ends, in neutral, saying so
@@ -78,8 +80,11 @@ class PilotSettings:
     out: str = ""  # the run folder (controls.csv, session.mcap); default runs/pilot-<UTC time>
 
     def check(self) -> None:
-        if not 0 < self.max_surge <= 1 or not 0 < self.max_yaw <= 1:
-            raise ValueError(f"--max-surge and --max-yaw must be in (0, 1], got {self.max_surge}, {self.max_yaw}")
+        if not all(0 < limit <= 1 for limit in (self.max_surge, self.max_yaw, self.max_heave)):
+            raise ValueError(
+                f"--max-surge, --max-yaw and --max-heave must be in (0, 1], got {self.max_surge}, {self.max_yaw}, "
+                f"{self.max_heave}"
+            )
         if self.rate_hz < 0 or self.frame_timeout_s <= 0 or self.duration_s < 0:
             raise ValueError("--rate-hz and --duration-s must be >= 0 and --frame-timeout-s > 0")
         check_chunk(self.publish_env, "--publish-env")
@@ -147,17 +152,30 @@ class ControlLog:
             self.session.close()
 
 
-def limited(action: np.ndarray, settings: PilotSettings) -> tuple[float, float]:
-    """(surge, yaw) within the axis limits."""
-    surge = float(np.clip(action[0], -settings.max_surge, settings.max_surge))
-    yaw = float(np.clip(action[1], -settings.max_yaw, settings.max_yaw))
-    return surge, yaw
+NEUTRAL = {"surge": 0.0, "heave": 0.0, "yaw": 0.0}
+
+
+def limited(action: np.ndarray, names: list[str], settings: PilotSettings) -> dict[str, float]:
+    """Surge, heave and yaw within the axis limits; heave 0 (depth held) from a policy that does not drive it."""
+    limits = {"surge": settings.max_surge, "heave": settings.max_heave, "yaw": settings.max_yaw}
+    commands = zip(names, action, strict=True)
+    return NEUTRAL | {name: float(np.clip(value, -limits[name], limits[name])) for name, value in commands}
+
+
+def check_dive_mode(action_names: list[str], dive_mode: str) -> None:
+    """Refuse to fly a policy that drives heave in a mode that reads the heave stick as thrust, not climb rate."""
+    if "heave" in action_names and dive_mode != "ALT_HOLD":
+        raise ValueError(
+            f"the policy drives heave as a climb rate, which ArduSub reads so only in ALT_HOLD, not {dive_mode}: "
+            "fly it with --dive-mode ALT_HOLD"
+        )
 
 
 def fly(settings: PilotSettings, stop: threading.Event) -> Path:
     """The control loop until ``stop``, the duration, or the end of a file; returns the controls CSV's path."""
     settings.check()
     policy = OnnxPolicy(settings.policy, settings.threads)
+    check_dive_mode(policy.action_names, settings.dive_mode)
     rate = settings.rate_hz or policy.control_rate_hz
     vehicle = None
     if not settings.dry_run:
@@ -174,7 +192,7 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
         publisher = FramePublisher(settings.zenoh, settings.publish_env)
     latest = LatestFrame(source)
     started = time.monotonic()
-    used, stalled = 0, False
+    used, stalled, command = 0, False, NEUTRAL
     try:
         if vehicle is not None:
             vehicle.set_mode(settings.dive_mode)
@@ -205,13 +223,13 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
                 controls.frame(seen, number)
                 if publisher is not None:
                     publisher.publish(seen, number)
-                surge, yaw = limited(policy.act(seen), settings)
+                command = limited(policy.act(seen), policy.action_names, settings)
             elif not fresh:
                 if not stalled and number:  # before the first frame there is nothing to have stalled
                     log.warning("no frame for %.2f s: neutral controls until frames return", now - at)
-                stalled, surge, yaw = number > 0, 0.0, 0.0
-            sent = vehicle.send_control(surge, yaw) if vehicle is not None else None
-            controls.write(time_s=round(now - started, 4), frame=used, surge=surge, yaw=yaw, neutral=not fresh,
+                stalled, command = number > 0, NEUTRAL
+            sent = vehicle.send_control(**command) if vehicle is not None else None
+            controls.write(time_s=round(now - started, 4), frame=used, **command, neutral=not fresh,
                            sent=" ".join(map(str, sent)) if sent else "")  # fmt: skip
             tick += 1.0 / rate
             stop.wait(max(0.0, tick - time.monotonic()))

@@ -9,6 +9,8 @@ import numpy as np
 
 INPUTS = {"frame", "action_history"}
 OUTPUTS = {"action", "next_history"}
+#: The actions a policy may drive: the planar task's, and the 3d task's with heave (a climb rate in ALT_HOLD).
+ACTION_SETS = (["surge", "yaw"], ["surge", "heave", "yaw"])
 
 
 class ContractError(ValueError):
@@ -16,7 +18,8 @@ class ContractError(ValueError):
 
 
 class OnnxPolicy:
-    """Frame in, (surge, yaw) out; the history the file feeds back is kept here and cleared by ``reset``."""
+    """Frame in, (surge, yaw) or (surge, heave, yaw) out; the history the file feeds back is kept here and cleared
+    by ``reset``."""
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
         import onnxruntime  # the pilot extra: loaded only when a policy is
@@ -40,7 +43,13 @@ class OnnxPolicy:
         self.image_size = int(inputs["frame"][1])
         self.history_size = int(inputs["action_history"][1])
         self.control_rate_hz = float(self.contract.get("control_rate_hz", 50))
-        self.action_names = list(self.contract.get("action_names", ["surge", "yaw"]))
+        self.action_names = list(self.contract.get("action_names", ACTION_SETS[0]))
+        if self.action_names not in ACTION_SETS:
+            flown = " or ".join(map(str, ACTION_SETS))
+            raise ContractError(f"{path} drives {self.action_names}; the pilot flies {flown}")
+        width = next(node.shape[1] for node in self.session.get_outputs() if node.name == "action")
+        if width != len(self.action_names):
+            raise ContractError(f"{path} outputs {width} actions but its contract names {self.action_names}")
         self.reset()
 
     def reset(self) -> None:

@@ -17,6 +17,7 @@ log = logging.getLogger(__name__)
 ARDUSUB_MODES = {"STABILIZE": 0, "ALT_HOLD": 2, "MANUAL": 19}  # ArduSub's custom mode numbers
 AXIS_FULL = 1000
 HEAVE_NEUTRAL = 500
+HEAVE_HALF_RANGE = 500  # z runs from 0 to 1000: full descent to full climb
 HEARTBEAT_PERIOD_S = 1.0
 
 
@@ -64,12 +65,13 @@ class Vehicle:
             self.link.mav.command_long_send(self.target_system, self.target_component, arm, 0, 1, 0, 0, 0, 0, 0, 0)
         log.warning("asked the vehicle to ARM")
 
-    def send_control(self, surge: float, yaw: float) -> tuple[int, int, int, int]:
-        """MANUAL_CONTROL of surge and yaw in [-1, 1] (sway 0, heave neutral: depth held); returns x, y, z, r."""
-        x, r = round(surge * AXIS_FULL), round(yaw * AXIS_FULL)
+    def send_control(self, surge: float, yaw: float, heave: float = 0.0) -> tuple[int, int, int, int]:
+        """MANUAL_CONTROL of surge, yaw and heave in [-1, 1] (sway 0; heave 0 is neutral: in ALT_HOLD, depth held);
+        returns x, y, z, r."""
+        x, z, r = round(surge * AXIS_FULL), HEAVE_NEUTRAL + round(heave * HEAVE_HALF_RANGE), round(yaw * AXIS_FULL)
         with self._lock:
-            self.link.mav.manual_control_send(self.target_system, x, 0, HEAVE_NEUTRAL, r, 0)
-        return x, 0, HEAVE_NEUTRAL, r
+            self.link.mav.manual_control_send(self.target_system, x, 0, z, r, 0)
+        return x, 0, z, r
 
     def close(self) -> None:
         self._stop.set()

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from pilot_service.frames import FrameSource, SourceError, as_sim_frame, crop_box
-from pilot_service.pilot import PilotSettings, fly, limited
+from pilot_service.pilot import PilotSettings, check_dive_mode, fly, limited
 from pilot_service.policy import ContractError, OnnxPolicy
 from pilot_service.vehicle import Vehicle, VehicleError
 from services.geometry import HFOV_DEG
@@ -86,11 +86,13 @@ def test_a_dry_run_on_a_dive_video_acts_as_the_policy_on_each_frame(exported: Pa
     policy, source, expected, seen = OnnxPolicy(exported), FrameSource(str(dive_video)), [], []
     while (frame := source.read()) is not None:
         seen.append(as_sim_frame(frame, HFOV_DEG, 64))
-        expected.append(limited(policy.act(seen[-1]), settings))
+        command = limited(policy.act(seen[-1]), policy.action_names, settings)
+        expected.append((command["surge"], command["heave"], command["yaw"]))
     source.close()
-    got = [(float(row["surge"]), float(row["yaw"])) for _, row in sorted(first_of_frame.items())]
+    got = [(float(row["surge"]), float(row["heave"]), float(row["yaw"])) for _, row in sorted(first_of_frame.items())]
     np.testing.assert_allclose(got, expected, atol=1e-6)
-    assert max(abs(surge) for surge, _ in got) <= settings.max_surge and all(row["sent"] == "" for row in rows)
+    assert all(heave == 0.0 for _, heave, _ in got)  # a planar policy holds depth
+    assert max(abs(surge) for surge, _, _ in got) <= settings.max_surge and all(row["sent"] == "" for row in rows)
 
     # The session as a viewer reads it: each frame the policy saw, bit for bit, and every control row.
     recorded = _session(tmp_path / "pilot" / "session.mcap")
@@ -177,6 +179,47 @@ def test_what_cannot_be_flown_is_refused_by_name(exported: Path, tmp_path) -> No
     assert time.monotonic() - started < 5
     with pytest.raises(ValueError, match="--max-surge"):
         PilotSettings(max_surge=1.5).check()
+    with pytest.raises(ValueError, match="--max-heave.*got 0.5, 0.5, 0.0"):
+        PilotSettings(max_heave=0.0).check()
+    for names, problem in ((["surge", "sway"], "drives \\['surge', 'sway'\\]; the pilot flies"),
+                           (["surge", "heave", "yaw"], "outputs 2 actions but its contract names")):  # fmt: skip
+        relabelled = tmp_path / f"{len(names)}-actions.onnx"
+        _with_action_names(exported, names, relabelled)
+        with pytest.raises(ContractError, match=problem):
+            OnnxPolicy(relabelled)
+
+
+def test_a_policy_that_drives_heave_climbs_and_dives_in_alt_hold_only() -> None:
+    settings = PilotSettings(max_surge=0.5, max_yaw=0.5, max_heave=0.4)
+    three = limited(np.array([0.2, -0.9, 0.7], np.float32), ["surge", "heave", "yaw"], settings)
+    assert three == pytest.approx({"surge": 0.2, "heave": -0.4, "yaw": 0.5})
+    assert limited(np.array([0.2, 0.3], np.float32), ["surge", "yaw"], settings)["heave"] == 0.0
+    check_dive_mode(["surge", "heave", "yaw"], "ALT_HOLD")
+    check_dive_mode(["surge", "yaw"], "STABILIZE")
+    with pytest.raises(ValueError, match="climb rate.*not STABILIZE"):
+        check_dive_mode(["surge", "heave", "yaw"], "STABILIZE")
+
+
+def test_the_vehicle_gets_heave_as_manual_controls_z_about_its_neutral(tmp_path) -> None:
+    port, log = _free_udp_port(), tmp_path / "vehicle.jsonl"
+    fake = subprocess.Popen([sys.executable, str(Path(__file__).with_name("fake_vehicle.py")),
+                             f"udpout:127.0.0.1:{port}", str(log)])  # fmt: skip
+    try:
+        vehicle = Vehicle(f"udpin:127.0.0.1:{port}", heartbeat_timeout_s=10.0)
+        sent = [vehicle.send_control(0.5, -0.25, heave=heave) for heave in (0.4, -1.0, 0.0)]
+        vehicle.send_control(0.1, 0.1)  # a planar policy's: depth held
+        deadline = time.monotonic() + 10
+        while sum('"MANUAL_CONTROL"' in line for line in log.read_text().splitlines()) < 4:
+            assert time.monotonic() < deadline, log.read_text()
+            time.sleep(0.05)
+        vehicle.close()
+    finally:
+        fake.kill()
+        fake.wait()
+    manual = [json.loads(line) for line in log.read_text().splitlines() if '"MANUAL_CONTROL"' in line]
+    assert [(m["x"], m["z"], m["r"]) for m in manual] == [(500, 700, -250), (500, 0, -250), (500, 500, -250),
+                                                          (100, 500, 100)]  # fmt: skip
+    assert [z for _, _, z, _ in sent] == [700, 0, 500]
 
 
 @pytest.mark.slow
@@ -244,6 +287,17 @@ def _free_udp_port(even: bool = False) -> int:
             port = probe.getsockname()[1]
         if not even or port % 2 == 0:
             return port
+
+
+def _with_action_names(exported: Path, names: list[str], path: Path) -> None:
+    """A copy of ``exported`` whose contract names other actions than its graph outputs."""
+    import onnx
+
+    model = onnx.load(str(exported))
+    for prop in model.metadata_props:
+        if prop.key == "swimm.contract":
+            prop.value = json.dumps(json.loads(prop.value) | {"action_names": names})
+    onnx.save(model, str(path))
 
 
 def _write_foreign_onnx(path: Path) -> None:
