@@ -16,6 +16,7 @@ import math
 import queue
 import tempfile
 import time
+from contextlib import closing
 from pathlib import Path
 
 import msgpack
@@ -150,14 +151,15 @@ def run(steps: int = 0, envs: int = 16) -> dict:
             "encoder", "encoder", "--connect", endpoint, "--namespace", settings.namespace,
             "--checkpoint", str(checkpoint), "--ident", IDENT, "--metrics-period-s", str(METRICS_PERIOD_S),
         )  # fmt: skip
-        session = open_session(settings, role="bench")
         keys = Keys(settings.namespace)
-        encoders = Roster(session, keys, "encoder")
-        feeder = LockstepFeeder(session, keys)
-        counters = EncoderCounters(session, keys)
         timed = {1: [0, 0.0], envs: [0, 0.0]}  # envs -> [latents in time, seconds]
         encoded = {1: 0, envs: 0}  # envs -> latents in all, for the batch sizes
-        try:
+        with (
+            open_session(settings, role="bench") as session,
+            Roster(session, keys, "encoder") as encoders,
+            closing(LockstepFeeder(session, keys)) as feeder,
+            closing(EncoderCounters(session, keys)) as counters,
+        ):
             encoders.wait_for(1, timeout_s=60)
             feeder.feed(envs, 2.0)  # warm-up: TorchScript's profiling runs, allocator, caches
             before = counters.settled()
@@ -170,11 +172,6 @@ def run(steps: int = 0, envs: int = 16) -> dict:
                     encoded[n] += total
             after = counters.settled()
             group.check_alive()
-        finally:
-            counters.close()
-            feeder.close()
-            encoders.close()
-            session.close()
     batch1, batched = (timed[n][0] / timed[n][1] for n in (1, envs))
     batched_batches = after.get("batches", 0) - before.get("batches", 0) - encoded[1]  # batch 1 is one per frame
     return {

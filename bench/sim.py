@@ -139,13 +139,11 @@ class ServedEnv:
     def __init__(self, way: Way, endpoint: str, stack: ExitStack) -> None:
         self.way = way
         settings = way.zenoh_settings(endpoint)
-        session = open_session(settings, role="bench")
-        stack.callback(session.close)
+        session = stack.enter_context(open_session(settings, role="bench"))
         keys = Keys(settings.namespace)
         holder = new_holder_id("learner")
-        stack.callback(announce(session, keys, "learner", holder).undeclare)
-        sims = Roster(session, keys, "sim")
-        stack.callback(sims.close)
+        stack.enter_context(announce(session, keys, "learner", holder))
+        sims = stack.enter_context(Roster(session, keys, "sim"))
         sims.wait_for(1, timeout_s=60)
         self.link = EnvLink(session, keys, "train", ["0"], holder, encoded=False, poll_ms=way.poll_ms)
         stack.callback(self.link.close)
@@ -171,11 +169,10 @@ class GroupedEnvs:
 
     def __init__(self, endpoint: str, envs: int, group_size: int, stack: ExitStack) -> None:
         settings = ZenohSettings(mode="peer", connect=[endpoint], namespace=GROUPED_NAMESPACE)
-        session = open_session(settings, role="bench")
-        stack.callback(session.close)
+        session = stack.enter_context(open_session(settings, role="bench"))
         keys = Keys(settings.namespace)
         holder = new_holder_id("learner")
-        stack.callback(announce(session, keys, "learner", holder).undeclare)
+        stack.enter_context(announce(session, keys, "learner", holder))
         size = group_size or 1
         self.groups = []
         for start in range(0, envs, size):

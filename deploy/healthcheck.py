@@ -35,12 +35,9 @@ def router_listens(port: int) -> bool:
 def token_visible(role: str, ident: str) -> bool:
     settings = load(ZenohSettings)
     settings.startup_timeout_s = 3.0
-    session = open_session(settings, role="health")
-    try:
+    with open_session(settings, role="health") as session:
         replies = session.liveliness().get(Keys(settings.namespace).live(role, ident), timeout=3.0)
         return any(reply.ok is not None for reply in replies)
-    finally:
-        session.close()
 
 
 def main() -> int:

@@ -27,6 +27,7 @@ import queue
 import threading
 import time
 from collections import deque
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,7 +35,7 @@ import zenoh
 
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from services.keys import Keys
-from services.lifecycle import serve_until_signalled
+from services.lifecycle import Service, serve_until_signalled
 from services.messages import IMAGE_SHAPE, BadMessage, BatchItem, BatchMsg, LatentMsg, ObservationMsg
 from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce, declare_about
@@ -147,7 +148,7 @@ class _Group:
     observations: list[ObservationMsg | str]  # the observation, or why its item carries none (passed on as its error)
 
 
-class EncoderService:
+class EncoderService(Service):
     def __init__(self, settings: EncoderSettings) -> None:
         self.settings = settings
         self.keys = Keys(settings.zenoh.namespace)
@@ -165,17 +166,22 @@ class EncoderService:
         return self.keys.encoder_inbox(self.ident)
 
     def start(self) -> None:
-        self.session = open_session(self.settings.zenoh, role="encoder")
+        # Closed in reverse: the token goes first, so learners route elsewhere; the worker finishes its batches
+        # before the publishers it answers on go.
+        own = self.resources.enter_context
+        self.session = own(open_session(self.settings.zenoh, role="encoder"))
+        self._declared_by_worker = own(ExitStack())
         self._worker.start()
-        self._subscriber = self.session.declare_subscriber(self.inbox_key, self._on_frame)
-        self._metrics_publisher = MetricsPublisher(
-            self.session, self.keys, "encoder", self.ident, self.metrics, self.settings.metrics_period_s
-        )
+        self.resources.callback(self._worker.join, timeout=10)
+        self.resources.callback(self.batcher.close)
+        own(self.session.declare_subscriber(self.inbox_key, self._on_frame))
+        own(MetricsPublisher(self.session, self.keys, "encoder", self.ident, self.metrics,
+                             self.settings.metrics_period_s))  # fmt: skip
         # Learners and evaluations check that this is the CMVAE their policy was trained with.
         about = {"checkpoint": str(self.encoder.checkpoint), "sha256": file_sha256(self.encoder.checkpoint)}
-        self._about = declare_about(self.session, self.keys, "encoder", self.ident, about)
+        own(declare_about(self.session, self.keys, "encoder", self.ident, about))
         # Announce last: a learner routes here only once this encoder can hear it.
-        self._token = announce(self.session, self.keys, "encoder", self.ident)
+        own(announce(self.session, self.keys, "encoder", self.ident))
         log.info(
             "encoder %s serving %s with %s (max batch %d, max wait %.1f ms)",
             self.ident,
@@ -253,21 +259,12 @@ class EncoderService:
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         if key not in self._publishers:
-            self._publishers[key] = self.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK
-            )
+            publisher = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            self._publishers[key] = self._declared_by_worker.enter_context(publisher)
         return self._publishers[key]
 
-    def stop(self) -> None:
-        self._token.undeclare()  # leave the roster first so learners route elsewhere
-        self._about.undeclare()
-        self._subscriber.undeclare()
-        self.batcher.close()
-        self._worker.join(timeout=10)
-        self._metrics_publisher.close()
-        for publisher in self._publishers.values():
-            publisher.undeclare()
-        self.session.close()
+    def close(self) -> None:
+        super().close()
         log.info("encoder %s stopped: %s", self.ident, self.metrics.snapshot())
 
 

@@ -89,8 +89,7 @@ def attached_eval_env(
     ``encoder`` (the CMVAE the policies read), every live encoder must run it.
     """
     keys = Keys(zenoh.namespace)
-    session = open_session(zenoh, role="eval")
-    try:
+    with open_session(zenoh, role="eval") as session:
         if encoder is not None:
             require_live_encoders(session, keys, encoder, f"this evaluation (encoder {encoder})", wait_s)
         candidates = free_env_ids(discover_eval_envs(session, keys, wait_s), zenoh)
@@ -106,9 +105,5 @@ def attached_eval_env(
         if env is None:
             raise NoEvalEnv("every free eval env was claimed by someone else first: " + "; ".join(refusals))
         log.info("attached to %s/%s (holder %s)", zenoh.namespace, env.name, env.holder)
-        try:
+        with env:
             yield env
-        finally:
-            env.close()
-    finally:
-        session.close()

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import sys
 import time
-from contextlib import ExitStack, closing
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -94,10 +94,10 @@ def run(settings: EvalCommandSettings) -> int:
             view = stack.enter_context(LiveView(feed, settings.live.host, settings.live.port))
             print(f"live view: {view.url}", file=sys.stderr)
             for name in settings.live.env:
-                stack.enter_context(closing(EnvTap(settings.zenoh, name, feed, settings.reward, settings.task)))
+                stack.enter_context(EnvTap(settings.zenoh, name, feed, settings.reward, settings.task))
         # results go on the metrics key whenever there is a Zenoh network to put them on (not in-process)
         publish = settings.backend == "zenoh" and not settings.recording
-        publisher = stack.enter_context(closing(ResultPublisher(settings.zenoh))) if publish else None
+        publisher = stack.enter_context(ResultPublisher(settings.zenoh)) if publish else None
         if settings.sweep:
             sweep(settings, settings.sweep_plan, out)
             return 0

@@ -22,6 +22,7 @@ from learner_service.learn_settings import RewardVersion, TaskName
 from learner_service.metrics import EpisodeMetrics
 from learner_service.task import TrackingTask, frame_reward
 from services.keys import CHANNELS, Keys, check_chunk
+from services.lifecycle import Owner
 from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -39,7 +40,7 @@ def parse_env(name: str) -> tuple[str, str]:
     return channel, check_chunk(env, "env id")
 
 
-class EnvTap:
+class EnvTap(Owner):
     """Pushes each new step of ``<channel>/<env>`` into ``feed`` under the source name ``"<channel>/<env>"``."""
 
     def __init__(
@@ -61,11 +62,9 @@ class EnvTap:
         self._last = (-1, -1)  # (ep, seq) of the last step recorded
         self._episode: EpisodeMetrics | None = None
         keys = Keys(zenoh_settings.namespace)
-        self._session = open_session(zenoh_settings, role="eval")
-        self._subscribers = [
-            self._session.declare_subscriber(keys.actions(self.channel), self._on_action),
-            self._session.declare_subscriber(keys.obs(self.channel, "*", "*"), self._on_obs),
-        ]
+        session = self.resources.enter_context(open_session(zenoh_settings, role="eval"))
+        self.resources.enter_context(session.declare_subscriber(keys.actions(self.channel), self._on_action))
+        self.resources.enter_context(session.declare_subscriber(keys.obs(self.channel, "*", "*"), self._on_obs))
         log.info("live view taps %s", self.source)
 
     def _on_action(self, sample: zenoh.Sample) -> None:
@@ -116,8 +115,3 @@ class EnvTap:
         total = self._episode.total_reward
         row = step_row(self.source, msg.ep, UNKNOWN_SEED, msg.seq, action, reward, total, info, smooth)
         self.feed.update(self.source, row, msg.image)
-
-    def close(self) -> None:
-        for subscriber in self._subscribers:
-            subscriber.undeclare()
-        self._session.close()

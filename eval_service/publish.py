@@ -16,6 +16,7 @@ import numpy as np
 import zenoh
 
 from services.keys import Keys
+from services.lifecycle import Owner
 from services.presence import announce
 from services.session import open_session
 from services.settings import ZenohSettings
@@ -23,26 +24,22 @@ from services.settings import ZenohSettings
 log = logging.getLogger(__name__)
 
 
-class ResultPublisher:
+class ResultPublisher(Owner):
     """Owns a session, a liveliness token (role ``eval``) and the publisher of this evaluator's metrics key."""
 
     def __init__(self, zenoh_settings: ZenohSettings, ident: str = "") -> None:
         self.ident = ident or f"eval-{os.getpid()}"
         self.keys = Keys(zenoh_settings.namespace)
         self.key = self.keys.metrics("eval", self.ident)
-        self._session = open_session(zenoh_settings, role="eval")
-        self._token = announce(self._session, self.keys, "eval", self.ident)
-        self._publisher = self._session.declare_publisher(self.key, congestion_control=zenoh.CongestionControl.BLOCK)
+        session = self.resources.enter_context(open_session(zenoh_settings, role="eval"))
+        self.resources.enter_context(announce(session, self.keys, "eval", self.ident))
+        publisher = session.declare_publisher(self.key, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._publisher = self.resources.enter_context(publisher)
 
     def publish(self, kind: str, body: dict[str, Any]) -> None:
         message = {"role": "eval", "id": self.ident, "t": time.time(), "kind": kind, **_plain(body)}
         self._publisher.put(msgpack.packb(message, use_bin_type=True))
         log.debug("published %s on %s", kind, self.key)
-
-    def close(self) -> None:
-        self._publisher.undeclare()
-        self._token.undeclare()
-        self._session.close()
 
 
 def _plain(body: dict[str, Any]) -> dict[str, Any]:

@@ -188,16 +188,14 @@ class Training:
                 from services.presence import process_ident
                 from services.session import open_session
 
-                session = open_session(s.zenoh, role="learner")
-                stack.callback(session.close)
+                session = stack.enter_context(open_session(s.zenoh, role="learner"))
                 if s.obs == "cmvae":  # its latents must come from the CMVAE its models will record
                     encoder = s.encoder_checkpoint or DEFAULT_CHECKPOINT
                     reader = f"this run (--encoder-checkpoint {encoder})"
                     require_live_encoders(session, Keys(s.zenoh.namespace), encoder, reader, s.zenoh.startup_timeout_s)
                 # `swimm status` shows the phase, steps and latest evaluation of each learner process.
-                publisher = MetricsPublisher(session, Keys(s.zenoh.namespace), "learner", process_ident("learner"),
-                                             self.progress)  # fmt: skip
-                stack.callback(publisher.close)
+                stack.enter_context(MetricsPublisher(session, Keys(s.zenoh.namespace), "learner",
+                                                     process_ident("learner"), self.progress))  # fmt: skip
             encoder = (
                 shared_encoder(self.task, checkpoint=s.encoder_checkpoint or None) if s.backend == "inprocess" else None
             )

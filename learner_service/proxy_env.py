@@ -44,6 +44,7 @@ from learner_service.task import (
 )
 from services.control import CLAIMANT_ROLES, ControlError
 from services.keys import CHANNELS, Keys, check_chunk
+from services.lifecycle import Owner
 from services.messages import refused_as_unclaimed
 from services.presence import Roster, announce
 from services.session import open_session
@@ -64,6 +65,11 @@ def sim_lost(refusal: StepRefused) -> SimLost:
     if not refused_as_unclaimed(refusal):
         raise refusal
     return SimLost(str(refusal))
+
+
+def own_session(owner: Owner, proxy: ProxySettings) -> zenoh.Session:
+    """A session of the owner's own, closed with it (one it is lent is its lender's to close)."""
+    return owner.resources.enter_context(open_session(proxy.zenoh, role=proxy.role))
 
 
 class ClaimRefused(ControlError):
@@ -97,18 +103,17 @@ class ProxySettings:
             raise ValueError(f"group_size must be >= 0 (0: no groups), got {self.group_size}")
 
 
-class Presence:
+class Presence(Owner):
     """A learner's stand in the namespace: its holder id and liveliness token, the encoder roster in cmvae mode,
     and the links it steps over, made and closed together (by a ProxyEnv, or by a ProxyVecEnv for all its envs)."""
 
     def __init__(self, session: zenoh.Session, keys: Keys, proxy: ProxySettings, encoded: bool, name: str) -> None:
         self.session, self.keys, self.proxy, self.encoded = session, keys, proxy, encoded
         self.holder = new_holder_id(proxy.role)
-        self.links: list[EnvLink] = []
         self.encoders: Roster | None = None
-        self._token: zenoh.LivelinessToken | None = announce(session, keys, proxy.role, self.holder)
+        self.resources.enter_context(announce(session, keys, proxy.role, self.holder))
         if encoded:
-            self.encoders = Roster(session, keys, "encoder")
+            self.encoders = self.resources.enter_context(Roster(session, keys, "encoder"))
             if not self.encoders.members():
                 wait_s = proxy.zenoh.startup_timeout_s
                 log.info("%s: waiting up to %.0f s for a live encoder", name, wait_s)
@@ -122,22 +127,11 @@ class Presence:
         proxy = self.proxy
         link = EnvLink(self.session, self.keys, proxy.channel, envs, self.holder, self.encoded, self.encoders,
                        proxy.step_timeout_s, proxy.max_retries, proxy.poll_ms, group)  # fmt: skip
-        self.links.append(link)
+        self.resources.callback(link.close)
         return link
 
-    def close(self) -> None:
-        for link in self.links:
-            link.close()
-        self.links = []
-        if self.encoders is not None:
-            self.encoders.close()
-            self.encoders = None
-        if self._token is not None:
-            self._token.undeclare()
-            self._token = None
 
-
-class ProxyEnv(gym.Env):
+class ProxyEnv(Owner, gym.Env):
     """Gymnasium env of the tracking task on a remote sim; ``info`` as TrackingEnv's (telemetry, cause, d, theta,
     azimuth, psi, ep, and seed at reset).
 
@@ -173,9 +167,7 @@ class ProxyEnv(gym.Env):
         self.episode = 0
         self._last_image: np.ndarray | None = None
         self.keys = Keys(proxy.zenoh.namespace)
-        self._owns_session = session is None
-        self.session = session if session is not None else open_session(proxy.zenoh, role=proxy.role)
-        self._presence: Presence | None = None
+        self.session = session if session is not None else own_session(self, proxy)
         self._link: EnvLink | None = None
         self.index = 0
         self._pending_action: np.ndarray | None = None
@@ -184,8 +176,8 @@ class ProxyEnv(gym.Env):
         self.sims_lost = 0  # episodes cut short because the sim restarted and forgot them
         try:
             if member is None:
-                self._presence = Presence(self.session, self.keys, proxy, self.task.settings.obs == "cmvae", self.name)
-                member = (self._presence.link([self.env_id]), 0)
+                presence = Presence(self.session, self.keys, proxy, self.task.settings.obs == "cmvae", self.name)
+                member = (self.resources.enter_context(presence).link([self.env_id]), 0)
             self._link, self.index = member
             self.holder = self._link.holder
             wait_s = proxy.zenoh.startup_timeout_s
@@ -309,18 +301,14 @@ class ProxyEnv(gym.Env):
         return self._link.retries if self._link is not None else 0
 
     def close(self) -> None:
-        """Release the env, then undeclare what it owns (its vector env owns a shared link); safe to call twice."""
+        """Release the env, then close what it owns (its vector env owns a shared link); safe to call twice."""
         if self._link is not None:
             self._link.release(self.index)
             self._link = None
-        if self._presence is not None:
-            self._presence.close()
-            self._presence = None
-        if self._owns_session and not self.session.is_closed():
-            self.session.close()
+        super().close()
 
 
-class ProxyVecEnv(VecEnv):
+class ProxyVecEnv(Owner, VecEnv):
     """One :class:`ProxyEnv` per ``proxy.envs`` entry on one shared session, as a stable-baselines3 VecEnv.
 
     Its envs step over links of ``proxy.group_size`` envs (one each by default) and hold their claims under one
@@ -339,19 +327,17 @@ class ProxyVecEnv(VecEnv):
         session: zenoh.Session | None = None,
     ) -> None:
         proxy.check()
-        self._owns_session = session is None
-        self.session = session if session is not None else open_session(proxy.zenoh, role=proxy.role)
+        self.session = session if session is not None else own_session(self, proxy)
         self.envs: list[ProxyEnv] = []
-        self._presence: Presence | None = None
         try:
-            self._presence = Presence(self.session, Keys(proxy.zenoh.namespace), proxy, task.obs == "cmvae",
-                                      f"{proxy.channel}/{','.join(proxy.envs)}")  # fmt: skip
-            self.links = self._make_links(self._presence, proxy)
+            presence = Presence(self.session, Keys(proxy.zenoh.namespace), proxy, task.obs == "cmvae",
+                                f"{proxy.channel}/{','.join(proxy.envs)}")  # fmt: skip
+            self.links = self._make_links(self.resources.enter_context(presence), proxy)
             for link in self.links:
                 for index in range(len(link.envs)):
                     member = ProxyEnv(task, proxy, base_seed=base_seed + len(self.envs), session=self.session,
                                       member=(link, index))  # fmt: skip
-                    self.envs.append(member)
+                    self.envs.append(self.resources.enter_context(member))
         except BaseException:
             self.close()
             raise
@@ -415,15 +401,6 @@ class ProxyVecEnv(VecEnv):
         if isinstance(observations[0], dict):
             return {key: np.stack([obs[key] for obs in observations]) for key in observations[0]}
         return np.stack(observations)
-
-    def close(self) -> None:
-        for env in self.envs:
-            env.close()
-        if self._presence is not None:
-            self._presence.close()
-            self._presence = None
-        if self._owns_session and not self.session.is_closed():
-            self.session.close()
 
     def get_images(self) -> list[np.ndarray | None]:
         return [env.render() for env in self.envs]

@@ -201,21 +201,17 @@ class LocalSystem:
         for name, command, argv in children:
             self.group.start(name, command, *argv)
         watcher = ZenohSettings(connect=[endpoint], namespace=self.namespace, startup_timeout_s=self.wait_s)
-        session = open_session(watcher, role="up")
-        try:
+        with open_session(watcher, role="up") as session:
             for role in ("sim", "encoder"):
                 if count := sum(command == role for _, command, _ in children):
                     self.wait_for_role(session, role, count)
-        finally:
-            session.close()
         return endpoint
 
     def wait_for_role(self, session: Any, role: str, count: int) -> None:
         """Block until ``count`` ``role`` processes announce themselves; fail early if one of ours died."""
-        roster = Roster(session, Keys(self.namespace), role)
         started = time.monotonic()
         next_note = started + 10.0
-        try:
+        with Roster(session, Keys(self.namespace), role) as roster:
             while len(roster.members()) < count:
                 self.check_services()
                 if self.stop.is_set():
@@ -238,8 +234,6 @@ class LocalSystem:
                     next_note += 10.0
                 time.sleep(0.1)
             log.info("%s up: %s (%.1f s)", role, sorted(roster.members()), time.monotonic() - started)
-        finally:
-            roster.close()
 
     def check_services(self, skip: Service | None = None) -> None:
         """Supervise (compose's ``restart: on-failure``): a service that died is started again after a backoff, up to

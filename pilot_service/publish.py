@@ -18,6 +18,7 @@ import numpy as np
 import zenoh
 
 from services.keys import Keys
+from services.lifecycle import Owner
 from services.messages import DIRECT_ROUTE, BatchItem, BatchMsg, ObservationMsg
 from services.presence import Roster, rendezvous_choice
 from services.session import open_session
@@ -29,12 +30,12 @@ log = logging.getLogger(__name__)
 CHANNEL = "eval"  # not a training env: nothing learns from footage without a reward
 
 
-class FramePublisher:
+class FramePublisher(Owner):
     def __init__(self, settings: ZenohSettings, env: str) -> None:
-        self.session = open_session(settings, role="pilot")
+        self.session = self.resources.enter_context(open_session(settings, role="pilot"))
         self.keys = Keys(settings.namespace)
         self.env = env
-        self.encoders = Roster(self.session, self.keys, "encoder")
+        self.encoders = self.resources.enter_context(Roster(self.session, self.keys, "encoder"))
         self.started = time.monotonic()
         log.info("publishing the policy's frames as %s/%s/%s", settings.namespace, CHANNEL, env)
 
@@ -49,7 +50,3 @@ class FramePublisher:
         self.session.put(
             self.keys.obs(CHANNEL, self.env, route), payload, congestion_control=zenoh.CongestionControl.DROP
         )
-
-    def close(self) -> None:
-        self.encoders.close()
-        self.session.close()

@@ -1,4 +1,5 @@
-"""Running a service until SIGTERM/SIGINT and then draining it; stopping it when its launcher is gone."""
+"""Lifetimes: what an object owns closed with it, a service run until SIGTERM/SIGINT and then drained, and
+stopped when its launcher is gone."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
-from typing import Any, Protocol
+from contextlib import ExitStack, contextmanager
+from functools import cached_property
+from typing import Any, Self
 
 log = logging.getLogger(__name__)
 
@@ -17,10 +19,40 @@ log = logging.getLogger(__name__)
 LAUNCHER_PID_ENV = "SWIMM_LAUNCHER_PID"
 
 
-class Service(Protocol):
-    def start(self) -> None: ...
+class Owner:
+    """Closes what it owns (a session, the subscribers, queryables and publishers declared on it) with itself.
 
-    def stop(self) -> None: ...
+    Each goes on ``resources`` as it is made, and ``close()``, or the end of a ``with`` block of the owner, closes
+    them in reverse order, once. What it is lent, such as a caller's session, is not put there: the lender closes it.
+    """
+
+    @cached_property
+    def resources(self) -> ExitStack:
+        return ExitStack()
+
+    def close(self) -> None:
+        self.resources.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Service(Owner):
+    """A service: ``start()`` declares what it serves, ``close()`` stops it; a ``with`` block of it is its life."""
+
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        try:
+            self.start()
+        except BaseException:
+            self.close()  # what it opened before it failed
+            raise
+        return self
 
 
 def serve_until_signalled(service: Service, stop_event: threading.Event | None = None) -> None:
@@ -28,11 +60,8 @@ def serve_until_signalled(service: Service, stop_event: threading.Event | None =
     stop_event = stop_event or threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop_event.set())
-    service.start()
-    try:
+    with service:
         stop_event.wait()
-    finally:
-        service.stop()
 
 
 @contextmanager

@@ -13,6 +13,7 @@ import numpy as np
 import zenoh
 
 from services.keys import Keys
+from services.lifecycle import Owner
 
 log = logging.getLogger(__name__)
 
@@ -51,19 +52,22 @@ class Snapshots(Protocol):
     def snapshot(self) -> dict[str, Any]: ...
 
 
-class MetricsPublisher:
+class MetricsPublisher(Owner):
     """Publishes a :class:`Metrics` (or other :class:`Snapshots`) snapshot every ``period_s`` from a daemon thread."""
 
     def __init__(
         self, session: zenoh.Session, keys: Keys, role: str, ident: str, metrics: Snapshots, period_s: float = 2.0
     ):
-        self._publisher = session.declare_publisher(keys.metrics(role, ident))
+        self._publisher = self.resources.enter_context(session.declare_publisher(keys.metrics(role, ident)))
         self._metrics = metrics
         self._period_s = period_s
         self._role, self._ident = role, ident
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name=f"metrics-{role}", daemon=True)
-        self._thread.start()
+        thread = threading.Thread(target=self._run, name=f"metrics-{role}", daemon=True)
+        thread.start()
+        # Closed in reverse: the thread is told to stop, then joined, then the publisher goes.
+        self.resources.callback(thread.join, timeout=period_s + 1)
+        self.resources.callback(self._stop.set)
 
     def _run(self) -> None:
         while not self._stop.wait(self._period_s):
@@ -75,8 +79,3 @@ class MetricsPublisher:
             self._publisher.put(msgpack.packb(body))
         except zenoh.ZError as exc:  # a closing session must not kill the service
             log.debug("metrics not published: %s", exc)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=self._period_s + 1)
-        self._publisher.undeclare()

@@ -21,6 +21,7 @@ from types import MappingProxyType
 import zenoh
 
 from services.keys import Keys
+from services.lifecycle import Owner
 from services.messages import DIRECT_ROUTE
 
 log = logging.getLogger(__name__)
@@ -87,7 +88,7 @@ def live_tokens(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) -
     return tokens
 
 
-class Roster:
+class Roster(Owner):
     """The live members of one role, kept current by a liveliness subscriber.
 
     ``on_change(joined, left)`` runs on a Zenoh thread after each change, so
@@ -106,7 +107,9 @@ class Roster:
         self._changed = threading.Condition(self._lock)
         self._on_change = on_change
         self.role = role
-        self._subscriber = session.liveliness().declare_subscriber(keys.live_role(role), self._on_sample, history=True)
+        self.resources.enter_context(
+            session.liveliness().declare_subscriber(keys.live_role(role), self._on_sample, history=True)
+        )
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         ident = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -140,9 +143,6 @@ class Roster:
                     )
                 self._changed.wait(remaining)
             return set(self._members)
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
 
 
 def _score(key: str, member: str) -> bytes:

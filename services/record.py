@@ -20,9 +20,11 @@ from __future__ import annotations
 import base64
 import json
 import logging
+import math
 import queue
 import threading
 import time
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -159,26 +161,27 @@ def record(settings: RecordSettings, stop: threading.Event) -> dict[str, Any]:
     out.parent.mkdir(parents=True, exist_ok=True)
     samples: queue.SimpleQueue[tuple[str, bytes, int]] = queue.SimpleQueue()
     namespace = settings.zenoh.namespace
-    session = open_session(settings.zenoh, role="recorder")
-    recorder = McapRecorder(out, namespace, settings.images)
-    subscriber = session.declare_subscriber(
-        f"{namespace}/**", lambda sample: samples.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
-    )
     until = f" for {settings.duration_s:g} s" if settings.duration_s else " until stopped"
-    log.info("recording %s/** to %s%s", namespace, out, until)
-    started = time.monotonic()
-    try:
-        while not stop.is_set() and not (settings.duration_s and time.monotonic() - started >= settings.duration_s):
-            try:
-                recorder.write(*samples.get(timeout=0.1))
-            except queue.Empty:
-                continue
-    finally:
-        subscriber.undeclare()
-        while not samples.empty():  # what arrived before the subscriber went
-            recorder.write(*samples.get())
-        recorder.close()
-        session.close()
+    with (
+        open_session(settings.zenoh, role="recorder") as session,
+        closing(McapRecorder(out, namespace, settings.images)) as recorder,
+    ):
+        log.info("recording %s/** to %s%s", namespace, out, until)
+        started = time.monotonic()
+        ends = started + settings.duration_s if settings.duration_s else math.inf
+        try:
+            with session.declare_subscriber(
+                f"{namespace}/**",
+                lambda sample: samples.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())),
+            ):
+                while not stop.is_set() and time.monotonic() < ends:
+                    try:
+                        recorder.write(*samples.get(timeout=0.1))
+                    except queue.Empty:
+                        continue
+        finally:
+            while not samples.empty():  # what arrived before the subscriber went
+                recorder.write(*samples.get())
     summary = {"file": str(out), "messages": recorder.messages, "topics": recorder.topics,
                "seconds": round(time.monotonic() - started, 1), "namespace": namespace}  # fmt: skip
     log.info("recorded %d messages on %d topics in %.1f s to %s", summary["messages"], summary["topics"],
@@ -213,9 +216,8 @@ def replay(settings: ReplaySettings, stop: threading.Event) -> int:
     target = source if settings.namespace_from_file else settings.zenoh.namespace
     wanted = zenoh.KeyExpr(f"{source}/{settings.keys}")
     samples = [sample for sample in recorded_samples(settings.file) if wanted.intersects(zenoh.KeyExpr(sample[0]))]
-    session = open_session(settings.zenoh, role="replay")
     published = 0
-    try:
+    with open_session(settings.zenoh, role="replay") as session:
         first_ns, started = (samples[0][2] if samples else 0), time.monotonic()
         for key, payload, log_ns in samples:
             if stop.is_set():
@@ -224,7 +226,5 @@ def replay(settings: ReplaySettings, stop: threading.Event) -> int:
                 stop.wait(max(0.0, (log_ns - first_ns) / 1e9 - (time.monotonic() - started)))
             session.put(target + key[len(source) :], payload, congestion_control=zenoh.CongestionControl.BLOCK)
             published += 1
-    finally:
-        session.close()
     log.info("replayed %d of %d samples from %s into %s", published, len(samples), settings.file, target)
     return published

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import logging
-import threading
 from dataclasses import dataclass, field
 
+from services.lifecycle import Service
 from services.session import open_session
 from services.settings import LOCAL_ROUTER, NonNegInt, ZenohSettings
 
@@ -30,15 +30,14 @@ class RouterSettings:
                              zenoh_threads=self.zenoh_threads)  # fmt: skip
 
 
-class Router:
+class Router(Service):
     def __init__(self, settings: RouterSettings) -> None:
         self.settings = settings
-        self._ready = threading.Event()
 
     def start(self) -> None:
-        self.session = open_session(self.settings.zenoh(), role="router")
+        self.session = self.resources.enter_context(open_session(self.settings.zenoh(), role="router"))
         log.info("router %s up", self.session.zid())
 
-    def stop(self) -> None:
-        self.session.close()
+    def close(self) -> None:
+        super().close()
         log.info("router stopped")

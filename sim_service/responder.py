@@ -22,7 +22,7 @@ import zenoh
 from services import control
 from services.control import CLAIMANT_ROLES
 from services.keys import Keys
-from services.lifecycle import serve_until_signalled
+from services.lifecycle import Service, serve_until_signalled
 from services.low_latency import largest_low_latency_image_size, low_latency_group_problem, observation_bytes
 from services.messages import (
     DIRECT_ROUTE,
@@ -117,7 +117,7 @@ def check(settings: SimSettings) -> None:
     check_fits_low_latency(settings)
 
 
-class SimResponder:
+class SimResponder(Service):
     def __init__(self, settings: SimSettings) -> None:
         check(settings)
         self.settings = settings
@@ -137,26 +137,27 @@ class SimResponder:
         self._worker.start()  # creates the Worlds (and their GL contexts) on its own thread
         if not self._ready.wait(timeout=120):
             raise RuntimeError("the sim worker did not build its worlds within 120 s")
-        self.session = open_session(self.settings.zenoh, role="sim")
-        self._rosters = [Roster(self.session, self.keys, role, self._on_roster_change) for role in CLAIMANT_ROLES]
-        self._declared = []
+        own = self.resources.enter_context
+        self.session = own(open_session(self.settings.zenoh, role="sim"))
+        for role in CLAIMANT_ROLES:
+            own(Roster(self.session, self.keys, role, self._on_roster_change))
         for env in self._envs:
-            self._declared.append(
+            own(
                 self.session.declare_queryable(
                     self.keys.ctl(env.channel, env.env),
                     lambda query, env=env: self._inbox.put(_Control(env, query)),
                 )
             )
         for channel in {env.channel for env in self._envs}:
-            self._declared.append(
+            own(
                 self._inbox.subscribe(
                     self.session,
                     self.keys.actions(channel),
                     lambda sample: _Step(sample.payload.to_bytes(), str(sample.key_expr)),
                 )
             )
-        self._token = announce(self.session, self.keys, "sim", self.ident)
-        self._metrics_publisher = MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics)
+        own(announce(self.session, self.keys, "sim", self.ident))
+        own(MetricsPublisher(self.session, self.keys, "sim", self.ident, self.metrics))
         log.info(
             "sim %s serving %d train and %d eval envs under %s (%s); image noise: %s; latency: %s; scenery: %s",
             self.ident,
@@ -357,7 +358,7 @@ class SimResponder:
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-            self._publishers[key] = publisher
+            self._publishers[key] = self.resources.enter_context(publisher)
         return publisher
 
     def _answer(self, channel: str, group: str, route: str, to: str, items: list[BatchItem]) -> None:
@@ -375,17 +376,13 @@ class SimResponder:
             self._unprepared.add(env)
 
     # --- shutdown -------------------------------------------------------------------------------
-    def stop(self) -> None:
-        """Drain queued requests, then undeclare everything and close the session."""
+    def close(self) -> None:
+        """Drain queued requests, then undeclare everything and close the session; safe to call twice."""
         self._stop.set()
         self._inbox.put(None)
-        self._worker.join(timeout=30)
-        self._metrics_publisher.close()
-        for roster in self._rosters:
-            roster.close()
-        for entity in [*self._declared, *self._publishers.values(), self._token]:
-            entity.undeclare()
-        self.session.close()
+        if self._worker.is_alive():
+            self._worker.join(timeout=30)
+        super().close()
         log.info("sim %s stopped: %s", self.ident, self.metrics.snapshot())
 
 

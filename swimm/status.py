@@ -174,10 +174,8 @@ def run(settings: StatusSettings) -> int:
             "running there? (--connect names another, --wait-s waits longer)\n"
         )
         return 1
-    try:
+    with session:
         status = gather(settings, session)
-    finally:
-        session.close()
     if settings.json:
         sys.stdout.write(json.dumps(status) + "\n")
     else:

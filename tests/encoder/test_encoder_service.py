@@ -12,6 +12,7 @@ from __future__ import annotations
 import queue
 import time
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from pathlib import Path
 
 import msgpack
@@ -66,20 +67,15 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def start_service(
     zenoh_router: str, zenoh_settings: Callable[[str], ZenohSettings], checkpoint: Path
 ) -> Iterator[Callable[..., EncoderService]]:
-    started: list[EncoderService] = []
+    with ExitStack() as started:
 
-    def start(**overrides) -> EncoderService:
-        settings = EncoderSettings(
-            zenoh=zenoh_settings(zenoh_router), checkpoint=str(checkpoint), ident=IDENT, threads=1, **overrides
-        )
-        service = EncoderService(settings)
-        service.start()
-        started.append(service)
-        return service
+        def start(**overrides) -> EncoderService:
+            settings = EncoderSettings(
+                zenoh=zenoh_settings(zenoh_router), checkpoint=str(checkpoint), ident=IDENT, threads=1, **overrides
+            )
+            return started.enter_context(EncoderService(settings))
 
-    yield start
-    for service in started:
-        service.stop()
+        yield start
 
 
 class Feeder:
