@@ -49,7 +49,7 @@ S = TypeVar("S", bound="EvaluationSettings")
 KEEP_NOISE = "keep"
 NOISE_CHOICES = (KEEP_NOISE, "off", "on", *(name for name in PRESETS if name != "off"))
 TABLE_COLUMNS = ("mean_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A")  # the paper's Table 12, return first
-VERTICAL_COLUMNS = ("E",)  # what the 3d task's summaries add to the table
+VERTICAL_COLUMNS = ("E", "S_H")  # what the 3d task's summaries add to the table
 
 
 @dataclass
