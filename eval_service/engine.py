@@ -166,7 +166,9 @@ def load_policies(settings: EvaluationSettings, entries: list[Contender]) -> dic
     if settings.threads > 0:
         torch.set_num_threads(settings.threads)  # before the policies and the CMVAE run (docs/eval.md, threads)
     return {
-        entry.label: load_policy(entry.algo, checkpoint(entry), device=settings.device, gains=settings.scripted)
+        entry.label: load_policy(
+            entry.algo, checkpoint(entry), device=settings.device, gains=settings.scripted, task=settings.task
+        )
         for entry in entries
     }
 

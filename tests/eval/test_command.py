@@ -28,6 +28,7 @@ from eval_service.engine import contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
 from eval_service.sweep import SweepSettings
 from learner_service.export import SHIPPED_POLICY
+from learner_service.identity import policy_identity, stamp
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.registry import make_model
@@ -54,6 +55,7 @@ def untrained_sac(folder: Path, task: str = "planar") -> Path:
     """An untrained SAC on the task's state observation, saved like `swimm learn` saves: a real checkpoint to load."""
     env = TrackingEnv(TaskSettings(obs="state", task=task), WorldSettings(render=False))
     model = make_model("sac", env, seed=5, overrides={"buffer_size": 1000})
+    stamp(model, policy_identity("", "state", "swimm2", task))
     path = folder / "best_model.zip"
     model.save(path)
     env.close()
