@@ -49,7 +49,7 @@ S = TypeVar("S", bound="EvaluationSettings")
 KEEP_NOISE = "keep"
 NOISE_CHOICES = (KEEP_NOISE, "off", "on", *(name for name in PRESETS if name != "off"))
 TABLE_COLUMNS = ("mean_return", "A", "D", "A'", "D'", "C'", "S_D", "S_A")  # the paper's Table 12, return first
-VERTICAL_COLUMNS = ("E",)  # what the 3d task's summaries add to the table
+VERTICAL_COLUMNS = ("E", "S_H")  # what the 3d task's summaries add to the table
 
 
 @dataclass
@@ -166,7 +166,9 @@ def load_policies(settings: EvaluationSettings, entries: list[Contender]) -> dic
     if settings.threads > 0:
         torch.set_num_threads(settings.threads)  # before the policies and the CMVAE run (docs/eval.md, threads)
     return {
-        entry.label: load_policy(entry.algo, checkpoint(entry), device=settings.device, gains=settings.scripted)
+        entry.label: load_policy(
+            entry.algo, checkpoint(entry), device=settings.device, gains=settings.scripted, task=settings.task
+        )
         for entry in entries
     }
 

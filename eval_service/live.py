@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 PAGE = Path(__file__).with_name("live_view.html")
 RUNNING_MEANS = ("A", "D", "S_D", "S_A")  # per-step terms whose episode mean is the SPEC's metric
-VERTICAL_MEANS = ("E",)  # and the 3d task's, in its rows only
+VERTICAL_MEANS = ("E", "S_H")  # and the 3d task's, in its rows only
 
 
 @dataclass

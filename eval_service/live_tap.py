@@ -20,7 +20,7 @@ from eval_service.live import LiveFeed
 from learner_service.evaluation import step_row
 from learner_service.learn_settings import RewardVersion, TaskName
 from learner_service.metrics import EpisodeMetrics
-from learner_service.task import TrackingTask, frame_reward
+from learner_service.task import TrackingTask, frame_reward, policy_action
 from services.keys import CHANNELS, Keys, check_chunk
 from services.lifecycle import Owner
 from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
@@ -76,7 +76,7 @@ class EnvTap(Owner):
             return  # the sim refuses and logs bad actions; the viewer just ignores them
         with self._lock:
             for msg in actions:
-                self._actions[(msg.ep, msg.seq)] = np.array([msg.action[2], msg.action[3]], np.float64)  # surge, yaw
+                self._actions[(msg.ep, msg.seq)] = policy_action(msg.action, self._task)
             self._drain()
 
     def _on_obs(self, sample: zenoh.Sample) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 
 from learner_service.learn_settings import RewardVersion, TaskName
 from learner_service.metrics import EpisodeMetrics
-from learner_service.task import TrackingTask, frame_reward
+from learner_service.task import TrackingTask, frame_reward, policy_action
 from services.keys import CHANNELS
 from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
 from services.record import recorded_namespace, recorded_samples
@@ -25,11 +25,11 @@ log = logging.getLogger(__name__)
 
 
 class RecordedEpisode:
-    """One env's episode as recorded: telemetry after each step, and each step's (surge, yaw)."""
+    """One env's episode as recorded: telemetry after each step, and each step's sim command."""
 
     def __init__(self) -> None:
         self.telemetry: dict[int, Telemetry] = {}
-        self.actions: dict[int, tuple[float, float]] = {}
+        self.actions: dict[int, tuple[float, ...]] = {}  # (sway, heave, surge, yaw)
 
     def steps(self) -> list[int]:
         """The steps with both their action and the world after it, in order, from 1 without a gap."""
@@ -54,9 +54,7 @@ def recorded_episodes(path: str | Path) -> dict[tuple[str, str, int], RecordedEp
                     episodes[(channel, env, msg.ep)].telemetry.setdefault(msg.seq, msg.telemetry)
             elif kind == "action":
                 for env, action in batch_messages(payload, ActionMsg.from_item):
-                    episodes[(channel, env, action.ep)].actions.setdefault(
-                        action.seq, (action.action[2], action.action[3])
-                    )
+                    episodes[(channel, env, action.ep)].actions.setdefault(action.seq, tuple(action.action))
         except BadMessage as exc:
             log.warning("%s: skipped an unreadable %s message on %s: %s", path, kind, key, exc)
     return dict(episodes)
@@ -73,10 +71,11 @@ def score_recording(
             continue
         metrics = EpisodeMetrics(f"{channel}/{env}", ep)
         for step in steps:
-            info = TrackingTask.info(episode.telemetry[step], task)
-            metrics.add(info["d"], info["theta"], episode.telemetry[step].target_in_frustum,
-                        episode.telemetry[step].collided, episode.actions[step], frame_reward(info, reward),
-                        info.get("phi"))  # fmt: skip
+            telemetry = episode.telemetry[step]
+            info = TrackingTask.info(telemetry, task)
+            action = policy_action(episode.actions[step], task)
+            metrics.add(info["d"], info["theta"], telemetry.target_in_frustum, telemetry.collided, action,
+                        frame_reward(info, reward), info.get("phi"))  # fmt: skip
         rows.append(metrics.row() | {"seed": None, "steps": metrics.steps})
     if not rows:
         raise ValueError(f"{path} holds no scorable episode (no env's actions with the observations after them)")

@@ -39,6 +39,7 @@ METRIC_MEANINGS = {
     "S_D": "surge smoothness (mean)",
     "S_A": "yaw smoothness (mean)",
     "E": "mean elevation error / beta (3d task)",
+    "S_H": "heave smoothness (mean, 3d task)",
     "mean_return": "mean episode return",
 }
 

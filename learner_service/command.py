@@ -47,7 +47,7 @@ from learner_service.checkpoints import load_for_resume, save_model
 from learner_service.demonstrations import demonstrate, resume_cloning
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.episodic import episodic_schedule
-from learner_service.identity import encoder_for, policy_identity, stamp
+from learner_service.identity import check_task, encoder_for, policy_identity, stamp
 from learner_service.learn_settings import LearnCommandSettings, default_run_dir
 from learner_service.live_encoders import require_live_encoders
 from learner_service.plots import plot_training, read_monitor
@@ -234,21 +234,24 @@ class Training:
         )
 
     def identity(self) -> dict[str, Any]:
-        """What every saved model records: the encoder its latents came from (learner_service.identity).
+        """What every saved model records: its task and the encoder its latents came from (learner_service.identity).
 
-        A resumed run must go on with the encoder it started on; another one is refused before training.
+        A resumed run must go on with the task and the encoder it started on; others are refused before training.
         """
         s = self.settings
         encoder = s.encoder_checkpoint or DEFAULT_CHECKPOINT
+        if s.resume:
+            check_task(s.resume, s.task)
         if s.resume and s.obs == "cmvae":
             encoder_for(s.resume, encoder)  # refuses an encoder other than the one the run started on
-        return policy_identity(encoder, s.obs, s.reward)
+        return policy_identity(encoder, s.obs, s.reward, s.task)
 
     def train(self, env: Any, eval_env: Any) -> RunResult:
         s = self.settings
         clock = time.perf_counter()  # the budget and the evaluations' wall_s count the demonstrations too
+        identity = self.identity()  # first: a resumed model of another task would fail to load with a vaguer error
         model = self.build_model(env)
-        stamp(model, self.identity())
+        stamp(model, identity)
         tb_log_name = s.algo.rsplit(":", 1)[-1].upper()
         # The run's logger now rather than inside learn(): the demonstrations' critic warm-up records its losses too.
         model.set_logger(configure_logger(model.verbose, model.tensorboard_log, tb_log_name, not s.resume))

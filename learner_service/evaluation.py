@@ -32,8 +32,9 @@ STEP_FIELDS = (
     "psi", "A", "D", "S_D", "S_A", "in_frustum", "distance_exceeded", "collided", "cause",
     "rover_x", "rover_y", "rover_z", "rover_yaw", "target_x", "target_y", "target_z", "target_yaw",
 )  # fmt: skip
-#: What a 3d task's step rows add: the signed elevation and unsigned error (degrees) and the step's term of E.
-VERTICAL_STEP_FIELDS = ("elevation", "phi", "E")
+#: What a 3d task's step rows add: the signed elevation and unsigned error (degrees), the step's term of E, and the
+#: heave command with its smoothness.
+VERTICAL_STEP_FIELDS = ("elevation", "phi", "E", "heave", "S_H")
 
 StepSink = Callable[[dict[str, Any]], None]
 
@@ -56,9 +57,9 @@ def step_row(
     reward: float,
     total: float,
     info: dict[str, Any],
-    smooth: tuple[float, float],
+    smooth: dict[str, float],
 ) -> dict[str, Any]:
-    """One CSV row: the step's action, reward, geometry, per-step metric terms and both poses.
+    """One CSV row: the step's action, reward, geometry, per-step metric terms (``smooth`` by name) and both poses.
 
     Yaws are the headings of the bodies' forward vectors in the horizontal plane (degrees, counter-clockwise
     from +x), which is what the top-down trajectory plot draws. A 3d task's rows add VERTICAL_STEP_FIELDS.
@@ -69,9 +70,10 @@ def step_row(
     d, theta = float(info["d"]), float(info["theta"])
     row = {
         "label": label, "episode": episode, "seed": seed, "step": step, "t": time.time(),
-        "surge": float(action[0]), "yaw_cmd": float(action[1]), "reward": float(reward), "return_so_far": total,
+        "surge": float(action[0]), "yaw_cmd": float(action[-1]), "reward": float(reward), "return_so_far": total,
         "d": d, "theta": theta, "azimuth": float(info["azimuth"]), "psi": float(info["psi"]),
-        "A": min(abs(theta), ALPHA_DEG) / ALPHA_DEG, "D": abs(d - OPT_D) / MAX_D, "S_D": smooth[0], "S_A": smooth[1],
+        "A": min(abs(theta), ALPHA_DEG) / ALPHA_DEG, "D": abs(d - OPT_D) / MAX_D,
+        "S_D": smooth["S_D"], "S_A": smooth["S_A"],
         "in_frustum": bool(telemetry.target_in_frustum), "distance_exceeded": abs(d - OPT_D) >= MAX_D,
         "collided": bool(telemetry.collided), "cause": info["cause"],
         "rover_x": float(telemetry.rover_pos[0]), "rover_y": float(telemetry.rover_pos[1]),
@@ -81,6 +83,8 @@ def step_row(
     }  # fmt: skip
     if "phi" in info:
         row |= {"elevation": float(info["elevation"]), "phi": float(info["phi"]), "E": elevation_error(info["phi"])}
+    if "S_H" in smooth:
+        row |= {"heave": float(action[1]), "S_H": smooth["S_H"]}
     return row
 
 

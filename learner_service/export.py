@@ -30,7 +30,7 @@ import torch
 from encoder_service import DEFAULT_CHECKPOINT
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import load_model
-from learner_service.identity import encoder_for
+from learner_service.identity import encoder_for, policy_task
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
 from services.results import file_sha256
@@ -164,6 +164,10 @@ def run(settings: ExportSettings) -> int:
     if settings.threads > 0:
         torch.set_num_threads(settings.threads)
     policy_path = Path(settings.checkpoint) if settings.checkpoint else SHIPPED_POLICY
+    trained = policy_task(policy_path)
+    if trained != "planar":  # the pilot flies (surge, yaw): a 3d policy's heave would reach it as yaw
+        raise ValueError(f"{policy_path} was trained on the {trained} task, but only planar (surge, yaw) policies "
+                         "export: `swimm pilot` does not fly heave yet")  # fmt: skip
     # the encoder the policy records, refusing another one by name; the shipped CMVAE for a policy recording none
     encoder_path = encoder_for(policy_path, settings.encoder_checkpoint or None) or DEFAULT_CHECKPOINT
     if not encoder_path.is_file():

@@ -2,9 +2,10 @@
 
 A camera-only policy reads latents, and a latent means something only to the encoder that made it: the slow-loop
 policy flies on `cmvae_mixture.pt` and fails on any other, silently. So a trained model carries
-:data:`IDENTITY_KEY` (the encoder's path and content hash, and the task's observation and reward), saved by
+:data:`IDENTITY_KEY` (the encoder's path and content hash, and the task's name, observation and reward), saved by
 stable-baselines3 with the model's other attributes, and every command that loads a policy takes that encoder by
-default (:func:`encoder_for`) and refuses another by name.
+default (:func:`encoder_for`) and refuses another by name. Likewise a policy acts in the task it was trained on
+(the planar task's (surge, yaw) or the 3d task's (surge, heave, yaw)): another is refused (:func:`check_task`).
 """
 
 from __future__ import annotations
@@ -21,13 +22,16 @@ log = logging.getLogger(__name__)
 
 #: The model attribute (and key of the zip's ``data`` JSON) that holds the identity.
 IDENTITY_KEY = "swimm_identity"
+#: The task of a policy that records none: it was saved before the 3d task existed.
+LEGACY_TASK = "planar"
 #: Where a recorded encoder is looked for when its recorded path is not here (e.g. a run folder elsewhere).
 SHIPPED_ENCODERS = REPO_ROOT / "encoder_service" / "models"
 
 
-def policy_identity(encoder: str | Path, obs: str, reward: str) -> dict[str, Any]:
-    """The identity a model trained on ``encoder``'s latents (or on ``obs`` without an encoder) carries."""
-    identity: dict[str, Any] = {"task": {"obs": obs, "reward": reward}}
+def policy_identity(encoder: str | Path, obs: str, reward: str, task: str = LEGACY_TASK) -> dict[str, Any]:
+    """The identity a model trained on ``task`` with ``encoder``'s latents (or on ``obs`` without an encoder)
+    carries."""
+    identity: dict[str, Any] = {"task": {"name": task, "obs": obs, "reward": reward}}
     if obs == "cmvae":
         path = Path(encoder)
         identity["encoder"] = {"path": _shown(path), "sha256": file_sha256(path)}
@@ -57,6 +61,22 @@ def read_identity(checkpoint: str | Path) -> dict[str, Any] | None:
         ) from None
     identity = data.get(IDENTITY_KEY)
     return identity if isinstance(identity, dict) else None
+
+
+def policy_task(checkpoint: str | Path) -> str:
+    """The task ``checkpoint`` was trained on: the one it records, else planar (:data:`LEGACY_TASK`)."""
+    recorded = (read_identity(checkpoint) or {}).get("task", {})
+    return recorded.get("name", LEGACY_TASK)
+
+
+def check_task(checkpoint: str | Path, task: str) -> None:
+    """Refuse to run ``checkpoint`` on ``task`` when it was trained on another, naming both."""
+    trained = policy_task(checkpoint)
+    if trained != task:
+        raise ValueError(
+            f"policy {checkpoint} was trained on the {trained} task, but this is the {task} task (their actions "
+            f"differ): run it with --task {trained}, or train a policy on the {task} task"
+        )
 
 
 def encoder_for(checkpoint: str | Path, given: str | Path | None) -> Path | None:

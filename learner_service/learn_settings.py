@@ -75,6 +75,8 @@ class TrackerGains:
     yaw_gain: NonNegFloat = 1.0 / 60.0  # command per degree of azimuth: full turn at 60 degrees
     surge_gain: NonNegFloat = 1.0  # command per metre of distance error: full surge 1 m off opt_d
     yaw_damping: NonNegFloat = 0.0  # command per unit of ActPrev's mean yaw command (0: none, the undelayed optimum)
+    heave_gain: NonNegFloat = 0.1  # 3d task: command per degree of elevation: full climb or dive at 10 degrees
+    heave_dead_band: NonNegFloat = 1.0  # 3d task: degrees of elevation within which heave stays 0 (depth held)
 
     def check(self) -> None:
         check_ranges(self, "scripted_")

@@ -1,7 +1,8 @@
 """Behaviour metrics of evaluation episodes: the paper's Table 12 (A, D, A', D', C', S_D, S_A) and returns.
 
-The 3d task adds E, the mean elevation error normalised as A is (by beta, half the vertical field of view);
-its D is measured on the 3d distance. Planar episodes have no E, so their rows and summaries are the paper's.
+The 3d task adds E, the mean elevation error normalised as A is (by beta, half the vertical field of view), and
+S_H, the heave command's smoothness computed as S_D and S_A are; its D is measured on the 3d distance. Planar
+episodes have neither, so their rows and summaries are the paper's.
 
 An :class:`EpisodeMetrics` is fed one step at a time, so the evaluator can
 write its per-step CSV (with per-step smoothness) and the per-episode summary
@@ -11,6 +12,7 @@ table's values.
 Choices the SPEC leaves open, made here:
 - Actions are (surge, yaw): component 0 is surge (S_D), component 1 is yaw (S_A).
   The SPEC's worked example fixes this: only that assignment gives S_D = 0.175 and S_A = 0.0425.
+  The 3d task's (surge, heave, yaw) keeps surge first and yaw last, with heave (S_H) between.
 - Smoothness at step t uses up to 10 previous actions *of this episode*, unpadded, with the raw weights
   W_1..W_n (no renormalisation when n < 10): the first step of an episode has S = 0.
 - A is capped at 1 per step (the SPEC says so); D is not capped, so a policy that drifts far away in a
@@ -32,7 +34,7 @@ from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 
 #: Smoothness weights, W[0] for the most recent previous action (the SPEC's W_1).
 SMOOTHNESS_WEIGHTS = np.array([0.25, 0.20, 0.15, 0.10, 0.08, 0.06, 0.05, 0.04, 0.04, 0.03])
-SURGE, YAW = 0, 1
+SURGE, HEAVE, YAW = 0, 1, -1  # action components; heave only in the 3d task's (surge, heave, yaw)
 
 SUMMARY_ROW_FIELDS = (
     "label",
@@ -48,7 +50,7 @@ SUMMARY_ROW_FIELDS = (
     "first_cause",
 )
 #: What a 3d task's summary row adds to SUMMARY_ROW_FIELDS.
-VERTICAL_ROW_FIELDS = ("E",)
+VERTICAL_ROW_FIELDS = ("E", "S_H")
 
 
 def smoothness(history: Sequence[Sequence[float]], action: Sequence[float]) -> np.ndarray:
@@ -63,6 +65,14 @@ def smoothness(history: Sequence[Sequence[float]], action: Sequence[float]) -> n
     previous = np.asarray(recent, dtype=np.float64)
     weights = SMOOTHNESS_WEIGHTS[: len(previous), None]
     return 0.5 * np.sum(np.abs(current - previous) * weights, axis=0)
+
+
+def named_smoothness(values: np.ndarray) -> dict[str, float]:
+    """Per-component smoothness by metric name: S_D and S_A, and S_H for an action with heave."""
+    named = {"S_D": float(values[SURGE]), "S_A": float(values[YAW])}
+    if len(values) == 3:
+        named["S_H"] = float(values[HEAVE])
+    return named
 
 
 def elevation_error(phi: float) -> float:
@@ -85,7 +95,7 @@ class EpisodeMetrics:
         self._angle_error_sum = 0.0
         self._distance_error_sum = 0.0
         self._elevation_error_sum: float | None = None  # stays None in planar episodes, which have no E
-        self._smoothness_sum = np.zeros(2)
+        self._smoothness_sum: np.ndarray | float = 0.0  # per action component once the first step is in
         self._history: deque[np.ndarray] = deque(maxlen=len(SMOOTHNESS_WEIGHTS))
 
     def add(
@@ -97,8 +107,8 @@ class EpisodeMetrics:
         action: Sequence[float],
         reward: float,
         phi: float | None = None,
-    ) -> tuple[float, float]:
-        """Record one step (``theta`` unsigned, degrees; ``action`` = (surge, yaw)); returns its (s_d, s_a).
+    ) -> dict[str, float]:
+        """Record one step (``theta`` unsigned, degrees; ``action`` the task's); returns its smoothness by name.
 
         ``phi`` is the 3d task's unsigned elevation error in degrees (None in the planar task).
         """
@@ -117,13 +127,13 @@ class EpisodeMetrics:
         self.distance_exceeded |= abs(d - OPT_D) >= MAX_D
         if self.first_cause == NO_CAUSE:
             self.first_cause = violation_cause(d, in_frustum, collided)
-        return float(step_smoothness[SURGE]), float(step_smoothness[YAW])
+        return named_smoothness(step_smoothness)
 
     def row(self) -> dict[str, Any]:
         """The per-episode summary row (interfaces.md field names)."""
         if self.steps == 0:
             raise ValueError(f"episode {self.episode} of {self.label!r} has no steps to summarise")
-        smooth = self._smoothness_sum / self.steps
+        smooth = named_smoothness(self._smoothness_sum / self.steps)
         row = {
             "label": self.label,
             "episode": self.episode,
@@ -133,19 +143,21 @@ class EpisodeMetrics:
             "left_view": self.left_view,
             "distance_exceeded": self.distance_exceeded,
             "collided": self.collided,
-            "S_D": float(smooth[SURGE]),
-            "S_A": float(smooth[YAW]),
+            "S_D": smooth["S_D"],
+            "S_A": smooth["S_A"],
             "first_cause": self.first_cause,
         }
         if self._elevation_error_sum is not None:
             row["E"] = self._elevation_error_sum / self.steps
+        if "S_H" in smooth:
+            row["S_H"] = smooth["S_H"]
         return row
 
 
 def summarise(episodes: Iterable[Mapping[str, Any] | EpisodeMetrics]) -> dict[str, float]:
     """Table 12 over episodes (summary rows or accumulators): means of A, D, S_D, S_A; fractions A', D', C'.
 
-    Episodes of the 3d task add the mean of E.
+    Episodes of the 3d task add the means of E and S_H.
 
     ``std_return`` is the population standard deviation (ddof 0), like the paper's tables over 100 episodes.
     """
@@ -169,6 +181,7 @@ def summarise(episodes: Iterable[Mapping[str, Any] | EpisodeMetrics]) -> dict[st
         "mean_return": float(returns.mean()),
         "std_return": float(returns.std()),
     }
-    if all("E" in row for row in rows):
-        summary["E"] = float(column("E").mean())
+    for name in VERTICAL_ROW_FIELDS:
+        if all(name in row for row in rows):
+            summary[name] = float(column(name).mean())
     return summary

@@ -38,7 +38,7 @@ from stable_baselines3.common.utils import LinearSchedule
 from encoder_service import DEFAULT_CHECKPOINT
 from encoder_service.inference import LatentEncoder
 from learner_service.episodic import episodic_callbacks, vectorised_kwargs
-from learner_service.identity import read_identity
+from learner_service.identity import check_task, read_identity
 from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
 
@@ -257,11 +257,17 @@ def training_callbacks(algo: str, overrides: dict[str, Any] | None, n_envs: int)
 
 
 def load_policy(
-    algo: str, checkpoint: str | Path | None, env: Any = None, device: str = "auto", gains: TrackerGains | None = None
+    algo: str,
+    checkpoint: str | Path | None,
+    env: Any = None,
+    device: str = "auto",
+    gains: TrackerGains | None = None,
+    task: str | None = None,
 ) -> Policy:
     """A deterministic policy: the scripted baseline (no checkpoint) with ``gains``, or a saved model of ``algo``.
 
     For ``scripted-camera`` the checkpoint is the CMVAE whose state decoders it reads (None: the shipped one).
+    A saved model trained on another task than ``task`` (when given) is refused naming both.
     """
     if algo == SCRIPTED:
         return ScriptedTracker(gains or TrackerGains())
@@ -274,6 +280,9 @@ def load_policy(
     path = Path(checkpoint)
     if not path.is_file() and not path.with_name(path.name + ".zip").is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist (train one with `swimm learn`)")
-    read_identity(path if path.is_file() else path.with_name(path.name + ".zip"))  # refuses a file that is no model
+    saved = path if path.is_file() else path.with_name(path.name + ".zip")
+    read_identity(saved)  # refuses a file that is no model
+    if task is not None:
+        check_task(saved, task)
     log.info("loading %s checkpoint %s", algo, path)
     return SB3Policy(cls.load(path, env=env, device=device))

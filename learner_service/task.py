@@ -5,8 +5,8 @@ Task. Keeping the task here means one sim serves any observation mode or
 reward version, and the in-process env and the distributed proxy env share
 the exact same arithmetic, so their trajectories and returns agree bit for bit.
 
-Conventions: the policy acts in (surge, yaw), each in [-1, 1]; angles in the
-observation are radians, every angle reported in ``info`` is in degrees.
+Conventions: the policy acts in (surge, yaw) in the planar task and in (surge, heave, yaw) in the 3d task, each
+in [-1, 1]; angles in the observation are radians, every angle reported in ``info`` is in degrees.
 """
 
 from __future__ import annotations
@@ -25,7 +25,8 @@ from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D, quat_to_euler, 
 from services.messages import IMAGE_SHAPE
 from services.telemetry import Telemetry
 
-ACTION_SIZE = 2  # (surge, yaw): the training curriculum's action
+#: The policy's action components by task: the planar curriculum drives surge and yaw, the 3d task heave too.
+ACTION_NAMES: dict[str, tuple[str, ...]] = {"planar": ("surge", "yaw"), "3d": ("surge", "heave", "yaw")}
 LATENT_SIZE = 10  # n_z of the CMVAE
 LATENCY_OPTION = "latency"  # env.reset(options={"latency": {settings}}): camera and control delays from that episode
 NOISE_OPTION = "noise"  # env.reset(options={"noise": True | False | {settings}}): the image noise from that episode
@@ -66,9 +67,13 @@ class TaskSettings:
     early_termination: bool = True  # False for evaluation episodes: they always run max_steps
 
     @property
+    def action_names(self) -> tuple[str, ...]:
+        return ACTION_NAMES[self.task]
+
+    @property
     def history_size(self) -> int:
         """Values of ActPrev in an observation: the last n_prev_actions actions, flattened."""
-        return self.n_prev_actions * ACTION_SIZE
+        return self.n_prev_actions * len(self.action_names)
 
     def __post_init__(self) -> None:
         if self.obs not in typing.get_args(ObsMode):
@@ -134,6 +139,13 @@ def frame_reward(info: dict[str, Any], version: RewardVersion) -> float:
     return reward
 
 
+def policy_action(command: Any, task: TaskName) -> np.ndarray:
+    """The task's policy action within a sim's (sway, heave, surge, yaw) command, as recordings and taps read it."""
+    _, heave, surge, yaw = command
+    components = {"surge": surge, "heave": heave, "yaw": yaw}
+    return np.array([components[name] for name in ACTION_NAMES[task]], np.float64)
+
+
 def violation_cause(d: float, in_frustum: bool, collided: bool) -> str:
     """The SPEC's early-termination condition that holds, most severe first; "" when none does."""
     if collided:
@@ -162,10 +174,9 @@ def state_vector(t: Telemetry) -> np.ndarray:
 class TrackingTask:
     """Turns frames into observations, rewards and terminations; owns the action history (ActPrev)."""
 
-    action_space = gym.spaces.Box(-1.0, 1.0, (ACTION_SIZE,), dtype=np.float32)
-
     def __init__(self, settings: TaskSettings | None = None) -> None:
         self.settings = settings or TaskSettings()
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (len(self.settings.action_names),), dtype=np.float32)
         self.observation_space = self._observation_space()
         self.elapsed_steps = 0
         self._history: deque[np.ndarray] = deque(maxlen=self.settings.n_prev_actions)
@@ -200,21 +211,22 @@ class TrackingTask:
         )
 
     # --- actions -------------------------------------------------------------------------------
-    @staticmethod
-    def clip_action(action: Any) -> np.ndarray:
-        """The policy's (surge, yaw) as float32 in [-1, 1]; refuses a wrong shape or a non-finite value."""
+    def clip_action(self, action: Any) -> np.ndarray:
+        """The policy's action as float32 in [-1, 1]; refuses a wrong shape or a non-finite value."""
         array = np.asarray(action, dtype=np.float32).reshape(-1)
-        if array.shape != (ACTION_SIZE,):
-            raise ValueError(f"the policy action must be (surge, yaw), got shape {np.shape(action)}")
+        names = self.settings.action_names
+        if array.shape != (len(names),):
+            raise ValueError(f"the {self.settings.task} task's policy action must be ({', '.join(names)}), "
+                             f"got shape {np.shape(action)}")  # fmt: skip
         if not np.isfinite(array).all():
             raise ValueError(f"the policy action must be finite, got {array.tolist()}")
-        return array.clip(-1.0, 1.0)  # the method skips np.clip's dispatch, which outweighs clipping two values
+        return array.clip(-1.0, 1.0)  # the method skips np.clip's dispatch, which outweighs clipping a few values
 
-    @classmethod
-    def to_sim_action(cls, action: Any) -> tuple[float, float, float, float]:
-        """The full (sway, heave, surge, yaw) command for the sim: sway and heave held at 0 (depth hold)."""
-        surge, yaw = cls.clip_action(action)
-        return 0.0, 0.0, float(surge), float(yaw)
+    def to_sim_action(self, action: Any) -> tuple[float, float, float, float]:
+        """The full (sway, heave, surge, yaw) command for the sim, which runs in depth hold: sway is held at 0, and
+        so is heave in the planar task; the 3d task's heave moves the depth setpoint (0 holds depth, as ALT_HOLD)."""
+        command = dict(zip(self.settings.action_names, self.clip_action(action).tolist(), strict=True))
+        return 0.0, command.get("heave", 0.0), command["surge"], command["yaw"]
 
     # --- episode -------------------------------------------------------------------------------
     def reset(self, frame: Frame, seed: int | None = None) -> np.ndarray | dict[str, np.ndarray]:

@@ -28,6 +28,7 @@ from eval_service.engine import contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
 from eval_service.sweep import SweepSettings
 from learner_service.export import SHIPPED_POLICY
+from learner_service.identity import policy_identity, stamp
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.metrics import SMOOTHNESS_WEIGHTS
 from learner_service.registry import make_model
@@ -50,15 +51,20 @@ def settings(tmp_path: Path, **overrides) -> EvalCommandSettings:
     return replace(base, **overrides)
 
 
-@pytest.fixture(scope="module")
-def sac_checkpoint(tmp_path_factory) -> Path:
-    """An untrained SAC on the state observation, saved like `swimm learn` saves: a real checkpoint to load."""
-    env = TrackingEnv(TaskSettings(obs="state"), WorldSettings(render=False))
+def untrained_sac(folder: Path, task: str = "planar") -> Path:
+    """An untrained SAC on the task's state observation, saved like `swimm learn` saves: a real checkpoint to load."""
+    env = TrackingEnv(TaskSettings(obs="state", task=task), WorldSettings(render=False))
     model = make_model("sac", env, seed=5, overrides={"buffer_size": 1000})
-    path = tmp_path_factory.mktemp("ckpt") / "best_model.zip"
+    stamp(model, policy_identity("", "state", "swimm2", task))
+    path = folder / "best_model.zip"
     model.save(path)
     env.close()
     return path
+
+
+@pytest.fixture(scope="module")
+def sac_checkpoint(tmp_path_factory) -> Path:
+    return untrained_sac(tmp_path_factory.mktemp("ckpt"))
 
 
 def test_contenders_pair_algorithms_with_checkpoints_in_order() -> None:
@@ -172,7 +178,7 @@ def test_cli_prints_the_table_beside_the_paper(tmp_path, capsys) -> None:
     assert printed.splitlines()[2].startswith("paper SAC")
 
 
-def test_a_3d_evaluation_reports_the_elevation_error_beside_table_12(tmp_path, capsys) -> None:
+def test_a_3d_evaluation_reports_the_elevation_error_and_heave_beside_table_12(tmp_path, capsys) -> None:
     out = tmp_path / "3d"
     code = swimm(["eval", "--backend", "inprocess", "--obs", "state", "--task", "3d", "--algo", "scripted",
                   "--episodes", "1", "--steps", str(STEPS), "--out", str(out), "--no-progress-bar"])  # fmt: skip
@@ -187,7 +193,8 @@ def test_a_3d_evaluation_reports_the_elevation_error_beside_table_12(tmp_path, c
     assert steps["d"].to_numpy() == pytest.approx(np.hypot(np.hypot(steps["target_x"] - steps["rover_x"],
                                                                     steps["target_y"] - steps["rover_y"]),
                                                            steps["target_z"] - steps["rover_z"]))  # fmt: skip
-    assert header.split()[-1] == "E" and f"{summary['E']:11.3g}" in scripted and paper.endswith("-")
+    assert header.split()[-2:] == ["E", "S_H"] and f"{summary['E']:11.3g}" in scripted and paper.endswith("-")
+    assert (steps["heave"] != 0).any() and summary["S_H"] == pytest.approx(steps["S_H"].mean()) == episode["S_H"]
     assert (out / "metrics.png").is_file() and (out / "depth-scripted.png").is_file()
 
 
@@ -249,12 +256,12 @@ def test_watch_scores_each_new_best_model_once_and_stops_when_training_ends(tmp_
     assert (out / "checkpoints" / "best-1234.zip").read_bytes() == sac_checkpoint.read_bytes()
 
 
-def test_watch_evaluates_a_3d_run_on_the_3d_task(tmp_path, sac_checkpoint) -> None:
+def test_watch_evaluates_a_3d_run_on_the_3d_task(tmp_path) -> None:
     run = tmp_path / "run"
     run.mkdir()
     trained = {"algo": "sac", "obs": "state", "reward": "swimm2", "task": "3d"}
     (run / "settings.json").write_text(json.dumps({"settings": trained}))
-    (run / watch.BEST_MODEL).write_bytes(sac_checkpoint.read_bytes())
+    (run / watch.BEST_MODEL).write_bytes(untrained_sac(tmp_path, task="3d").read_bytes())
     (run / watch.BEST_MODEL_SCORE).write_text(json.dumps({"num_timesteps": 99, "mean_return": 1.0}))
     (run / watch.RUN_FINISHED).write_text("{}")
     given = settings(tmp_path, episodes=1, steps=20, watch=str(run))

@@ -27,12 +27,19 @@ STEPS = 300
 MAX_STEPS = 100  # short time limit, so the fixed actions meet truncations as well as early terminations
 
 
-def fixed_actions() -> np.ndarray:
-    """Gentle noise, a hard spin that loses the dolphin, then full ahead: early endings and a time-limit truncation."""
+def fixed_actions(task: str = "planar") -> np.ndarray:
+    """Gentle noise, a hard spin that loses the dolphin, then full ahead: early endings and a time-limit truncation.
+
+    The 3d task's heave (between surge and yaw) is gentle noise with a full climb, drawn after the planar actions.
+    """
     rng = np.random.default_rng(11)
     actions = np.clip(rng.normal([0.2, 0.0], [0.3, 0.3], (STEPS, 2)), -1, 1)
     actions[60:120, 1] = 1.0
     actions[200:260] = (1.0, 0.0)
+    if task == "3d":
+        heave = np.clip(rng.normal(0.0, 0.3, STEPS), -1, 1)
+        heave[120:200] = 1.0
+        actions = np.insert(actions, 1, heave, axis=1)
     return actions.astype(np.float32)
 
 
@@ -40,7 +47,7 @@ def record_run(env) -> list[tuple]:
     """(obs, reward, terminated, truncated, cause, ep) per step, resetting after each episode ends."""
     obs, info = env.reset()
     rows: list[tuple] = [(obs, 0.0, False, False, info["cause"], info["ep"])]
-    for action in fixed_actions():
+    for action in fixed_actions(env.task.settings.task):
         obs, reward, terminated, truncated, info = env.step(action)
         rows.append((obs, reward, terminated, truncated, info["cause"], info["ep"]))
         if terminated or truncated:

@@ -176,7 +176,7 @@ def test_stop_event_ends_training_at_the_next_step() -> None:
     assert model.num_timesteps == 30
 
 
-def test_evaluations_of_the_3d_task_record_e(tmp_path: Path) -> None:
+def test_evaluations_of_the_3d_task_record_e_and_heave_smoothness(tmp_path: Path) -> None:
     train_task, eval_task = (TaskSettings(obs="state", task="3d", max_steps=40, early_termination=early)
                              for early in (True, False))  # fmt: skip
     env = VecMonitor(DummyVecEnv([lambda: TrackingEnv(train_task, base_seed=97)]), info_keywords=("cause",))
@@ -185,7 +185,8 @@ def test_evaluations_of_the_3d_task_record_e(tmp_path: Path) -> None:
     model = make_model("sac", env, seed=97, overrides=TINY_SAC)
     model.learn(100, callback=RolloutEvalCallback(eval_env, schedule, tmp_path))
     table = pd.read_csv(tmp_path / EVALUATIONS_CSV)
-    assert table.columns[-2:].tolist() == ["E", "returns"] and (table["E"] > 0).all()
+    assert table.columns[-3:].tolist() == ["E", "S_H", "returns"] and (table["E"] > 0).all()
+    assert (table["S_H"] > 0).all()
     best = table.loc[table["mean_return"].idxmax()]
     assert json.loads((tmp_path / BEST_MODEL_SCORE).read_text())["E"] == pytest.approx(best["E"])
     env.close()

@@ -17,7 +17,8 @@ from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.checkpoints import load_for_resume, replay_buffer_path
 from learner_service.command import LearnCommandSettings, RunResult, Training, check
 from learner_service.envs import make_vec_env
-from learner_service.learn_settings import EvalSettings
+from learner_service.identity import read_identity
+from learner_service.learn_settings import DemoSettings, EvalSettings
 from learner_service.progress import BEST_MODEL, BEST_MODEL_SCORE, FINAL_MODEL, latest_evaluation
 from learner_service.task import TaskSettings
 from services import settings as settings_mod
@@ -107,6 +108,19 @@ def test_resume_continues_the_step_count_with_the_replay_buffer(first_run) -> No
     assert resumed.trained_steps >= 60
     assert (run_dir / "train-2.monitor.csv").is_file()  # the first part's episodes stay in train.monitor.csv
     assert len(pd.read_csv(run_dir / "train-2.monitor.csv", skiprows=1)) == resumed.episodes
+
+
+def test_sac_learns_the_3d_task_s_three_actions_from_the_tracker_s_demonstrations(tmp_path: Path) -> None:
+    """The 3d task end to end: the scripted tracker's (surge, heave, yaw) demonstrations, SAC on three actions,
+    evaluations with E and heave smoothness, and a model that records its task."""
+    demo = DemoSettings(steps=100, bc_epochs=2, critic_steps=10)
+    result = Training(tiny_settings(tmp_path / "run", task="3d", steps=300, demo=demo)).run()
+    assert result.num_timesteps >= 300
+    model = SAC.load(tmp_path / "run" / FINAL_MODEL, device="cpu")
+    assert model.action_space.shape == (3,) and model.observation_space.shape == (12 + 10 * 3,)
+    assert read_identity(tmp_path / "run" / FINAL_MODEL)["task"]["name"] == "3d"
+    evaluations = pd.read_csv(tmp_path / "run" / "evaluations.csv")
+    assert {"E", "S_H"} <= set(evaluations.columns) and (evaluations["S_H"] > 0).all()
 
 
 def test_stop_request_still_saves_the_run(tmp_path: Path) -> None:

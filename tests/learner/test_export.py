@@ -14,6 +14,7 @@ import pytest
 
 from learner_service.envs import make_vec_env
 from learner_service.export import ExportSettings, episode_frames, run
+from learner_service.identity import policy_identity, stamp
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 
@@ -81,13 +82,18 @@ def test_the_recorded_episode_is_the_python_paths_own(exported: Path) -> None:
 def test_bad_requests_name_the_problem_and_leave_no_file(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="policy checkpoint .*nowhere.zip does not exist"):
         run(ExportSettings(checkpoint=str(tmp_path / "nowhere.zip"), out=str(tmp_path / "a.onnx")))
-    env = make_vec_env("inprocess", TaskSettings(obs="state", max_steps=20), n_envs=1, base_seed=1)
-    try:
-        make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100}).save(tmp_path / "state.zip")
-    finally:
-        env.close()
+    for task in ("planar", "3d"):
+        env = make_vec_env("inprocess", TaskSettings(obs="state", task=task, max_steps=20), n_envs=1, base_seed=1)
+        try:
+            model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
+            stamp(model, policy_identity("", "state", "swimm2", task))
+            model.save(tmp_path / f"state-{task}.zip")
+        finally:
+            env.close()
     with pytest.raises(ValueError, match="only camera-only \\(cmvae\\) policies export"):
-        run(ExportSettings(checkpoint=str(tmp_path / "state.zip"), out=str(tmp_path / "b.onnx")))
+        run(ExportSettings(checkpoint=str(tmp_path / "state-planar.zip"), out=str(tmp_path / "b.onnx")))
+    with pytest.raises(ValueError, match="trained on the 3d task, but only planar \\(surge, yaw\\) policies export"):
+        run(ExportSettings(checkpoint=str(tmp_path / "state-3d.zip"), out=str(tmp_path / "b.onnx")))
     with pytest.raises(ValueError, match="not kept"):
         run(ExportSettings(out=str(tmp_path / "c.onnx"), check_frames=20, tolerance=1e-12))
     assert not list(tmp_path.glob("*.onnx*"))

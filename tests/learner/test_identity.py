@@ -90,6 +90,29 @@ def test_a_trained_model_records_its_encoder_and_a_resume_on_another_is_refused(
         Training(resumed).run()
 
 
+def test_a_policy_runs_only_on_the_task_it_was_trained_on(tmp_path) -> None:
+    """A 3d policy is refused on the planar task by resume and by evaluation, and a policy saved before the task was
+    recorded (the shipped ones) reads as planar and is refused on the 3d task; each error names both tasks."""
+    from learner_service.registry import load_policy
+
+    settings = LearnCommandSettings(algo="sac", obs="state", task="3d", backend="inprocess", steps=40, seed=5,
+                                    max_steps=40, run_dir=str(tmp_path / "run"),
+                                    hyperparams="{learning_starts: 10, batch_size: 8, gradient_steps: 1}",
+                                    checkpoint_every=0, eval=EvalSettings(enabled=False),
+                                    progress_bar=False)  # fmt: skip
+    Training(settings).run()
+    final = tmp_path / "run" / "final_model.zip"
+    assert load_policy("sac", final, task="3d", device="cpu") is not None
+    refusal = "final_model.zip was trained on the 3d task, but this is the planar task"
+    with pytest.raises(ValueError, match=refusal):
+        load_policy("sac", final, task="planar")
+    resumed = replace(settings, task="planar", resume=str(final), run_dir=str(tmp_path / "resumed"))
+    with pytest.raises(ValueError, match=refusal):
+        Training(resumed).run()
+    with pytest.raises(ValueError, match="sac_cmvae.zip was trained on the planar task, but this is the 3d task"):
+        load_policy("sac", MODELS / "sac_cmvae.zip", task="3d")
+
+
 def test_eval_refuses_a_zip_that_is_no_model_with_its_path(tmp_path) -> None:
     """The first-hour trap: a zip that is not a model used to fail as 'No data found in the saved file'."""
     from learner_service.registry import load_policy

@@ -41,7 +41,7 @@ def test_episode_row_from_hand_computed_steps() -> None:
         (11.0, 80.0, False, False, (1.0, 1.0), -1.0),
         (4.0, 10.0, True, True, (0.0, 1.0), 0.0),
     ]
-    per_step = [metrics.add(*step) for step in steps]
+    per_step = [tuple(metrics.add(*step).values()) for step in steps]
     # smoothness (s_d, s_a): step 1 none; step 2: 0.5*1*0.25; step 3: s_d 0.5*(0*0.25 + 1*0.2), s_a 0.5*1*(0.25+0.2);
     # step 4: s_d 0.5*(1*0.25 + 1*0.2 + 0*0.15), s_a 0.5*(0*0.25 + 1*0.2 + 1*0.15)
     expected_steps = [(0.0, 0.0), (0.125, 0.0), (0.1, 0.225), (0.225, 0.175)]
@@ -137,16 +137,29 @@ def test_summary_over_episodes() -> None:
 def test_3d_episodes_add_the_mean_elevation_error_normalised_as_a_is() -> None:
     metrics = EpisodeMetrics("3d", 1)
     for phi in (0.0, 10.0, 50.0):  # the last one capped at beta
-        metrics.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0, phi)
+        metrics.add(6.0, 0.0, True, False, (0.0, 0.0, 0.0), 1.0, phi)
     row = metrics.row()
     assert tuple(row) == SUMMARY_ROW_FIELDS + VERTICAL_ROW_FIELDS
     assert row["E"] == pytest.approx((10.0 / BETA_DEG + 1.0) / 3)
     other = EpisodeMetrics("3d", 2)
-    other.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0, BETA_DEG / 2)
+    other.add(6.0, 0.0, True, False, (0.0, 0.0, 0.0), 1.0, BETA_DEG / 2)
     assert summarise([metrics, other])["E"] == pytest.approx((row["E"] + 0.5) / 2)
     planar = EpisodeMetrics("planar", 1)
     planar.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0)
     assert "E" not in planar.row() and "E" not in summarise([planar])
+
+
+def test_3d_actions_add_heave_smoothness_computed_as_surge_and_yaw_are() -> None:
+    """(surge, heave, yaw): S_D of component 0, S_H of 1, S_A of 2, each as the planar task's components."""
+    metrics = EpisodeMetrics("3d", 1)
+    steps = [metrics.add(6.0, 0.0, True, False, action, 1.0, 0.0) for action in [(0.0, 0.0, 0.0), (1.0, -1.0, 0.5)]]
+    assert steps[1] == pytest.approx({"S_D": 0.125, "S_A": 0.0625, "S_H": 0.125})  # 0.5 * |change| * W_1 (0.25)
+    row = metrics.row()
+    assert (row["S_D"], row["S_H"], row["S_A"]) == pytest.approx((0.0625, 0.0625, 0.03125))
+    assert summarise([row])["S_H"] == pytest.approx(0.0625)
+    planar = EpisodeMetrics("planar", 1)
+    assert "S_H" not in planar.add(6.0, 0.0, True, False, (1.0, 0.5), 1.0)
+    assert "S_H" not in planar.row() and "S_H" not in summarise([planar])
 
 
 def test_summary_accepts_accumulators_and_refuses_nothing() -> None:

@@ -155,12 +155,13 @@ def test_time_up_after_max_steps() -> None:
 
 
 def test_to_sim_action_holds_sway_and_heave_and_clips() -> None:
-    assert TrackingTask.to_sim_action((0.25, -0.75)) == (0.0, 0.0, 0.25, -0.75)
-    assert TrackingTask.to_sim_action(np.array([2.0, -3.0])) == (0.0, 0.0, 1.0, -1.0)
+    task = TrackingTask()
+    assert task.to_sim_action((0.25, -0.75)) == (0.0, 0.0, 0.25, -0.75)
+    assert task.to_sim_action(np.array([2.0, -3.0])) == (0.0, 0.0, 1.0, -1.0)
     with pytest.raises(ValueError, match="finite"):
-        TrackingTask.to_sim_action((math.nan, 0.0))
-    with pytest.raises(ValueError, match="surge, yaw"):
-        TrackingTask.to_sim_action((0.1, 0.2, 0.3))
+        task.to_sim_action((math.nan, 0.0))
+    with pytest.raises(ValueError, match=r"planar task's policy action must be \(surge, yaw\)"):
+        task.to_sim_action((0.1, 0.2, 0.3))
 
 
 def test_action_history_is_zero_padded_and_oldest_first() -> None:

@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from learner_service.inprocess_env import TrackingEnv
+from learner_service.registry import LATENT_SCRIPTED, load_policy
+from learner_service.scripted import ScriptedTracker
 from learner_service.task import (
     CAUSE_DISTANCE,
     CAUSE_VISIBILITY,
@@ -142,13 +144,13 @@ def test_3d_task_steps_on_3d_distance_and_elevation() -> None:
     task = TrackingTask(TaskSettings(obs="state", task="3d"))
     task.reset(Frame(telemetry(from_camera(6.0, 0.0, 0.0))))
     above = telemetry(from_camera(4.0, 0.0, 4.0))
-    _, reward, terminated, info = task.step((0.0, 0.0), Frame(above))
+    _, reward, terminated, info = task.step((0.0, 0.0, 0.0), Frame(above))
     geometry = vertical_geometry(above)
     assert info["d"] == geometry.distance and info["elevation"] == pytest.approx(45.0)
     assert reward == frame_reward({"d": geometry.distance, "theta": info["theta"], "phi": 45.0}, "swimm2")
     assert not terminated
     far_above = telemetry((ROVER[0] + 6.0, ROVER[1], ROVER[2] + 9.0))  # 6 m away level, 10.8 m in 3d
-    _, _, terminated, info = task.step((0.0, 0.0), Frame(far_above))
+    _, _, terminated, info = task.step((0.0, 0.0, 0.0), Frame(far_above))
     assert terminated and info["cause"] == CAUSE_DISTANCE
 
 
@@ -195,7 +197,7 @@ def test_the_episode_ends_when_the_dolphin_leaves_the_view_vertically(world_3d, 
     task = TrackingTask(TaskSettings(obs="state", task="3d"))
     task.reset(Frame(telemetry))
     telemetry, _ = world_3d.step((0.0, 0.0, 0.0, 0.0))
-    _, _, terminated, info = task.step((0.0, 0.0), Frame(telemetry))
+    _, _, terminated, info = task.step((0.0, 0.0, 0.0), Frame(telemetry))
     assert info["theta"] < 1.0 < ALPHA_DEG  # horizontally the dolphin is dead ahead
     assert info["elevation"] == pytest.approx(elevation, abs=1.0)
     assert (info["cause"], terminated) == (cause, cause != NO_CAUSE)
@@ -209,6 +211,66 @@ def test_the_3d_task_in_process_tracks_the_3d_dolphin() -> None:
     assert {"elevation", "phi"} <= info.keys()
     env.close()
     assert TrackingEnv(TaskSettings(obs="state")).world.settings.dolphin.motion == "planar"
+
+
+def test_the_3d_task_acts_in_surge_heave_yaw_and_planar_in_surge_yaw() -> None:
+    planar, task_3d = TrackingEnv(TaskSettings(obs="state")), TrackingEnv(TaskSettings(obs="state", task="3d"))
+    assert planar.action_space.shape == (2,) and task_3d.action_space.shape == (3,)
+    assert planar.observation_space.shape == (12 + 10 * 2,) and task_3d.observation_space.shape == (12 + 10 * 3,)
+    assert task_3d.task.to_sim_action((0.5, -0.25, 2.0)) == (0.0, -0.25, 0.5, 1.0)  # (sway, heave, surge, yaw)
+    task_3d.reset(seed=3)
+    with pytest.raises(ValueError, match=r"3d task's policy action must be \(surge, heave, yaw\), got shape \(2,\)"):
+        task_3d.step((0.0, 0.0))
+    planar.close()
+    task_3d.close()
+
+
+def test_heave_moves_the_depth_setpoint_and_centred_heave_holds_depth() -> None:
+    """Full heave climbs at the depth hold's climb rate, as ArduSub's ALT_HOLD stick does; centred, depth holds."""
+    env = TrackingEnv(TaskSettings(obs="state", task="3d", early_termination=False))
+    _, info = env.reset(seed=3)
+    rover, start = env.world.rover, info["telemetry"].rover_pos[2]
+
+    def depths(heave: float, steps: int) -> np.ndarray:
+        return np.array([env.step((0.0, heave, 0.0))[4]["telemetry"].rover_pos[2] for _ in range(steps)])
+
+    assert np.abs(depths(0.0, 300) - start).max() < 0.05 and rover.depth_setpoint == start
+    climbing = 200
+    climbed = depths(1.0, climbing)
+    setpoint = rover.depth_setpoint
+    assert setpoint - start == pytest.approx(climbing * env.world.dt * rover.gains.max_climb_rate)
+    assert climbed[-1] > start + 0.5 * (setpoint - start)  # the rover follows it up
+    held = depths(0.0, 1000)  # the depth controller's overshoot settles within 20 s
+    assert rover.depth_setpoint == setpoint and held[-1] == pytest.approx(setpoint, abs=0.02)
+    env.close()
+
+
+def test_the_tracker_s_heave_law_keeps_a_diving_dolphin_in_view_vertically() -> None:
+    """Seed 11's dolphin dives 3.4 m below the rover's start: with heave 0 its centre leaves the vertical field of
+    view (phi past beta); climbing and diving toward its elevation keeps it near the middle of the frame."""
+
+    def episode(heave: bool) -> tuple[float, float]:
+        env = TrackingEnv(TaskSettings(obs="state", task="3d", early_termination=False, max_steps=1500))
+        tracker, obs, info = ScriptedTracker(), *env.reset(seed=11)
+        phis, done = [], False
+        while not done:
+            action = tracker.act(obs, info) * (1.0, float(heave), 1.0)
+            obs, _, _, done, info = env.step(action)
+            phis.append(info["phi"])
+        env.close()
+        return float(np.mean(np.minimum(phis, BETA_DEG)) / BETA_DEG), max(phis)  # E, and the worst elevation error
+
+    followed, held = episode(heave=True), episode(heave=False)
+    assert followed[0] < 0.15 and followed[1] < BETA_DEG / 3
+    assert held[0] > 0.5 and held[1] > BETA_DEG
+
+
+def test_the_camera_only_tracker_holds_depth_in_the_3d_task() -> None:
+    """It reads no elevation (the CMVAE has none yet): heave 0, whatever the ground truth's elevation."""
+    tracker = load_policy(LATENT_SCRIPTED, None)  # the shipped CMVAE's decoders
+    latent_obs = np.zeros(10 + 10 * 3, np.float32)
+    surge, heave, yaw = tracker.act(latent_obs, {"elevation": 20.0})
+    assert heave == 0.0 and (surge, yaw) == tuple(tracker.act(latent_obs[:30], {}))
 
 
 def test_planar_rewards_are_the_ones_recorded_before_the_3d_task() -> None:
