@@ -81,8 +81,16 @@ class CameraToAction(torch.nn.Module):
         return action, next_history
 
 
+#: How the vehicle holds or changes depth under each task's actions (`swimm pilot` flies heave in ALT_HOLD only).
+DIVE_MODES = {
+    "planar": "depth_hold (sway and heave held at 0)",
+    "3d": "depth_hold (heave a climb rate, sway held at 0)",
+}
+
+
 def contract(settings: ExportSettings, policy_path: Path, encoder_path: Path, task: TrackingTask) -> dict[str, str]:
     """The file's metadata: what a caller must feed it and where it came from (values are strings in ONNX)."""
+    names = task.settings.action_names
     return {
         "swimm.contract": json.dumps(
             {
@@ -91,10 +99,14 @@ def contract(settings: ExportSettings, policy_path: Path, encoder_path: Path, ta
                     "action_history": f"float32 (N, {task.history_size}): the last {task.settings.n_prev_actions} "
                     "actions, oldest first, zeros at an episode's start",
                 },
-                "outputs": {"action": "float32 (N, 2) in [-1, 1]", "next_history": "the next action_history"},
+                "outputs": {
+                    "action": f"float32 (N, {len(names)}) in [-1, 1]",
+                    "next_history": "the next action_history",
+                },
                 "normalisation": "frame / 127.5 - 1, inside the graph",
-                "action_names": ["surge", "yaw"],
-                "dive_mode": "depth_hold (sway and heave held at 0)",
+                "action_names": list(names),
+                "task": task.settings.task,
+                "dive_mode": DIVE_MODES[task.settings.task],
                 "control_rate_hz": round(1.0 / WorldSettings().physics_dt),
             }
         ),
@@ -164,17 +176,13 @@ def run(settings: ExportSettings) -> int:
     if settings.threads > 0:
         torch.set_num_threads(settings.threads)
     policy_path = Path(settings.checkpoint) if settings.checkpoint else SHIPPED_POLICY
-    trained = policy_task(policy_path)
-    if trained != "planar":  # the pilot flies (surge, yaw): a 3d policy's heave would reach it as yaw
-        raise ValueError(f"{policy_path} was trained on the {trained} task, but only planar (surge, yaw) policies "
-                         "export: `swimm pilot` does not fly heave yet")  # fmt: skip
     # the encoder the policy records, refusing another one by name; the shipped CMVAE for a policy recording none
     encoder_path = encoder_for(policy_path, settings.encoder_checkpoint or None) or DEFAULT_CHECKPOINT
     if not encoder_path.is_file():
         raise FileNotFoundError(f"CMVAE checkpoint {encoder_path} does not exist")
     cls, _ = resolve_algorithm(settings.algo)
     model = cls.load(policy_path, device="cpu")
-    task = TrackingTask(TaskSettings(obs="cmvae"))
+    task = TrackingTask(TaskSettings(obs="cmvae", task=policy_task(policy_path)))  # its actions are the task's
     expected = (LATENT_SIZE + task.history_size,)
     if model.observation_space.shape != expected:
         raise ValueError(f"{policy_path} observes {model.observation_space.shape}, not cmvae's {expected}: only "

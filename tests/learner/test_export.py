@@ -92,7 +92,7 @@ def test_bad_requests_name_the_problem_and_leave_no_file(tmp_path: Path) -> None
             env.close()
     with pytest.raises(ValueError, match="only camera-only \\(cmvae\\) policies export"):
         run(ExportSettings(checkpoint=str(tmp_path / "state-planar.zip"), out=str(tmp_path / "b.onnx")))
-    with pytest.raises(ValueError, match="trained on the 3d task, but only planar \\(surge, yaw\\) policies export"):
+    with pytest.raises(ValueError, match="only camera-only \\(cmvae\\) policies export"):
         run(ExportSettings(checkpoint=str(tmp_path / "state-3d.zip"), out=str(tmp_path / "b.onnx")))
     with pytest.raises(ValueError, match="not kept"):
         run(ExportSettings(out=str(tmp_path / "c.onnx"), check_frames=20, tolerance=1e-12))
@@ -114,3 +114,24 @@ def test_a_policy_on_a_white_balancing_cmvae_exports_with_its_preprocessing(tmp_
     recorded = encoder_for(policy, None)
     assert recorded.name == "cmvae_general.pt"
     assert session.get_modelmeta().custom_metadata_map["swimm.encoder_sha256"] == file_sha256(recorded)
+
+
+def test_a_3d_policy_exports_its_three_actions_and_the_pilot_flies_them(tmp_path: Path) -> None:
+    from encoder_service import DEFAULT_CHECKPOINT
+    from encoder_service.inference import LatentEncoder
+    from pilot_service.policy import OnnxPolicy
+
+    task = TaskSettings(obs="cmvae", task="3d", max_steps=20)
+    env = make_vec_env("inprocess", task, n_envs=1, base_seed=1, encoder=LatentEncoder(DEFAULT_CHECKPOINT))
+    try:
+        model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
+        stamp(model, policy_identity(DEFAULT_CHECKPOINT, "cmvae", "swimm2", "3d"))
+        model.save(tmp_path / "cmvae-3d.zip")
+    finally:
+        env.close()
+    out = tmp_path / "3d.onnx"
+    assert run(ExportSettings(checkpoint=str(tmp_path / "cmvae-3d.zip"), out=str(out), check_frames=20)) == 0
+    assert json.loads(out.with_suffix(".json").read_text())["max_action_difference"] <= 1e-4
+    policy = OnnxPolicy(out)
+    assert policy.action_names == ["surge", "heave", "yaw"] and policy.contract["task"] == "3d"
+    assert policy.history_size == 30 and policy.act(np.zeros((64, 64, 3), np.uint8)).shape == (3,)
