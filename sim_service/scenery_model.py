@@ -33,10 +33,21 @@ from sim_service.scenery import (
 )
 
 SHOWN, UNUSED = 4, 5  # geom groups: drawn in a varied episode / never drawn
+DOLPHIN_PARTS = ("dolphin", "dolphin_peduncle", "dolphin_flukes")  # the target's mocap bodies
+DOLPHIN_MATERIALS = ("dolphin", "dolphin_dark")  # the greys a shade multiplies
 
 
-def build_model(path: Path) -> mujoco.MjModel:
-    """The world of ``path`` with the scenery's materials and one mocap body of scenery geoms added after it."""
+def part_names(index: int) -> tuple[str, ...]:
+    """The mocap bodies of dolphin ``index`` of the pod: 0 is the target, 1 on its companions."""
+    return DOLPHIN_PARTS if index == 0 else tuple(f"{name}_{index}" for name in DOLPHIN_PARTS)
+
+
+def build_model(path: Path, companions: int = 0) -> mujoco.MjModel:
+    """The world of ``path`` with the scenery's materials and one mocap body of scenery geoms added after it.
+
+    ``companions`` more dolphins follow, after everything else so no other id moves, each a copy of the
+    target's drawn geoms (no collider) with greys of its own.
+    """
     spec = mujoco.MjSpec.from_file(str(path))
     for name, look in SEABED_TEXTURES.items():
         if look is not None:
@@ -63,6 +74,8 @@ def build_model(path: Path) -> mujoco.MjModel:
             geom.group, geom.contype, geom.conaffinity, geom.density = UNUSED, 0, 0, 0.0
             if geom_type == mesh:
                 geom.meshname = "scene_fish"
+    if companions:
+        _add_companions(spec, mujoco.MjModel.from_xml_path(str(path)), companions)
     model = spec.compile()
     # Each episode moves these geoms within their body: MuJoCo must not take their frames for the body's.
     model.geom_sameframe[model.geom_bodyid == model.body("scenery").id] = 0
@@ -73,6 +86,28 @@ def build_model(path: Path) -> mujoco.MjModel:
 _FISH_VERTICES = [0.2, 0, 0, -0.2, 0, 0, 0, 0.05, 0, 0, -0.05, 0, 0, 0, 0.08, 0, 0, -0.08]
 
 
+def _add_companions(spec, reference: mujoco.MjModel, count: int) -> None:
+    """Copy the target's drawn geoms, as ``reference`` compiled them, onto ``count`` companions' mocap bodies."""
+    for index in range(1, count + 1):
+        for name in DOLPHIN_MATERIALS:
+            grey = spec.material(name)
+            spec.add_material(name=f"{name}_{index}", rgba=grey.rgba, specular=grey.specular, shininess=grey.shininess)
+        for part, name in zip(DOLPHIN_PARTS, part_names(index), strict=True):
+            body = spec.worldbody.add_body(name=name, mocap=True)
+            for geom in _drawn_geoms(reference, [reference.body(part).id]):
+                material = reference.material(reference.geom_matid[geom]).name
+                body.add_geom(
+                    type=mujoco.mjtGeom(reference.geom_type[geom]), size=reference.geom_size[geom],
+                    pos=reference.geom_pos[geom], quat=reference.geom_quat[geom], contype=0, conaffinity=0,
+                    material=f"{material}_{index}" if material in DOLPHIN_MATERIALS else material,
+                )  # fmt: skip
+
+
+def _drawn_geoms(model: mujoco.MjModel, bodies: list[int]) -> np.ndarray:
+    """The geoms of ``bodies`` that are drawn: all but the collider (group 3)."""
+    return np.flatnonzero(np.isin(model.geom_bodyid, bodies) & (model.geom_group != 3))
+
+
 def _textured(spec, name: str, base, mark, density: float, repeat: int, emission: float = 0.0) -> None:
     spec.add_texture(
         name=name, type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT,
@@ -80,6 +115,30 @@ def _textured(spec, name: str, base, mark, density: float, repeat: int, emission
     )  # fmt: skip
     material = spec.add_material(name=name, texrepeat=[repeat, repeat], specular=0.0, shininess=0.0, emission=emission)
     material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = name
+
+
+class PodLooks:
+    """Gives each companion of a model made by :func:`build_model` its episode's size and shade."""
+
+    def __init__(self, model: mujoco.MjModel, companions: int) -> None:
+        self.model = model
+        self._geoms = [
+            _drawn_geoms(model, [model.body(name).id for name in part_names(i)]) for i in range(1, companions + 1)
+        ]
+        self._materials = [
+            [model.material(f"{name}_{i}").id for name in DOLPHIN_MATERIALS] for i in range(1, companions + 1)
+        ]
+        if companions:  # every companion is built from the same nominal geoms and greys
+            self._size, self._pos = model.geom_size[self._geoms[0]].copy(), model.geom_pos[self._geoms[0]].copy()
+            self._rgba = model.mat_rgba[self._materials[0]].copy()
+
+    def dress(self, index: int, scale: float, shade: float) -> None:
+        """Companion ``index`` (1 on) drawn at ``scale`` times the nominal size, its greys times ``shade``."""
+        geoms, m = self._geoms[index - 1], self.model
+        m.geom_size[geoms], m.geom_pos[geoms] = self._size * scale, self._pos * scale
+        rgba = self._rgba.copy()
+        rgba[:, :3] = np.minimum(rgba[:, :3] * shade, 1.0)
+        m.mat_rgba[self._materials[index - 1]] = rgba
 
 
 class Scenery:
@@ -103,9 +162,8 @@ class Scenery:
         }
         self._seabed, self._surface = model.geom("seabed").id, model.geom("surface").id
         self._sun = model.light("sun").id
-        dolphin = [model.body(name).id for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
-        self._dolphin_geoms = np.flatnonzero(np.isin(model.geom_bodyid, dolphin) & (model.geom_group != 3))
-        self._dolphin_materials = [model.material(name).id for name in ("dolphin", "dolphin_dark")]
+        self._dolphin_geoms = _drawn_geoms(model, [model.body(name).id for name in DOLPHIN_PARTS])
+        self._dolphin_materials = [model.material(name).id for name in DOLPHIN_MATERIALS]
         self._nominal = self._snapshot()
         self._rows: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]] = []  # geoms, anchors, velocities, tile
         self._movers = _Movers.empty()

@@ -12,6 +12,7 @@ from sim_service.scenery import SceneSettings
 
 Motion = Literal["planar", "3d"]
 MOTIONS: tuple[str, ...] = typing.get_args(Motion)
+MAX_POD_SIZE = 6  # the most dolphins a world holds: the target and its companions
 
 
 @dataclass
@@ -19,10 +20,13 @@ class DolphinSettings:
     """How the dolphin swims; simple field types so `services.settings` turns them into ``--dolphin-*`` flags."""
 
     motion: Motion = "planar"  # planar: the paper's, at one depth; 3d: climbs, dives and surfacing in a depth band
+    pod_size: int = 1  # dolphins in the world: the target and pod_size - 1 companions swimming beside it
 
     def check(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"unknown dolphin motion {self.motion!r}; choose one of {', '.join(MOTIONS)}")
+        if not 1 <= self.pod_size <= MAX_POD_SIZE:
+            raise ValueError(f"--dolphin-pod-size must be 1 to {MAX_POD_SIZE}, got {self.pod_size}")
 
 
 @dataclass

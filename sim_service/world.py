@@ -1,4 +1,4 @@
-"""The World: one BlueROV2 and one dolphin in MuJoCo, stepped one action at a time.
+"""The World: one BlueROV2 and one dolphin (or a pod, sim_service/pod.py) in MuJoCo, stepped one action at a time.
 
 This is the generic physics half of the dm_control split: it knows bodies,
 thrusters, the camera and the dolphin's swim, and reports ground truth as
@@ -14,6 +14,9 @@ from a child of that generator's seed, so switching noise on or off never
 changes the trajectory: clean and noisy runs of one seed see the same poses.
 The scenery (sim_service/scenery.py: seabed, light, particles, fish, the
 dolphin's look) draws from another child, so it never changes them either.
+
+A pod's companions draw from a child of their own, spawned only when there are any, so a pod of one is the
+single-dolphin world bit for bit and a bigger pod never changes the target's swim or the rover's draws.
 
 The dolphin's next move does not depend on the rover's action, so a server can
 work it out while it waits for that action (:meth:`World.prepare_step`) and
@@ -45,9 +48,10 @@ from sim_service.camera import CameraFrustum
 from sim_service.dolphin import DolphinBehaviour
 from sim_service.latency import LatencyLine, LatencySettings
 from sim_service.noise import NOISY_PRESET, ImageNoise, NoiseSettings, draw_episode_noise
+from sim_service.pod import Pod
 from sim_service.rover import RoverDynamics
 from sim_service.scenery import SceneSettings, draw_episode_scene
-from sim_service.scenery_model import Scenery, build_model
+from sim_service.scenery_model import DOLPHIN_PARTS, PodLooks, Scenery, build_model, part_names
 from sim_service.settings import WorldSettings
 
 MODEL_PATH = Path(__file__).parent / "assets" / "world.xml"
@@ -81,6 +85,7 @@ class DolphinPose:
     mocap: tuple[tuple[np.ndarray, np.ndarray], ...]  # (position, quaternion) of each mocap body
     rotation: np.ndarray  # body-to-world, for the frustum test
     telemetry: dict[str, Any]  # the target_* fields of Telemetry
+    companions: tuple[tuple[tuple[np.ndarray, np.ndarray], ...], ...] = ()  # each companion's mocap poses
 
 
 @dataclass(frozen=True)
@@ -94,18 +99,26 @@ class PreparedStep:
 class World:
     def __init__(self, settings: WorldSettings | None = None) -> None:
         self.settings = settings or WorldSettings()
-        self.model = build_model(MODEL_PATH)
+        self.settings.dolphin.check()
+        companions = self.settings.dolphin.pod_size - 1
+        self.model = build_model(MODEL_PATH, companions)
         self.model.opt.timestep = self.settings.physics_dt
         self.data = mujoco.MjData(self.model)
         self.rover = RoverDynamics()
         self.dolphin = DolphinBehaviour(motion=self.settings.dolphin.motion)
+        self.pod = Pod(self.settings.dolphin.pod_size)
+        self._pod_looks = PodLooks(self.model, companions)
         self.rng = np.random.default_rng(0)
         self._rover_body = self.model.body("rover").id
         rover_geom = self.model.geom("rover_hull").id
         target_geom = self.model.geom("dolphin_collider").id
         self._pair = (min(rover_geom, target_geom), max(rover_geom, target_geom))
-        dolphin_bodies = [self.model.body(name).id for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
+        dolphin_bodies = [self.model.body(name).id for name in DOLPHIN_PARTS]
         self._mocap = [self.model.body_mocapid[body] for body in dolphin_bodies]
+        self._companion_mocap = [
+            [self.model.body_mocapid[self.model.body(name).id] for name in part_names(i)]
+            for i in range(1, companions + 1)
+        ]
         self._target_geoms = np.flatnonzero(np.isin(self.model.geom_bodyid, dolphin_bodies))
         self._camera = self.model.camera(CAMERA).id
         self.frustum = CameraFrustum.from_model(self.model, self._camera)
@@ -225,6 +238,8 @@ class World:
         latency_rng = self._spawn_rng()
         scene_rng = _child(noise_rng) if noise_rng is not None else self._spawn_rng()
         self.scenery.apply(draw_episode_scene(self._configured_scene, scene_rng), self.data.qpos[:3], rover_yaw)
+        if self.pod.size > 1:  # one dolphin spawns nothing, so its episodes stay as they were
+            self._reset_pod()
         dolphin = self._dolphin_pose()
         self._pose_dolphin(dolphin)
         mujoco.mj_forward(self.model, self.data)
@@ -322,14 +337,25 @@ class World:
     def _swim(self) -> DolphinPose:
         """The dolphin's move for the next step: the half of a step that does not depend on the action."""
         self.dolphin.step(self.dt, self.rng, self.data.xpos[self._rover_body])
+        self.pod.step(self.dt, self.dolphin)
         return self._dolphin_pose()
+
+    def _reset_pod(self) -> None:
+        """Draw the companions from a generator of their own, and dress each in its size and shade."""
+        self.pod.reset(self._spawn_rng())
+        for index, companion in enumerate(self.pod.companions, start=1):
+            self._pod_looks.dress(index, companion.scale, companion.shade)
 
     def _dolphin_pose(self) -> DolphinPose:
         parts = self.dolphin.part_poses()
         mocap = tuple((part.position, part.quat) for part in parts)
         body_position, body_quat = mocap[0]
+        companions = tuple(
+            tuple((part.position, part.quat) for part in parts) for parts in self.pod.part_poses(self.dolphin)
+        )
         return DolphinPose(
             mocap=mocap,
+            companions=companions,
             rotation=parts[0].rotation,
             telemetry={
                 "target_pos": _vec(body_position),
@@ -340,10 +366,15 @@ class World:
         )
 
     def _pose_dolphin(self, dolphin: DolphinPose) -> None:
-        """Pose the mocap bodies; a scaled dolphin's tail pivots sit as much farther from its body (drawn only)."""
-        scale = self.scenery.dolphin_scale
-        body = dolphin.mocap[0][0]
-        for mocap, (position, quat) in zip(self._mocap, dolphin.mocap, strict=True):
+        """Pose the mocap bodies of the target and its companions."""
+        self._pose_parts(self._mocap, dolphin.mocap, self.scenery.dolphin_scale)
+        for mocap, parts, companion in zip(self._companion_mocap, dolphin.companions, self.pod.companions, strict=True):
+            self._pose_parts(mocap, parts, companion.scale)
+
+    def _pose_parts(self, mocap_ids: list[int], parts, scale: float) -> None:
+        """Pose one dolphin; a scaled dolphin's tail pivots sit as much farther from its body (drawn only)."""
+        body = parts[0][0]
+        for mocap, (position, quat) in zip(mocap_ids, parts, strict=True):
             self.data.mocap_pos[mocap] = position if scale == 1.0 else body + scale * (position - body)
             self.data.mocap_quat[mocap] = quat
 

@@ -1,0 +1,101 @@
+"""Pods: companions swim beside the target, replay from the seed, show in the frame and cross its line of sight."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.settings import load
+from sim_service.pod import PodParams
+from sim_service.scenery_model import part_names
+from sim_service.settings import MAX_POD_SIZE, DolphinSettings, WorldSettings
+from sim_service.world import CAMERA, TARGET_BOX, World
+
+
+def pod_world(size: int, render: bool = True, motion: str = "planar") -> World:
+    return World(WorldSettings(render=render, dolphin=DolphinSettings(motion=motion, pod_size=size)))
+
+
+def companion_positions(world: World) -> np.ndarray:
+    """Each companion's body position, (companions, 3), as MuJoCo holds it."""
+    bodies = [world.model.body(part_names(index)[0]).id for index in range(1, world.pod.size)]
+    return world.data.xpos[bodies].copy()
+
+
+def test_a_pod_replays_from_its_seed_and_leaves_the_targets_swim_as_it_was():
+    first, second, single = pod_world(4), pod_world(4), pod_world(1, render=False)
+    actions = np.random.default_rng(11).uniform(-1, 1, size=(150, 4))
+    telemetry, frame = first.reset(11)
+    again, frame_again = second.reset(11)
+    assert telemetry == again == single.reset(11)[0] and np.array_equal(frame, frame_again)
+    for action in actions:
+        second.prepare_step()  # preparing ahead, as a lock-step server does, changes nothing either
+        (telemetry, frame), (again, frame_again) = first.step(tuple(action)), second.step(tuple(action))
+        assert telemetry == again == single.step(tuple(action))[0] and np.array_equal(frame, frame_again)
+        assert np.array_equal(companion_positions(first), companion_positions(second))
+    for world in (first, second, single):
+        world.close()
+
+
+def test_companions_are_drawn_in_the_frame():
+    world, single = pod_world(4), pod_world(1)
+    camera = world.model.camera(CAMERA).id
+    seen = 0
+    for seed in range(3):
+        _, frame = world.reset(seed)
+        assert not np.array_equal(frame, single.reset(seed)[1])
+        for _ in range(100):
+            world.step((0, 0, 0, 0))
+            for index in range(1, world.pod.size):
+                body = world.model.body(part_names(index)[0]).id
+                seen += world.frustum.sees_box(
+                    world.data.cam_xpos[camera], world.data.cam_xmat[camera].reshape(3, 3), world.data.xpos[body],
+                    world.data.xmat[body].reshape(3, 3), TARGET_BOX,
+                )  # fmt: skip
+    assert seen > 0
+    world.close()
+    single.close()
+
+
+def test_companions_cross_the_targets_line_of_sight_some_between_it_and_the_rover():
+    world = pod_world(4, render=False)
+    crossings = in_front = 0
+    for seed in range(3):
+        world.reset(seed)
+        sides = []
+        for _ in range(3000):
+            telemetry, _ = world.step((0, 0, 0, 0))
+            rover, target = np.array(telemetry.rover_pos[:2]), np.array(telemetry.target_pos[:2])
+            sight = target - rover
+            companions = companion_positions(world)[:, :2] - rover
+            sides.append(np.sign(sight[0] * companions[:, 1] - sight[1] * companions[:, 0]))
+            nearer = np.linalg.norm(companions, axis=1) < np.linalg.norm(sight)
+            if len(sides) > 1:
+                flips = sides[-1] != sides[-2]
+                crossings += int(flips.sum())
+                in_front += int((flips & nearer).sum())
+    world.close()
+    assert crossings > 0 and in_front > 0
+
+
+def test_companions_keep_near_the_target_and_to_its_depth_in_the_3d_motion():
+    world = pod_world(MAX_POD_SIZE, render=False, motion="3d")
+    params = PodParams()
+    farthest = math.hypot(max(map(abs, params.along_m)), max(map(abs, params.left_m)))
+    world.reset(5)
+    for _ in range(3000):
+        target = np.array(world.step((0, 0, 0, 0))[0].target_pos)
+        offsets = companion_positions(world) - target
+        assert np.all(np.linalg.norm(offsets[:, :2], axis=1) <= farthest + 1e-6)
+        assert np.all(np.abs(offsets[:, 2]) <= max(map(abs, params.up_m)) + 1e-6)
+    world.close()
+
+
+def test_pod_size_is_a_setting_refused_outside_its_range():
+    assert load(WorldSettings).dolphin.pod_size == 1
+    assert load(WorldSettings, environ={"SWIMM_DOLPHIN_POD_SIZE": "4"}).dolphin.pod_size == 4
+    for size in (0, MAX_POD_SIZE + 1):
+        with pytest.raises(ValueError, match=f"--dolphin-pod-size must be 1 to {MAX_POD_SIZE}, got {size}"):
+            pod_world(size, render=False)
