@@ -61,11 +61,11 @@ class Pod:
         self.companions = []
         for _ in range(self.size - 1):
             offset = self._draw_offset()
+            # goal_in_s 0: its first step draws its first goal.
             companion = Companion(
                 offset=offset, drift=np.zeros(3), goal=offset.copy(), goal_in_s=0.0, phase=rng.uniform(0.0, 1.0),
                 beat_factor=rng.uniform(*p.beat_factor), scale=rng.uniform(*p.scale), shade=rng.uniform(*p.shade),
             )  # fmt: skip
-            self._new_goal(companion)
             self.companions.append(companion)
 
     def _draw_offset(self) -> np.ndarray:
