@@ -139,3 +139,24 @@ def test_state_metrics_split_every_labels_error_by_distance_band() -> None:
     assert set(bands) == {"2-4m", "4-6m"}  # no frame in the far bands
     assert bands["2-4m"] == pytest.approx({"d_m": 0.5, "theta_deg": 2.0, "psi_deg": 20.0})
     assert bands["4-6m"] == pytest.approx({"d_m": 0.5, "theta_deg": 1.5, "psi_deg": 25.0})
+
+
+def test_the_elevation_is_read_by_a_vertical_model_and_left_out_by_a_planar_one(
+    setup: dict[str, Path], tmp_path: Path
+) -> None:
+    from services.geometry import VERTICAL_LABEL_NAMES
+    from sim_service.dataset import VERTICAL_RANGES
+    from sim_service.dataset import write_dataset as render_dataset
+
+    vertical = render_dataset(tmp_path / "vertical", count=24, seed=5, progress=False, ranges=VERTICAL_RANGES)
+    torch.manual_seed(0)
+    vertical_model = tmp_path / "vertical.pt"
+    model = CMVAE(labels=VERTICAL_LABEL_NAMES)
+    torch.save(make_checkpoint(model, beta=8.0, epoch=1, val_loss=1.0, metrics={}), vertical_model)
+    for checkpoint, expected in ((setup["checkpoint"], 3), (vertical_model, 4)):
+        out = tmp_path / checkpoint.stem
+        run(EvalEncoderSettings(checkpoint=str(checkpoint), dataset=str(vertical), out=str(out), batch_size=8))
+        mae = json.loads((out / "metrics.json").read_text())["mae"]
+        assert len(mae) == expected and ("elevation_deg" in mae) == (expected == 4)
+    with pytest.raises(ValueError, match="the model reads \\['d', 'theta', 'psi', 'elevation'\\] but"):
+        run(EvalEncoderSettings(checkpoint=str(vertical_model), dataset=str(setup["clean"]), out=str(tmp_path / "x")))
