@@ -22,11 +22,9 @@ import numpy as np
 
 from learner_service.learn_settings import ObsMode, RewardVersion, TaskName
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D, quat_to_euler, relative_geometry, vertical_geometry
-from services.messages import IMAGE_SHAPE
+from services.messages import IMAGE_SHAPE, POLICY_ACTIONS
 from services.telemetry import Telemetry
 
-#: The policy's action components by task: the planar curriculum drives surge and yaw, the 3d task heave too.
-ACTION_NAMES: dict[str, tuple[str, ...]] = {"planar": ("surge", "yaw"), "3d": ("surge", "heave", "yaw")}
 LATENT_SIZE = 10  # n_z of the CMVAE
 LATENCY_OPTION = "latency"  # env.reset(options={"latency": {settings}}): camera and control delays from that episode
 NOISE_OPTION = "noise"  # env.reset(options={"noise": True | False | {settings}}): the image noise from that episode
@@ -68,7 +66,7 @@ class TaskSettings:
 
     @property
     def action_names(self) -> tuple[str, ...]:
-        return ACTION_NAMES[self.task]
+        return POLICY_ACTIONS[self.task]
 
     @property
     def history_size(self) -> int:
@@ -143,7 +141,7 @@ def policy_action(command: Any, task: TaskName) -> np.ndarray:
     """The task's policy action within a sim's (sway, heave, surge, yaw) command, as recordings and taps read it."""
     _, heave, surge, yaw = command
     components = {"surge": surge, "heave": heave, "yaw": yaw}
-    return np.array([components[name] for name in ACTION_NAMES[task]], np.float64)
+    return np.array([components[name] for name in POLICY_ACTIONS[task]], np.float64)
 
 
 def violation_cause(d: float, in_frustum: bool, collided: bool) -> str:

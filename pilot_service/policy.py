@@ -7,10 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
+from services.messages import POLICY_ACTIONS
+
 INPUTS = {"frame", "action_history"}
 OUTPUTS = {"action", "next_history"}
 #: The actions a policy may drive: the planar task's, and the 3d task's with heave (a climb rate in ALT_HOLD).
-ACTION_SETS = (["surge", "yaw"], ["surge", "heave", "yaw"])
+ACTION_SETS = [list(names) for names in POLICY_ACTIONS.values()]
 
 
 class ContractError(ValueError):

@@ -31,6 +31,9 @@ PROTOCOL_VERSION = 3
 #: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)
+#: A policy's action components by task (the learner's action space, an exported file's contract, what the pilot
+#: flies): the planar curriculum drives surge and yaw, the 3d task heave too.
+POLICY_ACTIONS: dict[str, tuple[str, ...]] = {"planar": ("surge", "yaw"), "3d": ("surge", "heave", "yaw")}
 IMAGE_SHAPE = (64, 64, 3)  # the camera frame (H, W, RGB) the encoder reads and image policies observe
 DIRECT_ROUTE = "direct"  # observation goes straight to the learner, no encoder
 #: The words of a sim's refusal to drive an env nobody holds: a learner that reads them knows the sim lost its claim
