@@ -135,6 +135,10 @@ def _mean(totals: dict[str, float], count: int) -> dict[str, float]:
     return {key: value / max(count, 1) for key, value in totals.items()}
 
 
+#: Label columns a left-right flip negates: theta and psi (d and, in vertical datasets, the elevation keep theirs).
+MIRRORED_LABELS = [LABEL_NAMES.index("theta"), LABEL_NAMES.index("psi")]
+
+
 def mirror_batch(batch: Batch, flip: np.ndarray) -> Batch:
     """Flip the frames picked by ``flip`` left-right and negate their theta and psi.
 
@@ -144,7 +148,7 @@ def mirror_batch(batch: Batch, flip: np.ndarray) -> Batch:
     dolphin facing left with one facing right, the cue z[2] has to find.
     """
     labels = batch.labels.copy()
-    labels[flip, 1:] *= -1.0
+    labels[np.ix_(flip, MIRRORED_LABELS)] *= -1.0  # a left-right flip leaves d and the elevation as they are
     return Batch(
         images=_mirrored(batch.images, flip),
         labels=labels,
@@ -412,6 +416,30 @@ def _load_weights(model: CMVAE, path: str, n_z: int) -> None:
     weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
     model.load_state_dict(_matched_to(weights, model))
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
+    inherited = len(checkpoint["config"].get("labels", LABEL_NAMES))
+    for dim in range(inherited, len(model.labels)):
+        revive_latent(model, dim)
+        log.info("z[%d] restarts for the new label %r", dim, model.labels[dim])
+
+
+#: The posterior spread a revived latent starts with: small, so its fresh decoder sees the encoder's signal.
+REVIVED_STD = 0.1
+
+
+def revive_latent(model: CMVAE, dim: int) -> None:
+    """Restart z[dim]'s encoder output: a freshly drawn mean and a narrow posterior.
+
+    A planar model leaves the unsupervised z[3] on the prior (mean ~0, spread 1); a new label's decoder reading
+    it sees only sampling noise, learns to ignore it and sends no gradient back (docs/encoder.md, elevation).
+    A fresh mean with a small spread gives the decoder a signal to follow.
+    """
+    last = model.encoder.head[-1]
+    fresh = torch.nn.Linear(last.in_features, 1, device=last.weight.device)
+    with torch.no_grad():
+        last.weight[dim] = fresh.weight[0]
+        last.bias[dim] = fresh.bias[0]
+        last.weight[model.n_z + dim] = 0.0
+        last.bias[model.n_z + dim] = 2.0 * math.log(REVIVED_STD)
 
 
 #: Parts a CMVAE has or lacks by its settings: the mask head and the elevation label's state decoder.
@@ -545,13 +573,14 @@ def run(settings: TrainEncoderSettings) -> int:
                         writer.add_scalar(f"val/{key}", value, epoch + 1)
                     writer.flush()
                 log.info(
-                    "epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg)%s",
+                    "epoch %d: train %.5f, validation %.5f (MAE d %.3f m, theta %.2f deg, psi %.1f deg%s)%s",
                     epoch + 1,
                     train_metrics["total"],
                     val_loss,
                     metrics["mae_d"],
                     metrics["mae_theta"],
                     metrics["mae_psi"],
+                    f", elevation {metrics['mae_elevation']:.2f} deg" if "mae_elevation" in metrics else "",
                     f", mask loss {metrics['mask']:.4f}, IoU {metrics['mask_iou']:.3f}" if "mask" in metrics else "",
                 )
                 if val_loss < best_val:

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from encoder_service.data import Batch, CMVAEDataset, DatasetFormatError, split_
 from encoder_service.inference import DEFAULT_CHECKPOINT
 from encoder_service.model import CMVAE, StateLoss, load_model
 from encoder_service.train import (
+    REVIVED_STD,
     EarlyStopping,
     TrainEncoderSettings,
     inputs_and_targets,
@@ -135,6 +137,10 @@ def test_a_mirrored_frame_is_the_frame_of_the_mirrored_pose() -> None:
             )
             mirrored = mirror_batch(batch, np.array([True]))
             np.testing.assert_allclose(mirrored.labels, [[4.0, -theta, -psi]])
+            with_elevation = replace(batch, labels=np.array([[4.0, theta, psi, 12.0]], np.float32))
+            np.testing.assert_allclose(
+                mirror_batch(with_elevation, np.array([True])).labels, [[4.0, -theta, -psi, 12.0]]
+            )
             truth = frame(-theta, -psi).astype(int)
             flipped_error = np.abs(mirrored.images[0].astype(int) - truth).mean()
             unflipped_error = np.abs(batch.images[0].astype(int) - truth).mean()
@@ -383,8 +389,17 @@ def test_a_vertical_dataset_trains_an_elevation_decoder_on_a_planar_models_encod
     tuned = torch.load(out / "last.pt", weights_only=True)
     assert tuned["config"]["labels"] == ["d", "theta", "psi", "elevation"]
     assert "mae_elevation" in tuned["metrics"] and tuned["metrics"]["mae_elevation"] > 0
+    last_layer = "encoder.head.4."
     for name, _ in CMVAE().named_parameters():
-        torch.testing.assert_close(tuned["state_dict"][name], shipped[name].float(), rtol=0, atol=0)
+        if not name.startswith(last_layer):
+            torch.testing.assert_close(tuned["state_dict"][name], shipped[name].float(), rtol=0, atol=0)
+    # every latent but z[3] (rows 3 and 3 + n_z of the last layer) keeps the planar model's mean and spread
+    weight, bias = (tuned["state_dict"][last_layer + part] for part in ("weight", "bias"))
+    kept = [row for row in range(20) if row not in (3, 13)]
+    torch.testing.assert_close(weight[kept], shipped[last_layer + "weight"].float()[kept], rtol=0, atol=0)
+    # z[3] restarts: a mean the planar model never had, a narrow spread whatever the frame
+    assert not torch.equal(weight[3], shipped[last_layer + "weight"].float()[3])
+    assert torch.count_nonzero(weight[13]) == 0 and bias[13].item() == pytest.approx(2 * math.log(REVIVED_STD))
     assert "state_decoders.3.mlp.0.weight" in tuned["state_dict"]
     model, _ = load_model(out / "last.pt")
     assert model.labels == ("d", "theta", "psi", "elevation") and model.decode_state(torch.zeros(2, 10)).shape == (2, 4)
