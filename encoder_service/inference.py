@@ -2,8 +2,8 @@
 
 Only the image encoder runs per frame (the decoders are for training and
 figures), in eval mode under ``torch.inference_mode`` with channels_last
-input. ``decode_state`` turns latents back into (d, theta, psi) for
-diagnostics and the eval views.
+input. ``decode_state`` turns latents back into (d, theta, psi[, elevation]) for
+diagnostics, the eval views and the camera-only tracker.
 
 The torch engine runs a frozen TorchScript trace: at batch 1 the encoder's time is mostly Python dispatch
 between its small layers, which tracing removes (docs/benchmarks.md, the encoder's frozen trace). torch marks
@@ -123,12 +123,18 @@ class LatentEncoder:
         mu, logvar = self._encoder(images_to_tensor(images, self.device))
         return mu.float().cpu().numpy(), logvar.float().cpu().numpy()
 
+    @property
+    def labels(self) -> tuple[str, ...]:
+        """What the state decoders read: (d, theta, psi), and the elevation for a model trained on vertical frames."""
+        return self._model.labels
+
     @torch.inference_mode()
-    def decode_state(self, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(d metres, theta degrees (signed azimuth), psi degrees) predicted from latents (N, n_z)."""
+    def decode_state(self, mu: np.ndarray) -> tuple[np.ndarray, ...]:
+        """One array (N,) per label from latents (N, n_z): d metres, theta degrees (signed azimuth), psi degrees,
+        and for a vertical model the elevation in degrees (+ = above)."""
         mu = np.asarray(mu, dtype=np.float32)
         if mu.ndim != 2 or mu.shape[1] != self.n_z:
             raise ValueError(f"latents must be shaped (N, {self.n_z}), got {mu.shape}")
         normalised = self._model.decode_state(torch.from_numpy(mu).to(self.device)).float().cpu().numpy()
         physical = denormalise_labels(normalised, self._model.labels)
-        return physical[:, 0], physical[:, 1], physical[:, 2]
+        return tuple(physical.T)

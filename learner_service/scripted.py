@@ -82,10 +82,10 @@ class LatentTracker(ScriptedTracker):
 
     Camera only, like a learned policy on cmvae observations, and nothing to train: it separates what the encoder
     can see (under noise, say) from what a policy learns to do with it. ``decode`` maps latents (N, n_z) to
-    (d, theta, psi) arrays, as `encoder_service.inference.LatentEncoder.decode_state` does.
+    (d, theta, psi[, elevation]) arrays, as `encoder_service.inference.LatentEncoder.decode_state` does.
 
-    The CMVAE reads no elevation yet, so in the 3d task this tracker's heave is 0 (the rover holds its depth): of
-    ``info`` it reads only which task it acts in.
+    In the 3d task it heaves on the elevation a vertical CMVAE reads; on a planar CMVAE, which reads none, its
+    heave is 0 (the rover holds its depth). Of ``info`` it reads only which task it acts in.
     """
 
     def __init__(
@@ -96,10 +96,12 @@ class LatentTracker(ScriptedTracker):
         self.n_z = n_z
 
     def act(self, obs: Any, info: dict[str, Any]) -> np.ndarray:
-        """The task's action from the latent mean at the head of a cmvae observation; heave 0 in the 3d task."""
+        """The task's action from the latent mean at the head of a cmvae observation."""
         latent = np.asarray([] if isinstance(obs, dict) else obs, dtype=np.float32).reshape(-1)
         if latent.size < self.n_z:
             raise ValueError(f"the latent tracker reads cmvae observations (a latent of {self.n_z} values first)")
-        d, theta, _ = self.decode(latent[None, : self.n_z])
-        level = None if task_elevation(info) is None else 0.0  # no elevation reading: act as if the target were level
-        return self.command(float(d[0]), float(theta[0]), obs, level)
+        d, theta, *rest = (float(values[0]) for values in self.decode(latent[None, : self.n_z]))
+        elevation = None
+        if task_elevation(info) is not None:
+            elevation = rest[1] if len(rest) > 1 else 0.0  # a planar CMVAE reads none: act as if the target were level
+        return self.command(d, theta, obs, elevation)

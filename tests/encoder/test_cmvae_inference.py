@@ -56,6 +56,21 @@ def test_decode_state_returns_physical_units(saved: tuple[CMVAE, Path], frames: 
     np.testing.assert_allclose(np.stack([d, theta, psi], axis=1), expected, rtol=1e-5, atol=1e-4)
     with pytest.raises(ValueError, match=r"\(N, 10\)"):
         encoder.decode_state(np.zeros((2, 3), dtype=np.float32))
+    assert encoder.labels == ("d", "theta", "psi")
+
+
+def test_a_vertical_model_decodes_the_elevation_too(tmp_path: Path, frames: np.ndarray) -> None:
+    torch.manual_seed(3)
+    labels = ("d", "theta", "psi", "elevation")
+    model = CMVAE(n_z=10, labels=labels).eval()
+    torch.save(make_checkpoint(model, beta=8.0, epoch=1, val_loss=0.5, metrics={}), tmp_path / "vertical.pt")
+    encoder = LatentEncoder(tmp_path / "vertical.pt")
+    mu, _ = encoder.encode(frames)
+    decoded = encoder.decode_state(mu)
+    assert encoder.labels == labels and len(decoded) == 4
+    with torch.no_grad():
+        expected = denormalise_labels(model.decode_state(torch.from_numpy(mu)).numpy(), labels)
+    np.testing.assert_allclose(np.stack(decoded, axis=1), expected, rtol=1e-5, atol=1e-4)
 
 
 @pytest.mark.parametrize(

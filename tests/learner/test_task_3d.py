@@ -11,7 +11,7 @@ import pytest
 
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.registry import LATENT_SCRIPTED, load_policy
-from learner_service.scripted import ScriptedTracker
+from learner_service.scripted import LatentTracker, ScriptedTracker
 from learner_service.task import (
     CAUSE_DISTANCE,
     CAUSE_VISIBILITY,
@@ -265,12 +265,27 @@ def test_the_tracker_s_heave_law_keeps_a_diving_dolphin_in_view_vertically() -> 
     assert held[0] > 0.5 and held[1] > BETA_DEG
 
 
-def test_the_camera_only_tracker_holds_depth_in_the_3d_task() -> None:
-    """It reads no elevation (the CMVAE has none yet): heave 0, whatever the ground truth's elevation."""
+def test_the_camera_only_tracker_holds_depth_on_a_planar_cmvae() -> None:
+    """The shipped CMVAE reads no elevation: heave 0, whatever the ground truth's elevation."""
     tracker = load_policy(LATENT_SCRIPTED, None)  # the shipped CMVAE's decoders
     latent_obs = np.zeros(10 + 10 * 3, np.float32)
     surge, heave, yaw = tracker.act(latent_obs, {"elevation": 20.0})
     assert heave == 0.0 and (surge, yaw) == tuple(tracker.act(latent_obs[:30], {}))
+
+
+@pytest.mark.parametrize(
+    ("read_elevation", "heave"),
+    [(5.0, 0.5), (-20.0, -1.0), (0.5, 0.0)],  # heave_gain 0.1 per degree; a full dive; the 1-degree dead band
+)
+def test_the_camera_only_tracker_heaves_on_the_elevation_a_vertical_cmvae_reads(read_elevation, heave) -> None:
+    """Its heave follows the decoded elevation, not the ground truth's (``info`` only says the task is 3d)."""
+
+    def decode(latents: np.ndarray) -> tuple[np.ndarray, ...]:
+        return tuple(np.array([value], np.float32) for value in (OPT_D, 0.0, 0.0, read_elevation))
+
+    tracker = LatentTracker(decode, n_z=10)
+    _, commanded, _ = tracker.act(np.zeros(10 + 10 * 3, np.float32), {"elevation": 30.0})
+    assert commanded == pytest.approx(heave)
 
 
 def test_planar_rewards_are_the_ones_recorded_before_the_3d_task() -> None:
