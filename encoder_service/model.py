@@ -142,9 +142,18 @@ MASK_TAP = 3
 
 
 class ImageEncoder(nn.Module):
-    """q(z | image): 64x64x3 -> (mu, logvar), each (N, n_z)."""
+    """q(z | image): 64x64x3 -> (mu, logvar), each (N, n_z).
 
-    def __init__(self, n_z: int, input_norm: str = "none") -> None:
+    With ``locate`` a :class:`MaskHead` (the locator) maps the 8x8 feature map to where the dolphin is, and the
+    head reads, beside the pooled features, that map's soft-argmax: the expected column and row of the dolphin
+    in [-1, 1]. The azimuth then has a path from where the animal is, not only from the 2x2 map at the end,
+    which a bright structure elsewhere in the frame can sway. Trained with ``--mask-weight``, the locator learns
+    the dataset's masks.
+    """
+
+    FEATURES = 128 * 2 * 2  # the flattened 2x2 map after the last residual block
+
+    def __init__(self, n_z: int, input_norm: str = "none", locate: bool = False) -> None:
         super().__init__()
         if input_norm not in INPUT_NORMS:
             raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
@@ -159,8 +168,9 @@ class ImageEncoder(nn.Module):
             nn.Flatten(),
             nn.ReLU(inplace=True),  # the blocks end pre-activation
         )
+        self.locator = MaskHead() if locate else None
         self.head = nn.Sequential(
-            nn.Linear(128 * 2 * 2, 64),
+            nn.Linear(self.FEATURES + (2 if locate else 0), 64),
             nn.ReLU(inplace=True),
             nn.Linear(64, 32),
             nn.ReLU(inplace=True),
@@ -169,12 +179,21 @@ class ImageEncoder(nn.Module):
         self.n_z = n_z
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self._split(self.head(self.features(self.normalise(images))))
+        mu, logvar, _, _ = self.with_feature_map(images)
+        return mu, logvar
 
-    def with_feature_map(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(mu, logvar) as ``forward`` gives them, plus the 8x8 map after the first residual block (N, 32, 8, 8)."""
+    def with_feature_map(
+        self, images: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """(mu, logvar) as ``forward`` gives them, the 8x8 map after the first residual block (N, 32, 8, 8), and
+        the locator's logits (N, 8, 8) (None without one)."""
         feature_map = self.features[:MASK_TAP](self.normalise(images))
-        return *self._split(self.head(self.features[MASK_TAP:](feature_map))), feature_map
+        pooled = self.features[MASK_TAP:](feature_map)
+        where = None
+        if self.locator is not None:
+            where = self.locator(feature_map)
+            pooled = torch.cat([pooled, soft_argmax(where)], dim=1)
+        return *self._split(self.head(pooled)), feature_map, where
 
     def _split(self, stats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return stats[:, : self.n_z], stats[:, self.n_z :]
@@ -200,6 +219,16 @@ class MaskHead(nn.Module):
 
     def forward(self, feature_map: torch.Tensor) -> torch.Tensor:
         return self.layers(feature_map)[:, 0]
+
+
+def soft_argmax(logits: torch.Tensor) -> torch.Tensor:
+    """The expected (column, row) in [-1, 1] (left/top = -1) under a softmax over the cells of ``logits``
+    (N, H, W): (N, 2)."""
+    height, width = logits.shape[-2:]
+    weights = torch.softmax(logits.flatten(1), dim=1).view_as(logits)
+    columns = torch.linspace(-1 + 1 / width, 1 - 1 / width, width, device=logits.device, dtype=logits.dtype)
+    rows = torch.linspace(-1 + 1 / height, 1 - 1 / height, height, device=logits.device, dtype=logits.dtype)
+    return torch.stack([(weights.sum(dim=1) * columns).sum(dim=1), (weights.sum(dim=2) * rows).sum(dim=1)], dim=1)
 
 
 class ImageDecoder(nn.Module):
@@ -250,15 +279,22 @@ class CMVAE(nn.Module):
     """Image encoder, image decoder and a state decoder per label, trained jointly."""
 
     def __init__(
-        self, n_z: int = 10, input_norm: str = "none", mask_head: bool = False, labels: tuple[str, ...] = LABEL_NAMES
+        self,
+        n_z: int = 10,
+        input_norm: str = "none",
+        mask_head: bool = False,
+        labels: tuple[str, ...] = LABEL_NAMES,
+        locate: bool = False,
     ) -> None:
         super().__init__()
         self.labels = check_label_names(labels, "CMVAE")
         if n_z < len(self.labels):
             raise ValueError(f"n_z must be at least {len(self.labels)} (one latent per label), got {n_z}")
+        if mask_head and locate:
+            raise ValueError("a CMVAE that locates the dolphin trains its locator on the masks: no mask head besides")
         self.n_z = n_z
         self.input_norm = input_norm
-        self.encoder = ImageEncoder(n_z, input_norm)
+        self.encoder = ImageEncoder(n_z, input_norm, locate)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
         # made last, so a model without it draws every other weight as before the head existed
@@ -267,12 +303,16 @@ class CMVAE(nn.Module):
     def encode(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.encoder(images)
 
+    @property
+    def locates(self) -> bool:
+        return self.encoder.locator is not None
+
     def encode_with_mask(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """(mu, logvar) and the mask head's logits (N, 8, 8), or None for a model without a head."""
-        if self.mask_head is None:
+        """(mu, logvar) and the mask logits (N, 8, 8) of the mask head or the locator, or None with neither."""
+        if self.mask_head is None and not self.locates:
             return *self.encode(images), None
-        mu, logvar, feature_map = self.encoder.with_feature_map(images)
-        return mu, logvar, self.mask_head(feature_map)
+        mu, logvar, feature_map, where = self.encoder.with_feature_map(images)
+        return mu, logvar, where if self.mask_head is None else self.mask_head(feature_map)
 
     def decode_image(self, z: torch.Tensor) -> torch.Tensor:
         return self.image_decoder(z)
@@ -501,6 +541,7 @@ def make_checkpoint(
             "input_norm": model.input_norm,
             "mask_head": model.mask_head is not None,
             "labels": list(model.labels),
+            "locate": model.locates,
         },
         "state_dict": state_dict,
         "epoch": int(epoch),
@@ -532,6 +573,7 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CM
         input_norm=config.get("input_norm", "none"),
         mask_head=config.get("mask_head", False),
         labels=check_label_names(config.get("labels", LABEL_NAMES), str(path)),  # older checkpoints: planar
+        locate=config.get("locate", False),
     )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()

@@ -85,6 +85,9 @@ class TrainEncoderSettings:
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
+    locate: bool = (
+        False  # the encoder reads the dolphin's place off a locator that the masks train (model.ImageEncoder)
+    )
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -408,7 +411,7 @@ def _save(checkpoint: dict[str, Any], path: Path) -> None:
     os.replace(partial, path)
 
 
-def _load_weights(model: CMVAE, path: str, n_z: int) -> None:
+def load_init_weights(model: CMVAE, path: str, n_z: int) -> None:
     """Copy a checkpoint's weights (float32 or the shipped float16) into ``model``."""
     checkpoint = read_checkpoint(path)
     if checkpoint["config"]["n_z"] != n_z:
@@ -442,16 +445,24 @@ def revive_latent(model: CMVAE, dim: int) -> None:
         last.bias[model.n_z + dim] = 2.0 * math.log(REVIVED_STD)
 
 
-#: Parts a CMVAE has or lacks by its settings: the mask head and the elevation label's state decoder.
-OPTIONAL_PARTS = ("mask_head.", f"state_decoders.{len(LABEL_NAMES)}.")
+#: Parts a CMVAE has or lacks by its settings: the mask head, the locator and the elevation label's state decoder.
+OPTIONAL_PARTS = ("mask_head.", "encoder.locator.", f"state_decoders.{len(LABEL_NAMES)}.")
+#: The layer that reads the locator's soft-argmax beside the pooled features: two input columns more with one.
+LOCATOR_READER = "encoder.head.0.weight"
 
 
 def _matched_to(weights: dict[str, torch.Tensor], model: CMVAE) -> dict[str, torch.Tensor]:
     """``weights`` with the optional parts matched to ``model``'s: its fresh part where the checkpoint has none,
-    the checkpoint's dropped where the model has none (the encoder is what carries over)."""
+    the checkpoint's dropped where the model has none (the encoder is what carries over). A model that locates,
+    started from one that does not, reads the soft-argmax through zero weights: it starts as the checkpoint."""
     own = model.state_dict()
     kept = {name: tensor for name, tensor in weights.items() if name in own or not name.startswith(OPTIONAL_PARTS)}
     fresh = {name: tensor for name, tensor in own.items() if name.startswith(OPTIONAL_PARTS) and name not in weights}
+    reader, wanted = kept[LOCATOR_READER], own[LOCATOR_READER].shape[1]
+    if reader.shape[1] < wanted:
+        kept[LOCATOR_READER] = torch.cat([reader, reader.new_zeros(reader.shape[0], wanted - reader.shape[1])], 1)
+    elif reader.shape[1] > wanted:
+        kept[LOCATOR_READER] = reader[:, :wanted]
     return kept | fresh
 
 
@@ -517,7 +528,10 @@ def run(settings: TrainEncoderSettings) -> int:
         device,
     )
 
-    model = CMVAE(settings.n_z, settings.input_norm, settings.mask_weight > 0, dataset.label_names)
+    if settings.locate and settings.mask_weight <= 0:
+        raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
+    mask_head = settings.mask_weight > 0 and not settings.locate  # a locator learns the masks itself
+    model = CMVAE(settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate)
     model.to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
     if teacher is not None:
@@ -534,6 +548,8 @@ def run(settings: TrainEncoderSettings) -> int:
             raise ValueError(
                 f"{last_path} learns labels {last['config'].get('labels')}, the dataset {list(model.labels)}"
             )
+        if last["config"].get("locate", False) != settings.locate:
+            raise ValueError(f"{last_path} was trained with locate={last['config'].get('locate', False)}: resume it so")
         model.load_state_dict(last["state_dict"])
         optimiser.load_state_dict(last["optimizer"])
         torch.set_rng_state(last["torch_rng_state"])
@@ -544,7 +560,7 @@ def run(settings: TrainEncoderSettings) -> int:
         log.warning("--resume given but %s does not exist; starting afresh", last_path)
     init = settings.init or settings.teacher  # a distilled encoder starts as its teacher, decoders and all
     if init and start_epoch == 0:
-        _load_weights(model, init, settings.n_z)
+        load_init_weights(model, init, settings.n_z)
 
     writer = None
     if settings.tensorboard:
