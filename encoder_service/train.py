@@ -85,9 +85,7 @@ class TrainEncoderSettings:
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
-    locate: bool = (
-        False  # the encoder reads the dolphin's place off a locator that the masks train (model.ImageEncoder)
-    )
+    locate: bool = False  # the encoder reads where the dolphin is off a locator the masks train (needs --mask-weight)
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
