@@ -21,12 +21,17 @@ class DolphinSettings:
 
     motion: Motion = "planar"  # planar: the paper's, at one depth; 3d: climbs, dives and surfacing in a depth band
     pod_size: int = 1  # dolphins in the world: the target and pod_size - 1 companions swimming beside it
+    pod_crossing: bool = False  # the crossing split: one companion crosses between the rover and the target every 10 s
 
     def check(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"unknown dolphin motion {self.motion!r}; choose one of {', '.join(MOTIONS)}")
         if not 1 <= self.pod_size <= MAX_POD_SIZE:
             raise ValueError(f"--dolphin-pod-size must be 1 to {MAX_POD_SIZE}, got {self.pod_size}")
+        if self.pod_crossing and self.pod_size < 2:
+            raise ValueError(
+                f"--dolphin-pod-crossing needs a companion to cross: --dolphin-pod-size {self.pod_size} has none"
+            )
 
 
 @dataclass
