@@ -15,6 +15,25 @@ MOTIONS: tuple[str, ...] = typing.get_args(Motion)
 MAX_POD_SIZE = 6  # the most dolphins a world holds: the target and its companions
 
 
+def check_pod(size: int, crossing: bool) -> None:
+    """Refuse a pod outside 1 to MAX_POD_SIZE, or a crossing with no companion to cross, naming the flags."""
+    if not 1 <= size <= MAX_POD_SIZE:
+        raise ValueError(f"--dolphin-pod-size must be 1 to {MAX_POD_SIZE}, got {size}")
+    if crossing and size < 2:
+        raise ValueError(f"--dolphin-pod-crossing needs a companion to cross: --dolphin-pod-size {size} has none")
+
+
+@dataclass
+class PodSettings:
+    """A pod for a world built from a task (the in-process evaluation), under the sim's flags: --dolphin-pod-*."""
+
+    size: int = 1  # dolphins in the world, the target included
+    crossing: bool = False  # the crossing split
+
+    def check(self) -> None:
+        check_pod(self.size, self.crossing)
+
+
 @dataclass
 class DolphinSettings:
     """How the dolphin swims; simple field types so `services.settings` turns them into ``--dolphin-*`` flags."""
@@ -26,12 +45,7 @@ class DolphinSettings:
     def check(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"unknown dolphin motion {self.motion!r}; choose one of {', '.join(MOTIONS)}")
-        if not 1 <= self.pod_size <= MAX_POD_SIZE:
-            raise ValueError(f"--dolphin-pod-size must be 1 to {MAX_POD_SIZE}, got {self.pod_size}")
-        if self.pod_crossing and self.pod_size < 2:
-            raise ValueError(
-                f"--dolphin-pod-crossing needs a companion to cross: --dolphin-pod-size {self.pod_size} has none"
-            )
+        check_pod(self.pod_size, self.pod_crossing)
 
 
 @dataclass
