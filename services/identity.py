@@ -6,10 +6,12 @@ metrics (:func:`episode_identity`). Dolphin 0 is the target, 1 on its companions
 
 Definitions (docs/physics.md, "Pods"; docs/eval_report.md, "Pods"):
 - A dolphin is *in view* when its body centre is in front of the camera and inside the image.
-- The rover *follows* the dolphin in view whose centre is nearest the image centre, by angle off the camera's axis.
-- A companion *occludes* the target when it is nearer the camera and their discs (a sphere of the body's girth round
-  each centre) overlap as the camera sees them. While the target is occluded, who is followed is undefined (the
-  geometry says the companion, the tracker may rightly hold on), so those steps are left out of the metrics below.
+- A dolphin is *hidden* when another is nearer the camera and their discs (a sphere of the body's girth round each
+  centre) overlap as the camera sees them; the target hidden so is *occluded*.
+- The rover *follows* the dolphin in view and not hidden whose centre is nearest the image centre, by angle off the
+  camera's axis (a companion passing behind the target does not take its place). While the target is occluded, who
+  is followed is undefined (the tracker may rightly hold on to where it went), so those steps are left out of the
+  metrics below.
 """
 
 from __future__ import annotations
@@ -47,27 +49,31 @@ def in_view(points: np.ndarray) -> np.ndarray:
 
 
 def followed_dolphin(points: np.ndarray) -> int:
-    """The dolphin (row of ``points``, camera frame) in view nearest the image centre, or :data:`NONE`."""
-    angles = np.where(in_view(points), off_axis_deg(points), np.inf)
+    """The dolphin (row of ``points``, camera frame) in view, not hidden, nearest the image centre, or :data:`NONE`."""
+    angles = np.where(in_view(points) & ~hidden(points), off_axis_deg(points), np.inf)
     nearest = int(np.argmin(angles))
     return nearest if math.isfinite(angles[nearest]) else NONE
 
 
 def target_occluded(points: np.ndarray) -> bool:
     """Whether a companion (rows 1 on of ``points``, camera frame) is nearer the camera and overlaps the target."""
+    return bool(hidden(points)[TARGET])
+
+
+def hidden(points: np.ndarray) -> np.ndarray:
+    """Whether each dolphin (rows of ``points``, camera frame) has a nearer one overlapping it as the camera sees."""
     points = np.asarray(points, dtype=float)
-    distances = np.linalg.norm(points, axis=1)
-    target, companions = points[TARGET], points[1:]
-    nearer = distances[1:] < distances[TARGET]
-    cosine = companions @ target / np.maximum(distances[1:] * distances[TARGET], 1e-12)
-    apart = np.arccos(np.clip(cosine, -1.0, 1.0))
-    reach = _angular_radius(distances[1:]) + _angular_radius(distances[TARGET])
-    return bool(np.any(nearer & (apart < reach)))
+    distances = np.maximum(np.linalg.norm(points, axis=1), 1e-12)
+    directions = points / distances[:, None]
+    apart = np.arccos(np.clip(directions @ directions.T, -1.0, 1.0))
+    radius = _angular_radius(distances)
+    nearer = distances[None, :] < distances[:, None]  # [i, j]: j is nearer the camera than i
+    return np.any(nearer & (apart < radius[:, None] + radius[None, :]), axis=1)
 
 
-def _angular_radius(distance: np.ndarray | float) -> np.ndarray:
+def _angular_radius(distance: np.ndarray) -> np.ndarray:
     """The half-angle a dolphin's girth sphere spans at ``distance`` (a camera inside it sees it fill the view)."""
-    return np.arcsin(np.clip(DOLPHIN_RADIUS_M / np.maximum(distance, 1e-12), 0.0, 1.0))
+    return np.arcsin(np.clip(DOLPHIN_RADIUS_M / distance, 0.0, 1.0))
 
 
 def episode_identity(followed: Sequence[int], occluded: Sequence[bool]) -> dict[str, float | int | bool]:

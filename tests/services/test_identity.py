@@ -28,10 +28,13 @@ def test_in_view_is_inside_the_image_and_in_front():
 
 
 def test_the_followed_dolphin_is_the_one_in_view_nearest_the_centre():
-    target, nearer_axis, outside = (5, 1, 0), (4, 0.5, 0), (2, 5, 0)  # 11.31, 7.13 and 68.20 deg off the axis
+    target, nearer_axis, outside = (5, 1, 0), (4, -0.3, 0), (2, 5, 0)  # 11.31, 4.29 and 68.20 deg off the axis
+    # The first two are 15.60 deg apart, more than their discs' asin(0.44 / 5.10) + asin(0.44 / 4.01) = 11.25 deg.
     assert followed_dolphin(np.array([target, nearer_axis, outside])) == 1
     assert followed_dolphin(np.array([target, (-4, 0, 0), outside])) == 0  # the one nearer the axis is behind
     assert followed_dolphin(np.array([(2, 5, 0), (-4, 0, 0)])) == NONE
+    # 1.27 deg off the axis but behind the target (4.76 deg): 3.49 deg apart, within their discs' 4.19 + 2.80 deg.
+    assert followed_dolphin(np.array([(6, 0.5, 0), (9, 0.2, 0)])) == 0
 
 
 def test_a_companion_occludes_the_target_when_nearer_and_overlapping():
