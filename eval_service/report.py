@@ -10,6 +10,7 @@ adds the identity columns (IDENTITY_STEP_FIELDS, services.identity.IDENTITY_ROW_
 <out>/metrics.png     metrics per label beside the paper's SAC (Figure 16)
 <out>/trajectory-<label>.png  rover and dolphin from above in the chosen episode, one per label
 <out>/depth-<label>.png       the 3d task's: depths and elevation in the chosen episode, one per label
+<out>/identity-<label>.png    a pod's: the dolphin followed in the chosen episode, occluded steps shaded, per label
 """
 
 from __future__ import annotations
@@ -91,6 +92,8 @@ class RunFolder:
             plots.plot_trajectory(steps, label, episode, self.path / f"trajectory-{_file_safe(label)}.png")
             if "elevation" in self._step_fields:
                 plots.plot_depth(steps, label, episode, self.path / f"depth-{_file_safe(label)}.png")
+            if "followed" in self._step_fields:
+                plots.plot_identity(steps, label, episode, self.path / f"identity-{_file_safe(label)}.png")
 
 
 def _file_safe(label: str) -> str:
