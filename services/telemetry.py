@@ -72,8 +72,9 @@ class Telemetry:
         orientation and velocity NaN, neither flag set and no dolphin followed; only the seconds since the session
         began."""
         nan = float("nan")
-        values = {name: (False if size == 0 else nan if size == 1 else (nan,) * size) for name, size in _SCHEMA}
-        return cls(**values | {"sim_time": float(sim_time), "pod_size": 1, "followed": -1})
+        measured = {name: (False if size == 0 else nan if size == 1 else (nan,) * size)
+                    for name, size in _SCHEMA if size != INTEGER}  # fmt: skip
+        return cls(**measured | {"sim_time": float(sim_time), "pod_size": 1, "followed": -1})
 
 
 def _integer(name: str, raw: Any) -> int:
