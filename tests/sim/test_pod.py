@@ -170,11 +170,26 @@ def test_the_crossing_split_puts_a_companion_between_the_rover_and_the_target_on
     single.close()
 
 
+def test_the_crossing_companion_hides_target_pixels_in_the_rendered_frame():
+    crossing, single = pod_world(4, crossing=True), pod_world(1)
+    first_crossing = round(PodParams().crossing_period_s / 4 / crossing.dt)
+    for world in (crossing, single):
+        world.reset(1)
+        for _ in range(first_crossing):
+            telemetry, _ = world.step((0, 0, 0, 0))
+    # The target's swim and the rover are the same in both worlds: only the companion in front can take its pixels.
+    assert telemetry.target_in_frustum and single.target_mask().sum() > 0
+    assert crossing.target_mask().sum() < single.target_mask().sum()
+    crossing.close()
+    single.close()
+
+
 def test_a_crossing_pod_replays_from_its_seed():
     first, second = pod_world(4, crossing=True), pod_world(4, crossing=True)
     for world in (first, second):
         world.reset(7)
     for _ in range(300):
+        second.prepare_step()  # the crossing follows the rover's place before the action, prepared or not
         (telemetry, frame), (again, frame_again) = first.step((0.1, 0, 0.3, 0.2)), second.step((0.1, 0, 0.3, 0.2))
         assert telemetry == again and np.array_equal(frame, frame_again)
     first.close()
