@@ -55,10 +55,9 @@ class RunFolder:
         self._steps.writerow(row)
 
     def _step_writer(self, pod: bool) -> csv.DictWriter:
-        """The step CSV's writer, its header written: a pod's run adds the identity columns to both CSVs."""
+        """The step CSV's writer, its header written: a pod's run adds the identity columns."""
         if pod:
             self._step_fields = (*self._step_fields, *IDENTITY_STEP_FIELDS)
-            self._episode_fields = (*self._episode_fields, *IDENTITY_ROW_FIELDS)
         writer = csv.DictWriter(self._steps_file, fieldnames=self._step_fields)
         writer.writeheader()
         return writer
@@ -74,7 +73,9 @@ class RunFolder:
         if self._steps is None:  # no step at all: the header still says what the columns are
             self._steps = self._step_writer(pod=False)
         self._steps_file.close()
-        episodes = pd.DataFrame(self.episodes, columns=list(self._episode_fields))
+        pod = self.episodes and all("identity_share" in row for row in self.episodes)
+        columns = (*self._episode_fields, *IDENTITY_ROW_FIELDS) if pod else self._episode_fields
+        episodes = pd.DataFrame(self.episodes, columns=list(columns))
         episodes.to_csv(self.path / "episodes.csv", index=False)
         summary_path = write_result(self.path / "summary.json", {"labels": summaries, PAPER_LABEL: PAPER_SAC, **record},
                                     about)  # fmt: skip

@@ -26,11 +26,12 @@ from eval_service.attach import NoEvalEnv, free_env_ids
 from eval_service.command import EvalCommandSettings
 from eval_service.engine import contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
+from eval_service.report import RunFolder
 from eval_service.sweep import SweepSettings
 from learner_service.export import SHIPPED_POLICY
 from learner_service.identity import policy_identity, stamp
 from learner_service.inprocess_env import TrackingEnv
-from learner_service.metrics import SMOOTHNESS_WEIGHTS
+from learner_service.metrics import SMOOTHNESS_WEIGHTS, EpisodeMetrics, summarise
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
@@ -398,6 +399,20 @@ def test_a_pod_evaluation_reports_identity_beside_table_12_and_a_lone_dolphins_d
     assert swimm(["eval", "--backend", "inprocess", "--obs", "state", "--algo", "scripted", "--episodes", "1",
                   "--steps", "20", "--out", str(lone), "--no-progress-bar", "--no-figures"]) == 0  # fmt: skip
     assert "followed" not in pd.read_csv(lone / "steps.csv") and "switches" not in pd.read_csv(lone / "episodes.csv")
+
+
+def test_a_pods_episodes_scored_without_steps_keep_their_identity_columns(tmp_path) -> None:
+    """As `swimm eval --recording` writes a run folder: episode rows only, no step CSV rows."""
+    metrics = EpisodeMetrics("train/0", 1)
+    for identity in ((0, False), (1, True), (0, False)):
+        metrics.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0, identity=identity)
+    folder = RunFolder(tmp_path / "offline")
+    folder.add_episode(metrics.row() | {"seed": None, "steps": metrics.steps})
+    folder.finish({"train/0": summarise([metrics])}, {}, {}, None)
+    episodes = pd.read_csv(tmp_path / "offline" / "episodes.csv")
+    assert tuple(episodes.columns[-len(IDENTITY_ROW_FIELDS) :]) == IDENTITY_ROW_FIELDS
+    assert episodes["identity_share"].tolist() == [1.0] and episodes["occlusions"].tolist() == [1]
+    assert pd.read_csv(tmp_path / "offline" / "steps.csv").columns[0] == "label"  # the header, with no rows
 
 
 def test_a_pod_is_the_in_process_worlds_a_live_sim_has_its_own(tmp_path) -> None:
