@@ -129,11 +129,13 @@ def score_offline(settings: EvalCommandSettings, out: Path) -> dict[str, dict[st
 
 
 def print_table(summaries: dict[str, dict[str, float]], out: Path) -> None:
-    """Table 12 on stdout (with E for the 3d task), one line per label and the paper's SAC last (it has no E)."""
+    """Table 12 on stdout (with E for the 3d task, the identity columns for a pod), one line per label and the paper's
+    SAC last (it has neither)."""
     width = max(len(label) for label in [*summaries, PAPER_LABEL]) + 2
     columns = table_columns(summaries.values())
-    print("".ljust(width) + "".join(name.rjust(11) for name in columns))
+    widths = [max(11, len(name) + 2) for name in columns]  # a pod's identity columns have longer names
+    print("".ljust(width) + "".join(name.rjust(w) for name, w in zip(columns, widths, strict=True)))
     for label, summary in [*summaries.items(), (PAPER_LABEL, PAPER_SAC)]:
-        print(label.ljust(width) + "".join(f"{summary[name]:11.3g}" if name in summary else "-".rjust(11)
-                                           for name in columns))  # fmt: skip
+        print(label.ljust(width) + "".join(f"{summary[name]:{w}.3g}" if name in summary else "-".rjust(w)
+                                           for name, w in zip(columns, widths, strict=True)))  # fmt: skip
     print(f"run folder: {out}")

@@ -35,13 +35,14 @@ from learner_service.evaluation import Contender, play_episodes
 from learner_service.export import SHIPPED_POLICY
 from learner_service.identity import encoder_for
 from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TaskName, TrackerGains
-from learner_service.metrics import summarise
+from learner_service.metrics import IDENTITY_COLUMNS, summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings, episode_seed
 from services.results import file_sha256, provenance
 from services.settings import ZenohSettings, to_dict
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
+from sim_service.settings import PodSettings
 
 log = logging.getLogger(__name__)
 S = TypeVar("S", bound="EvaluationSettings")
@@ -68,6 +69,8 @@ class EvaluationSettings:
     latency: LatencySettings = field(default_factory=LatencySettings)  # --latency-*: delays (default: the sim's own)
     scripted: TrackerGains = field(default_factory=TrackerGains)  # --scripted-*: the scripted trackers' control law
     backend: Backend = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
+    # --dolphin-pod-size, --dolphin-pod-crossing: the in-process world's pod (a live sim's is its own, same flags).
+    pod: PodSettings = field(default_factory=PodSettings, metadata={"stem": "dolphin_pod"})
     trajectory_episode: int = 1  # the episode drawn from above
     attach_timeout_s: float = 10.0  # how long to wait for a sim's eval env to answer
     step_timeout_s: float = 2.0
@@ -90,6 +93,9 @@ def check_evaluation(settings: EvaluationSettings) -> None:
             raise ValueError(f"--{name} {value}: must be >= 1")
     settings.latency.check()
     settings.scripted.check()
+    settings.pod.check()
+    if settings.backend == "zenoh" and settings.pod != PodSettings():
+        raise ValueError("--dolphin-pod-* build the in-process world's pod: start the live sim with them instead")
     task_settings(settings)  # validates obs and reward
 
 
@@ -198,6 +204,7 @@ def evaluation_env(settings: EvaluationSettings, render: bool = False) -> Iterat
     from learner_service.inprocess_env import TrackingEnv, task_world  # MuJoCo: not in the torch image
 
     world = task_world(task, render)
+    world.dolphin = dataclasses.replace(world.dolphin, pod_size=settings.pod.size, pod_crossing=settings.pod.crossing)
     encoder = shared_encoder(task, checkpoint=settings.encoder_checkpoint or None)
     env = TrackingEnv(task, world, base_seed=settings.seed, encoder=encoder)
     try:
@@ -333,8 +340,11 @@ def vertical_columns(settings: EvaluationSettings) -> tuple[str, ...]:
 
 
 def table_columns(summaries: Iterable[dict[str, float]]) -> tuple[str, ...]:
-    """Table 12's columns, and E when the summaries are the 3d task's."""
-    return TABLE_COLUMNS + VERTICAL_COLUMNS if all("E" in summary for summary in summaries) else TABLE_COLUMNS
+    """Table 12's columns, with E when the summaries are the 3d task's and the identity columns when a pod's."""
+    summaries = list(summaries)
+    vertical = VERTICAL_COLUMNS if all("E" in summary for summary in summaries) else ()
+    identity = IDENTITY_COLUMNS if all("identity_kept" in summary for summary in summaries) else ()
+    return TABLE_COLUMNS + vertical + identity
 
 
 def table_line(summary: dict[str, float]) -> str:

@@ -19,7 +19,7 @@ import zenoh
 from eval_service.live import LiveFeed
 from learner_service.evaluation import step_row
 from learner_service.learn_settings import RewardVersion, TaskName
-from learner_service.metrics import EpisodeMetrics
+from learner_service.metrics import EpisodeMetrics, pod_identity
 from learner_service.task import TrackingTask, frame_reward, policy_action
 from services.keys import CHANNELS, Keys, check_chunk
 from services.lifecycle import Owner
@@ -111,7 +111,7 @@ class EnvTap(Owner):
         info: dict[str, Any] = TrackingTask.info(msg.telemetry, self._task)
         reward = frame_reward(info, self._reward)
         smooth = self._episode.add(info["d"], info["theta"], msg.telemetry.target_in_frustum, msg.telemetry.collided,
-                                   action, reward, info.get("phi"))  # fmt: skip
+                                   action, reward, info.get("phi"), pod_identity(msg.telemetry))  # fmt: skip
         total = self._episode.total_reward
         row = step_row(self.source, msg.ep, UNKNOWN_SEED, msg.seq, action, reward, total, info, smooth)
         self.feed.update(self.source, row, msg.image)

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from learner_service.learn_settings import RewardVersion, TaskName
-from learner_service.metrics import EpisodeMetrics
+from learner_service.metrics import EpisodeMetrics, pod_identity
 from learner_service.task import TrackingTask, frame_reward, policy_action
 from services.keys import CHANNELS
 from services.messages import ActionMsg, BadMessage, ObservationMsg, batch_messages
@@ -75,7 +75,7 @@ def score_recording(
             info = TrackingTask.info(telemetry, task)
             action = policy_action(episode.actions[step], task)
             metrics.add(info["d"], info["theta"], telemetry.target_in_frustum, telemetry.collided, action,
-                        frame_reward(info, reward), info.get("phi"))  # fmt: skip
+                        frame_reward(info, reward), info.get("phi"), pod_identity(telemetry))  # fmt: skip
         rows.append(metrics.row() | {"seed": None, "steps": metrics.steps})
     if not rows:
         raise ValueError(f"{path} holds no scorable episode (no env's actions with the observations after them)")

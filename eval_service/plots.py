@@ -46,6 +46,7 @@ METRIC_MEANINGS = {
 EPISODE_COLUMNS = ("label", "episode", "return", *VIOLATION_FLAGS.values())
 STEP_COLUMNS = ("label", "episode", "step", "rover_x", "rover_y", "rover_yaw", "target_x", "target_y")
 DEPTH_COLUMNS = ("label", "episode", "step", "rover_z", "target_z", "elevation", "in_frustum")  # a 3d task's steps
+IDENTITY_STEP_COLUMNS = ("label", "episode", "step", "followed", "target_occluded")  # a pod's steps
 
 
 def plot_returns(episodes_df: pd.DataFrame, path: PathLike) -> Path:
@@ -71,6 +72,11 @@ def plot_trajectory(steps_df: pd.DataFrame, label: str, episode: int, path: Path
 def plot_depth(steps_df: pd.DataFrame, label: str, episode: int, path: PathLike) -> Path:
     """The 3d task's vertical view of one episode: depths of rover and dolphin, and the elevation against beta."""
     return save_figure(depth_figure(steps_df, label, episode), path)
+
+
+def plot_identity(steps_df: pd.DataFrame, label: str, episode: int, path: PathLike) -> Path:
+    """A pod's episode: which dolphin the rover follows, the steps a companion hides the target shaded."""
+    return save_figure(identity_figure(steps_df, label, episode), path)
 
 
 def returns_figure(episodes_df: pd.DataFrame) -> Figure:
@@ -188,6 +194,26 @@ def depth_figure(steps_df: pd.DataFrame, label: str, episode: int) -> Figure:
     for ax in (depth, elevation):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def identity_figure(steps_df: pd.DataFrame, label: str, episode: int) -> Figure:
+    """The followed dolphin step by step (none, the target, companion 1 on), the target's occluded steps shaded."""
+    require_columns(steps_df, IDENTITY_STEP_COLUMNS, "pod's per-step table")
+    rows = _episode_rows(steps_df, label, episode)
+    occluded = _flags(rows["target_occluded"])
+    top = max(int(rows["followed"].max()), 1)
+    fig = Figure(figsize=(8, 3.5))
+    ax = fig.subplots()
+    ax.fill_between(rows["step"], -1.5, top + 0.5, where=occluded.to_numpy(), step="mid", color="tab:gray", alpha=0.3,
+                    label=f"target occluded ({int(occluded.sum())} steps)")  # fmt: skip
+    ax.step(rows["step"], rows["followed"], where="mid", color="black", linewidth=1.0, label="followed")
+    ax.set_yticks(range(-1, top + 1), ["none", "target", *(f"companion {i}" for i in range(1, top + 1))])
+    ax.set_ylim(-1.5, top + 0.5)
+    ax.set_xlabel("step")
+    ax.set_title(f"{label}, episode {episode}: the dolphin nearest the image centre ({len(rows)} steps)")
+    ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()
     return fig
 

@@ -3,12 +3,14 @@
 <out>/steps.csv       one row per step (evaluator.STEP_FIELDS), written as the steps happen
 <out>/episodes.csv    one row per episode (metrics.SUMMARY_ROW_FIELDS + seed, steps)
 
-A 3d task's run folder (``vertical``) adds the elevation columns to both CSVs (VERTICAL_STEP_FIELDS, E).
+A 3d task's run folder (``vertical``) adds the elevation columns to both CSVs (VERTICAL_STEP_FIELDS, E); a pod's
+adds the identity columns (IDENTITY_STEP_FIELDS, services.identity.IDENTITY_ROW_FIELDS), seen in its rows.
 <out>/summary.json    Table 12 per label, the paper's SAC beside it, and how the run was made
 <out>/returns.png     return per episode, violations marked by cause (the paper's Figures 13-14)
 <out>/metrics.png     metrics per label beside the paper's SAC (Figure 16)
 <out>/trajectory-<label>.png  rover and dolphin from above in the chosen episode, one per label
 <out>/depth-<label>.png       the 3d task's: depths and elevation in the chosen episode, one per label
+<out>/identity-<label>.png    a pod's: the dolphin followed in the chosen episode, occluded steps shaded, per label
 """
 
 from __future__ import annotations
@@ -21,8 +23,9 @@ from typing import Any
 import pandas as pd
 
 from eval_service import plots
-from learner_service.evaluation import STEP_FIELDS, VERTICAL_STEP_FIELDS
+from learner_service.evaluation import IDENTITY_STEP_FIELDS, STEP_FIELDS, VERTICAL_STEP_FIELDS
 from learner_service.metrics import SUMMARY_ROW_FIELDS, VERTICAL_ROW_FIELDS
+from services.identity import IDENTITY_ROW_FIELDS
 from services.results import write_result
 
 log = logging.getLogger(__name__)
@@ -43,12 +46,21 @@ class RunFolder:
         self._steps_file = (self.path / "steps.csv").open("w", newline="")
         self._step_fields = (*STEP_FIELDS, *VERTICAL_STEP_FIELDS) if vertical else STEP_FIELDS
         self._episode_fields = (*EPISODE_FIELDS, *VERTICAL_ROW_FIELDS) if vertical else EPISODE_FIELDS
-        self._steps = csv.DictWriter(self._steps_file, fieldnames=self._step_fields)
-        self._steps.writeheader()
+        self._steps: csv.DictWriter | None = None  # its header waits for the first row: a pod's has more columns
         self.episodes: list[dict[str, Any]] = []
 
     def write_step(self, row: dict[str, Any]) -> None:
+        if self._steps is None:
+            self._steps = self._step_writer(pod="followed" in row)
         self._steps.writerow(row)
+
+    def _step_writer(self, pod: bool) -> csv.DictWriter:
+        """The step CSV's writer, its header written: a pod's run adds the identity columns."""
+        if pod:
+            self._step_fields = (*self._step_fields, *IDENTITY_STEP_FIELDS)
+        writer = csv.DictWriter(self._steps_file, fieldnames=self._step_fields)
+        writer.writeheader()
+        return writer
 
     def add_episode(self, row: dict[str, Any]) -> None:
         self.episodes.append(row)
@@ -58,8 +70,12 @@ class RunFolder:
                trajectory_episode: int | None = 1) -> Path:  # fmt: skip
         """Close the step CSV, write episodes.csv, summary.json (``record`` with its provenance ``about``) and the
         figures (the trajectory of episode ``trajectory_episode``; None: no figures); returns summary.json's path."""
+        if self._steps is None:  # no step at all: the header still says what the columns are
+            self._steps = self._step_writer(pod=False)
         self._steps_file.close()
-        episodes = pd.DataFrame(self.episodes, columns=list(self._episode_fields))
+        pod = self.episodes and all("identity_share" in row for row in self.episodes)
+        columns = (*self._episode_fields, *IDENTITY_ROW_FIELDS) if pod else self._episode_fields
+        episodes = pd.DataFrame(self.episodes, columns=list(columns))
         episodes.to_csv(self.path / "episodes.csv", index=False)
         summary_path = write_result(self.path / "summary.json", {"labels": summaries, PAPER_LABEL: PAPER_SAC, **record},
                                     about)  # fmt: skip
@@ -77,6 +93,8 @@ class RunFolder:
             plots.plot_trajectory(steps, label, episode, self.path / f"trajectory-{_file_safe(label)}.png")
             if "elevation" in self._step_fields:
                 plots.plot_depth(steps, label, episode, self.path / f"depth-{_file_safe(label)}.png")
+            if "followed" in self._step_fields:
+                plots.plot_identity(steps, label, episode, self.path / f"identity-{_file_safe(label)}.png")
 
 
 def _file_safe(label: str) -> str:

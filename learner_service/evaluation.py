@@ -20,7 +20,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from learner_service.metrics import EpisodeMetrics, elevation_error
+from learner_service.metrics import EpisodeMetrics, elevation_error, pod_identity
 from learner_service.registry import Policy
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D
 
@@ -35,6 +35,9 @@ STEP_FIELDS = (
 #: What a 3d task's step rows add: the signed elevation and unsigned error (degrees), the step's term of E, and the
 #: heave command with its smoothness.
 VERTICAL_STEP_FIELDS = ("elevation", "phi", "E", "heave", "S_H")
+#: What a pod's step rows add: the dolphin the rover follows (0 the target, -1 none) and whether the target is hidden
+#: by a companion (services/identity.py).
+IDENTITY_STEP_FIELDS = ("followed", "target_occluded")
 
 StepSink = Callable[[dict[str, Any]], None]
 
@@ -62,7 +65,8 @@ def step_row(
     """One CSV row: the step's action, reward, geometry, per-step metric terms (``smooth`` by name) and both poses.
 
     Yaws are the headings of the bodies' forward vectors in the horizontal plane (degrees, counter-clockwise
-    from +x), which is what the top-down trajectory plot draws. A 3d task's rows add VERTICAL_STEP_FIELDS.
+    from +x), which is what the top-down trajectory plot draws. A 3d task's rows add VERTICAL_STEP_FIELDS, a pod's
+    IDENTITY_STEP_FIELDS.
     """
     telemetry = info["telemetry"]
     rover_yaw = math.degrees(math.atan2(telemetry.rover_forward[1], telemetry.rover_forward[0]))
@@ -85,6 +89,8 @@ def step_row(
         row |= {"elevation": float(info["elevation"]), "phi": float(info["phi"]), "E": elevation_error(info["phi"])}
     if "S_H" in smooth:
         row |= {"heave": float(action[1]), "S_H": smooth["S_H"]}
+    if telemetry.pod_size > 1:
+        row |= {"followed": telemetry.followed, "target_occluded": telemetry.target_occluded}
     return row
 
 
@@ -119,7 +125,7 @@ def play_episodes(
             obs, reward, terminated, truncated, info = env.step(action)
             telemetry = info["telemetry"]
             smooth = metrics.add(info["d"], info["theta"], telemetry.target_in_frustum, telemetry.collided, action,
-                                 float(reward), info.get("phi"))  # fmt: skip
+                                 float(reward), info.get("phi"), pod_identity(telemetry))  # fmt: skip
             if on_step is not None:
                 on_step(step_row(label, episode, episode_seed, metrics.steps, action, float(reward),
                                  metrics.total_reward, info, smooth))  # fmt: skip

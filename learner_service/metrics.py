@@ -1,5 +1,9 @@
 """Behaviour metrics of evaluation episodes: the paper's Table 12 (A, D, A', D', C', S_D, S_A) and returns.
 
+A pod (telemetry ``pod_size`` > 1) adds the identity metrics of services/identity.py: per episode the share of
+unoccluded steps the rover follows the target, whether that keeps identity, switches, occlusions and the steps to
+re-acquire the target after one; the summary the share of episodes that kept identity and the means of the rest.
+
 The 3d task adds E, the mean elevation error normalised as A is (by beta, half the vertical field of view), and
 S_H, the heave command's smoothness computed as S_D and S_A are; its D is measured on the 3d distance. Planar
 episodes have neither, so their rows and summaries are the paper's.
@@ -31,6 +35,8 @@ import numpy as np
 
 from learner_service.task import NO_CAUSE, violation_cause
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
+from services.identity import IDENTITY_ROW_FIELDS, episode_identity
+from services.telemetry import Telemetry
 
 #: Smoothness weights, W[0] for the most recent previous action (the SPEC's W_1).
 SMOOTHNESS_WEIGHTS = np.array([0.25, 0.20, 0.15, 0.10, 0.08, 0.06, 0.05, 0.04, 0.04, 0.03])
@@ -51,6 +57,8 @@ SUMMARY_ROW_FIELDS = (
 )
 #: What a 3d task's summary row adds to SUMMARY_ROW_FIELDS.
 VERTICAL_ROW_FIELDS = ("E", "S_H")
+#: What a pod's summary adds to Table 12: the share of episodes that kept identity, then per-episode means.
+IDENTITY_COLUMNS = ("identity_kept", "identity_share", "switches", "reacquire_steps")
 
 
 def smoothness(history: Sequence[Sequence[float]], action: Sequence[float]) -> np.ndarray:
@@ -75,6 +83,11 @@ def named_smoothness(values: np.ndarray) -> dict[str, float]:
     return named
 
 
+def pod_identity(telemetry: Telemetry) -> tuple[int, bool] | None:
+    """A pod's step for the identity metrics (who is followed, whether the target is occluded); None alone."""
+    return (telemetry.followed, telemetry.target_occluded) if telemetry.pod_size > 1 else None
+
+
 def elevation_error(phi: float) -> float:
     """One step's term of E: the unsigned elevation error over beta, capped at 1 like A's."""
     return min(abs(phi), BETA_DEG) / BETA_DEG
@@ -97,6 +110,8 @@ class EpisodeMetrics:
         self._elevation_error_sum: float | None = None  # stays None in planar episodes, which have no E
         self._smoothness_sum: np.ndarray | float = 0.0  # per action component once the first step is in
         self._history: deque[np.ndarray] = deque(maxlen=len(SMOOTHNESS_WEIGHTS))
+        self._followed: list[int] = []  # a pod's steps only (a lone dolphin has no identity to keep)
+        self._occluded: list[bool] = []
 
     def add(
         self,
@@ -107,11 +122,16 @@ class EpisodeMetrics:
         action: Sequence[float],
         reward: float,
         phi: float | None = None,
+        identity: tuple[int, bool] | None = None,
     ) -> dict[str, float]:
         """Record one step (``theta`` unsigned, degrees; ``action`` the task's); returns its smoothness by name.
 
-        ``phi`` is the 3d task's unsigned elevation error in degrees (None in the planar task).
+        ``phi`` is the 3d task's unsigned elevation error in degrees (None in the planar task); ``identity`` a pod's
+        (followed dolphin, target occluded), from :func:`pod_identity` (None for a lone dolphin).
         """
+        if identity is not None:
+            self._followed.append(identity[0])
+            self._occluded.append(identity[1])
         act = np.asarray(action, dtype=np.float64)
         step_smoothness = smoothness(self._history, act)
         self._history.append(act)
@@ -151,6 +171,8 @@ class EpisodeMetrics:
             row["E"] = self._elevation_error_sum / self.steps
         if "S_H" in smooth:
             row["S_H"] = smooth["S_H"]
+        if self._followed:
+            row |= episode_identity(self._followed, self._occluded)
         return row
 
 
@@ -184,4 +206,17 @@ def summarise(episodes: Iterable[Mapping[str, Any] | EpisodeMetrics]) -> dict[st
     for name in VERTICAL_ROW_FIELDS:
         if all(name in row for row in rows):
             summary[name] = float(column(name).mean())
+    if all(name in row for row in rows for name in IDENTITY_ROW_FIELDS):
+        summary |= _identity_summary(column)
     return summary
+
+
+def _identity_summary(column) -> dict[str, float]:
+    """A pod's identity columns over episodes; an episode's NaN (nothing to measure) is left out of its mean."""
+
+    def mean(name: str) -> float:
+        values = column(name)
+        values = values[~np.isnan(values)]
+        return float(values.mean()) if values.size else float("nan")
+
+    return {name: mean(name) for name in IDENTITY_COLUMNS}

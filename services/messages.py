@@ -27,7 +27,8 @@ M = TypeVar("M")
 #: 2: every step message is a BatchMsg of N items (a single env is a group of one), on the keys of the group it
 #: steps; ErrorMsg and the err key are gone, a refusal travelling as its env's error item (docs/architecture.md).
 #: 3: an item carries its message's fields as a map, not the message encoded on its own (one msgpack pass).
-PROTOCOL_VERSION = 3
+#: 4: telemetry carries a pod's identity ground truth (pod_size, followed, target_occluded; services/identity.py).
+PROTOCOL_VERSION = 4
 #: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)

@@ -32,6 +32,10 @@ class Telemetry:
     target_in_frustum: bool  # target's bounding volume wholly inside the camera frustum
     collided: bool  # rover and target bodies in contact this step
     sim_time: float  # seconds since reset
+    # A pod's identity ground truth (services/identity.py); a single dolphin's are its own: followed when in view.
+    pod_size: int = 1  # dolphins in the world, the target included
+    followed: int = 0  # the dolphin in view nearest the image centre: 0 the target, 1 on companions, -1 none
+    target_occluded: bool = False  # a companion between the camera and the target hides it
 
     def __deepcopy__(self, memo: dict) -> Telemetry:
         """Immutable (frozen, tuples of floats): a copy is the object itself. SB3's VecEnvs deep-copy infos
@@ -52,6 +56,8 @@ class Telemetry:
             raw = data[name]
             if size == 0:
                 values[name] = raw if type(raw) is bool else bool(raw)
+            elif size == INTEGER:
+                values[name] = _integer(name, raw)
             elif size == 1:
                 values[name] = float(raw)
             elif isinstance(raw, (list, tuple)) and len(raw) == size:
@@ -63,13 +69,22 @@ class Telemetry:
     @classmethod
     def unknown(cls, sim_time: float) -> Telemetry:
         """What a real camera's frame carries (`swimm pilot --publish`): no ground truth, so every position,
-        orientation and velocity NaN and neither flag set; only the seconds since the session began."""
+        orientation and velocity NaN, neither flag set and no dolphin followed; only the seconds since the session
+        began."""
         nan = float("nan")
-        values = {name: (False if size == 0 else nan if size == 1 else (nan,) * size) for name, size in _SCHEMA}
-        return cls(**values | {"sim_time": float(sim_time)})
+        measured = {name: (False if size == 0 else nan if size == 1 else (nan,) * size)
+                    for name, size in _SCHEMA if size != INTEGER}  # fmt: skip
+        return cls(**measured | {"sim_time": float(sim_time), "pod_size": 1, "followed": -1})
 
 
-#: (field name, how many numbers: 0 a bool, 1 a float, 3 a vector, 4 a quaternion), worked out once: looking the
-#: dataclass fields up on every message cost more than decoding them.
-_SIZES = {"bool": 0, "float": 1, "Vec3": 3, "Quat": 4}
+def _integer(name: str, raw: Any) -> int:
+    if type(raw) is not int:
+        raise ValueError(f"telemetry field {name!r} must be an integer")
+    return raw
+
+
+#: (field name, how many numbers: 0 a bool, 1 a float, 3 a vector, 4 a quaternion, INTEGER an int), worked out
+#: once: looking the dataclass fields up on every message cost more than decoding them.
+INTEGER = -1
+_SIZES = {"bool": 0, "int": INTEGER, "float": 1, "Vec3": 3, "Quat": 4}
 _SCHEMA = tuple((f.name, _SIZES[f.type]) for f in fields(Telemetry))

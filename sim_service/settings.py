@@ -15,18 +15,37 @@ MOTIONS: tuple[str, ...] = typing.get_args(Motion)
 MAX_POD_SIZE = 6  # the most dolphins a world holds: the target and its companions
 
 
+def check_pod(size: int, crossing: bool) -> None:
+    """Refuse a pod outside 1 to MAX_POD_SIZE, or a crossing with no companion to cross, naming the flags."""
+    if not 1 <= size <= MAX_POD_SIZE:
+        raise ValueError(f"--dolphin-pod-size must be 1 to {MAX_POD_SIZE}, got {size}")
+    if crossing and size < 2:
+        raise ValueError(f"--dolphin-pod-crossing needs a companion to cross: --dolphin-pod-size {size} has none")
+
+
+@dataclass
+class PodSettings:
+    """A pod for a world built from a task (the in-process evaluation), under the sim's flags: --dolphin-pod-*."""
+
+    size: int = 1  # dolphins in the world, the target included
+    crossing: bool = False  # the crossing split
+
+    def check(self) -> None:
+        check_pod(self.size, self.crossing)
+
+
 @dataclass
 class DolphinSettings:
     """How the dolphin swims; simple field types so `services.settings` turns them into ``--dolphin-*`` flags."""
 
     motion: Motion = "planar"  # planar: the paper's, at one depth; 3d: climbs, dives and surfacing in a depth band
     pod_size: int = 1  # dolphins in the world: the target and pod_size - 1 companions swimming beside it
+    pod_crossing: bool = False  # the crossing split: one companion crosses between the rover and the target every 10 s
 
     def check(self) -> None:
         if self.motion not in MOTIONS:
             raise ValueError(f"unknown dolphin motion {self.motion!r}; choose one of {', '.join(MOTIONS)}")
-        if not 1 <= self.pod_size <= MAX_POD_SIZE:
-            raise ValueError(f"--dolphin-pod-size must be 1 to {MAX_POD_SIZE}, got {self.pod_size}")
+        check_pod(self.pod_size, self.pod_crossing)
 
 
 @dataclass

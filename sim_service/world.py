@@ -16,7 +16,9 @@ The scenery (sim_service/scenery.py: seabed, light, particles, fish, the
 dolphin's look) draws from another child, so it never changes them either.
 
 A pod's companions draw from a child of their own, spawned only when there are any, so a pod of one is the
-single-dolphin world bit for bit and a bigger pod never changes the target's swim or the rover's draws.
+single-dolphin world bit for bit and a bigger pod never changes the target's swim or the rover's draws. Every
+step's telemetry says which dolphin is nearest the image centre and whether a companion hides the target
+(services/identity.py).
 
 The dolphin's next move does not depend on the rover's action, so a server can
 work it out while it waits for that action (:meth:`World.prepare_step`) and
@@ -42,6 +44,7 @@ import mujoco
 import numpy as np
 
 from services.geometry import ALPHA_DEG
+from services.identity import NONE, TARGET, followed_dolphin, in_view, target_occluded
 from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.camera import CameraFrustum
@@ -106,7 +109,7 @@ class World:
         self.data = mujoco.MjData(self.model)
         self.rover = RoverDynamics()
         self.dolphin = DolphinBehaviour(motion=self.settings.dolphin.motion)
-        self.pod = Pod(self.settings.dolphin.pod_size)
+        self.pod = Pod(self.settings.dolphin.pod_size, crossing=self.settings.dolphin.pod_crossing)
         self._pod_looks = PodLooks(self.model, companions)
         self.rng = np.random.default_rng(0)
         self._rover_body = self.model.body("rover").id
@@ -239,7 +242,7 @@ class World:
         scene_rng = _child(noise_rng) if noise_rng is not None else self._spawn_rng()
         self.scenery.apply(draw_episode_scene(self._configured_scene, scene_rng), self.data.qpos[:3], rover_yaw)
         if self.pod.size > 1:  # one dolphin spawns nothing, so its episodes stay as they were
-            self._reset_pod()
+            self._reset_pod(np.asarray(rover_pos, float))
         dolphin = self._dolphin_pose()
         self._pose_dolphin(dolphin)
         mujoco.mj_forward(self.model, self.data)
@@ -337,12 +340,17 @@ class World:
     def _swim(self) -> DolphinPose:
         """The dolphin's move for the next step: the half of a step that does not depend on the action."""
         self.dolphin.step(self.dt, self.rng, self.data.xpos[self._rover_body])
-        self.pod.step(self.dt, self.dolphin)
+        self.pod.step(self.dt, self.dolphin, self.data.xpos[self._rover_body])
         return self._dolphin_pose()
 
-    def _reset_pod(self) -> None:
-        """Draw the companions from a generator of their own, and dress each in its size and shade."""
-        self.pod.reset(self._spawn_rng())
+    def _reset_pod(self, rover_position: np.ndarray) -> None:
+        """Draw the companions from a generator of their own, none nearer the camera's axis than the target (the
+        first frame names the target), and dress each in its size and shade."""
+        mujoco.mj_kinematics(self.model, self.data)  # the camera's pose at the rover's new place
+        mujoco.mj_camlight(self.model, self.data)
+        target_left = self._in_camera(self.dolphin.state.position[None])[0, 1] >= 0
+        self.pod.reset(self._spawn_rng(), self.dolphin, rover_position, crossing_side=1.0 if target_left else -1.0)
+        self.pod.centre_target(self.dolphin, self._in_camera)
         for index, companion in enumerate(self.pod.companions, start=1):
             self._pod_looks.dress(index, companion.scale, companion.shade)
 
@@ -378,6 +386,24 @@ class World:
             self.data.mocap_pos[mocap] = position if scale == 1.0 else body + scale * (position - body)
             self.data.mocap_quat[mocap] = quat
 
+    def _in_camera(self, positions: np.ndarray) -> np.ndarray:
+        """World positions (N, 3) in the camera's (forward, left, up) frame; MuJoCo's camera looks along its -z."""
+        local = (positions - self.data.cam_xpos[self._camera]) @ self.data.cam_xmat[self._camera].reshape(3, 3)
+        return np.stack([-local[:, 2], -local[:, 0], local[:, 1]], axis=1)
+
+    def _identity(self, dolphin: DolphinPose) -> dict[str, Any]:
+        """The telemetry's pod fields: who the camera is centred on, and whether a companion hides the target."""
+        bodies = np.array([dolphin.mocap[0][0], *(parts[0][0] for parts in dolphin.companions)])
+        points = self._in_camera(bodies)
+        if self.pod.size == 1:  # the cheap answer a lone dolphin allows
+            followed = TARGET if in_view(points)[0] else NONE
+            return {"pod_size": 1, "followed": followed, "target_occluded": False}
+        return {
+            "pod_size": self.pod.size,
+            "followed": followed_dolphin(points),
+            "target_occluded": target_occluded(points),
+        }
+
     def _rover_ang_vel(self) -> np.ndarray:
         velocity = np.zeros(6)
         mujoco.mj_objectVelocity(self.model, self.data, mujoco.mjtObj.mjOBJ_BODY, self._rover_body, velocity, 0)
@@ -409,6 +435,7 @@ class World:
             target_in_frustum=bool(in_view),
             collided=self._collided(),
             sim_time=float(d.time),
+            **self._identity(dolphin),
         )
 
     def _render(self) -> np.ndarray | None:

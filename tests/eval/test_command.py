@@ -26,19 +26,22 @@ from eval_service.attach import NoEvalEnv, free_env_ids
 from eval_service.command import EvalCommandSettings
 from eval_service.engine import contenders, evaluate
 from eval_service.live import LiveFeed, LiveView, tap_frames
+from eval_service.report import RunFolder
 from eval_service.sweep import SweepSettings
 from learner_service.export import SHIPPED_POLICY
 from learner_service.identity import policy_identity, stamp
 from learner_service.inprocess_env import TrackingEnv
-from learner_service.metrics import SMOOTHNESS_WEIGHTS
+from learner_service.metrics import SMOOTHNESS_WEIGHTS, EpisodeMetrics, summarise
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
+from services.identity import IDENTITY_ROW_FIELDS, episode_identity
 from services.messages import InfoReply
 from services.settings import ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
-from sim_service.settings import WorldSettings
+from sim_service.pod import PodParams
+from sim_service.settings import PodSettings, WorldSettings
 from swimm.cli import main as swimm
 
 STEPS = 60
@@ -375,6 +378,48 @@ def test_eval_latency_flags_reach_the_world_and_default_to_leaving_it(tmp_path) 
         "noise": {"preset": "murky"},
         "latency": {"observation_delay": 4, "action_delay": 0, "control_period": 1, "randomise": False},
     }
+
+
+def test_a_pod_evaluation_reports_identity_beside_table_12_and_a_lone_dolphins_does_not(tmp_path, capsys) -> None:
+    out = tmp_path / "pod"
+    crossing_step = round(PodParams().crossing_period_s / 4 / WorldSettings().physics_dt)
+    code = swimm(["eval", "--backend", "inprocess", "--obs", "state", "--algo", "scripted", "--episodes", "1",
+                  "--steps", str(crossing_step + 20), "--dolphin-pod-size", "4", "--dolphin-pod-crossing",
+                  "--out", str(out), "--no-progress-bar", "--no-figures"])  # fmt: skip
+    assert code == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    assert header.split()[-4:] == ["identity_kept", "identity_share", "switches", "reacquire_steps"]
+    steps, episode = pd.read_csv(out / "steps.csv"), pd.read_csv(out / "episodes.csv").iloc[0]
+    assert steps["target_occluded"].iloc[crossing_step - 1]  # the crossing companion is in front of the target
+    recomputed = episode_identity(steps["followed"].tolist(), steps["target_occluded"].tolist())
+    assert {name: episode[name] for name in IDENTITY_ROW_FIELDS} == pytest.approx(recomputed, nan_ok=True)
+    summary = json.loads((out / "summary.json").read_text())["labels"]["scripted"]
+    assert summary["identity_kept"] == float(recomputed["identity_kept"])
+    lone = tmp_path / "lone"
+    assert swimm(["eval", "--backend", "inprocess", "--obs", "state", "--algo", "scripted", "--episodes", "1",
+                  "--steps", "20", "--out", str(lone), "--no-progress-bar", "--no-figures"]) == 0  # fmt: skip
+    assert "followed" not in pd.read_csv(lone / "steps.csv") and "switches" not in pd.read_csv(lone / "episodes.csv")
+
+
+def test_a_pods_episodes_scored_without_steps_keep_their_identity_columns(tmp_path) -> None:
+    """As `swimm eval --recording` writes a run folder: episode rows only, no step CSV rows."""
+    metrics = EpisodeMetrics("train/0", 1)
+    for identity in ((0, False), (1, True), (0, False)):
+        metrics.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0, identity=identity)
+    folder = RunFolder(tmp_path / "offline")
+    folder.add_episode(metrics.row() | {"seed": None, "steps": metrics.steps})
+    folder.finish({"train/0": summarise([metrics])}, {}, {}, None)
+    episodes = pd.read_csv(tmp_path / "offline" / "episodes.csv")
+    assert tuple(episodes.columns[-len(IDENTITY_ROW_FIELDS) :]) == IDENTITY_ROW_FIELDS
+    assert episodes["identity_share"].tolist() == [1.0] and episodes["occlusions"].tolist() == [1]
+    assert pd.read_csv(tmp_path / "offline" / "steps.csv").columns[0] == "label"  # the header, with no rows
+
+
+def test_a_pod_is_the_in_process_worlds_a_live_sim_has_its_own(tmp_path) -> None:
+    with pytest.raises(ValueError, match="--dolphin-pod-\\* build the in-process world's pod: start the live sim"):
+        command.check(settings(tmp_path, backend="zenoh", pod=PodSettings(size=4)))
+    with pytest.raises(ValueError, match="--dolphin-pod-crossing needs a companion to cross"):
+        command.check(settings(tmp_path, pod=PodSettings(crossing=True)))
 
 
 @pytest.mark.parametrize(

@@ -188,6 +188,21 @@ def test_depth_figure_draws_both_depths_and_the_elevation_against_beta(tmp_path)
         plots.depth_figure(_steps(), "sac", 2)
 
 
+def test_identity_figure_steps_through_the_followed_dolphin_and_shades_the_occluded_steps(tmp_path):
+    followed = np.where(np.arange(250) < 100, 0, np.where(np.arange(250) < 120, 2, 0))  # companion 2 at 100-119
+    steps = _steps().assign(followed=-1, target_occluded=False)
+    steps.loc[steps["episode"] == 2, "followed"] = followed[steps.loc[steps["episode"] == 2, "step"]]
+    steps.loc[steps["episode"] == 2, "target_occluded"] = steps["step"].between(100, 119)
+    (ax,) = plots.identity_figure(steps, "sac", 2).axes
+    (line,) = ax.get_lines()
+    np.testing.assert_array_equal(line.get_ydata(), followed)  # sorted by step, the other episode left out
+    assert [tick.get_text() for tick in ax.get_yticklabels()] == ["none", "target", "companion 1", "companion 2"]
+    assert ax.get_legend_handles_labels()[1] == ["target occluded (20 steps)", "followed"]
+    _assert_png(plots.plot_identity(steps, "sac", 2, tmp_path / "identity.png"), 800, 350)
+    with pytest.raises(ValueError, match="followed"):
+        plots.identity_figure(_steps(), "sac", 2)
+
+
 def test_trajectory_of_unknown_episode_raises():
     with pytest.raises(ValueError, match="no steps"):
         plots.trajectory_figure(_steps(), "sac", 7)

@@ -27,6 +27,9 @@ from learner_service.task import TaskSettings
 from services.control import survey
 from services.geometry import ALPHA_DEG, relative_geometry
 from services.keys import Keys
+from sim_service.pod import PodParams
+from sim_service.settings import WorldSettings
+from swimm.cli import main as swimm
 from tests.integration.conftest import start_sim
 
 pytestmark = pytest.mark.slow
@@ -34,6 +37,7 @@ pytestmark = pytest.mark.slow
 SEED = 97
 TRAIN_STEPS = 250
 EVAL_STEPS = 200
+CROSSING_STEP = round(PodParams().crossing_period_s / 4 / WorldSettings().physics_dt)  # the crossing split's first
 TASK = TaskSettings(obs="state", max_steps=100)  # short episodes: the passes cross resets and early endings too
 
 
@@ -110,6 +114,27 @@ def test_eval_attaches_beside_training_without_changing_it(
     assert kinds["summary"]["mean_return"] == pytest.approx(scripted["mean_return"])
     (eval_env,) = [info for info in survey(session, Keys(namespace).ctl("eval", "*")) if info.env == "0"]
     assert eval_env.holder is None and eval_env.seq == EVAL_STEPS  # it released the env when done
+
+
+def test_a_pod_sims_identity_ground_truth_reaches_eval_as_in_process(group, zenoh_router, namespace, tmp_path) -> None:
+    """A live sim's pod (--dolphin-pod-*) and the in-process world's give `swimm eval` the same identity columns."""
+    pod = ["--dolphin-pod-size", "4", "--dolphin-pod-crossing"]
+    start_sim(group, zenoh_router, namespace, *pod)
+    steps = ["--steps", str(CROSSING_STEP + 20)]
+    live, inprocess = tmp_path / "live", tmp_path / "inprocess"
+    evaluator = group.start("eval", "eval", *eval_args(zenoh_router, namespace, live), *steps)
+    assert evaluator.process.wait(timeout=120) == 0, evaluator.log_tail()
+    assert (
+        swimm(["eval", *eval_args(zenoh_router, namespace, inprocess)[4:], *steps, "--backend", "inprocess", *pod]) == 0
+    )
+    live_steps, inprocess_steps = pd.read_csv(live / "steps.csv"), pd.read_csv(inprocess / "steps.csv")
+    identity = ["followed", "target_occluded"]
+    assert live_steps[identity].equals(inprocess_steps[identity]) and live_steps["target_occluded"].any()
+    assert (
+        pd.read_csv(live / "episodes.csv")
+        .drop(columns="label")
+        .equals(pd.read_csv(inprocess / "episodes.csv").drop(columns="label"))
+    )
 
 
 def test_eval_says_who_holds_the_only_eval_env(group, zenoh_router, namespace, zenoh_settings, tmp_path) -> None:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from learner_service.metrics import (
+    IDENTITY_COLUMNS,
     SUMMARY_ROW_FIELDS,
     VERTICAL_ROW_FIELDS,
     EpisodeMetrics,
@@ -13,6 +14,7 @@ from learner_service.metrics import (
     summarise,
 )
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
+from services.identity import IDENTITY_ROW_FIELDS
 
 
 def test_the_papers_worked_example_with_surge_first() -> None:
@@ -182,3 +184,26 @@ def test_boundaries_of_the_violation_flags_and_the_azimuth_cap() -> None:
     row = just_inside.row()
     assert row["distance_exceeded"] is False and row["first_cause"] == ""
     assert row["A"] == pytest.approx(1.0)  # a negative azimuth error counts by its size, capped
+
+
+def test_a_pods_steps_add_identity_to_the_row_and_its_episodes_to_the_summary() -> None:
+    metrics = EpisodeMetrics(label="sac", episode=1)
+    # (followed, target occluded): unoccluded steps 0, 2, 3 follow 0, 0, 2: 2 of 3 on the target, one switch; the
+    # occlusion at step 1 is over at step 2, where the target is followed at once.
+    for identity in ((0, False), (1, True), (0, False), (2, False)):
+        metrics.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0, identity=identity)
+    row = metrics.row()
+    assert tuple(row) == SUMMARY_ROW_FIELDS + IDENTITY_ROW_FIELDS
+    assert row["identity_share"] == pytest.approx(2 / 3) and row["identity_kept"] is False
+    assert (row["switches"], row["occlusions"], row["reacquire_steps"], row["unrecovered"]) == (1, 1, 0.0, 0)
+    kept = row | {"identity_share": 1.0, "identity_kept": True, "switches": 0, "reacquire_steps": float("nan")}
+    lost = row | {"identity_share": 0.5, "identity_kept": False, "switches": 3, "reacquire_steps": 4.0}
+    summary = summarise([kept, lost])
+    # one episode of two kept identity; the NaN of an episode with nothing to re-acquire is left out of the mean
+    assert {name: summary[name] for name in IDENTITY_COLUMNS} == {
+        "identity_kept": 0.5, "identity_share": 0.75, "switches": 1.5, "reacquire_steps": 4.0,
+    }  # fmt: skip
+
+    lone = EpisodeMetrics(label="sac", episode=1)  # a lone dolphin's steps carry no identity to keep
+    lone.add(6.0, 0.0, True, False, (0.0, 0.0), 1.0)
+    assert tuple(lone.row()) == SUMMARY_ROW_FIELDS and not set(IDENTITY_COLUMNS) & set(summarise([lone]))

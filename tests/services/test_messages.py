@@ -3,6 +3,7 @@ its reason."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import msgpack
@@ -279,6 +280,15 @@ def test_observation_with_malformed_telemetry_is_refused():
     bad_quat = {**TELEMETRY.to_dict(), "rover_quat": [1.0, 0.0, 0.0]}
     with pytest.raises(BadMessage, match="'rover_quat' must have 4 numbers"):
         ObservationMsg.from_item(_observation_item(telemetry=bad_quat))
+
+
+def test_a_pods_identity_ground_truth_round_trips_and_a_fractional_dolphin_is_refused():
+    pod = dataclasses.replace(TELEMETRY, pod_size=4, followed=2, target_occluded=True)
+    assert ObservationMsg.from_item(_wire(ObservationMsg("0", 1, 2, pod, None))).telemetry == pod
+    for followed in (1.5, True, "2"):
+        telemetry = {**pod.to_dict(), "followed": followed}
+        with pytest.raises(BadMessage, match="telemetry field 'followed' must be an integer"):
+            ObservationMsg.from_item(_observation_item(telemetry=telemetry))
 
 
 def test_latent_with_mismatched_logvar_or_nan_mean_is_refused():
