@@ -78,9 +78,10 @@ def test_a_paired_dataset_without_noise_is_refused(tmp_path):
     assert not (tmp_path / "p").exists()
 
 
-def _masks(directory):
+def _stacked(directory, kind):
+    """One per-sample array of a dataset (``kind``: masks, others, companions, ...), its shards concatenated."""
     meta = json.loads((directory / "meta.json").read_text())
-    return np.concatenate([np.load(directory / f"{s}.masks.npy") for s in meta["shards"]])
+    return np.concatenate([np.load(directory / f"{s}.{kind}.npy") for s in meta["shards"]])
 
 
 def test_masks_mark_exactly_the_pixels_the_dolphin_changes(tmp_path):
@@ -90,7 +91,7 @@ def test_masks_mark_exactly_the_pixels_the_dolphin_changes(tmp_path):
 
     out = write_dataset(tmp_path / "ds", count=10, seed=5, shard_size=4, progress=False, masks=True)
     meta, arrays = load(out)
-    masks = _masks(out)
+    masks = _stacked(out, "masks")
     assert meta["masks"] is True and masks.dtype == bool and masks.shape == (10, 64, 64)
     assert masks.any(axis=(1, 2)).all()
     world = World(WorldSettings())
@@ -116,7 +117,8 @@ def test_masks_do_not_depend_on_workers_or_noise_and_are_off_by_default(tmp_path
     noisy = WorldSettings(noise=NoiseSettings(preset="harsh", randomise=True))
     paired = write_dataset(tmp_path / "paired", count=7, seed=5, shard_size=7, world_settings=noisy,
                            progress=False, paired=True, masks=True)  # fmt: skip
-    np.testing.assert_array_equal(_masks(paired), _masks(one))  # noise never moves the dolphin's pixels
+    # Noise never moves the dolphin's pixels.
+    np.testing.assert_array_equal(_stacked(paired, "masks"), _stacked(one, "masks"))
     plain = write_dataset(tmp_path / "plain", count=3, seed=5, progress=False)
     assert "masks" not in json.loads((plain / "meta.json").read_text()) and not list(plain.glob("*.masks.npy"))
 
@@ -151,27 +153,18 @@ def _shard_files(directory):
     return {path.name: path.read_bytes() for path in sorted(directory.iterdir())}
 
 
-def _stacked(directory, kind):
-    meta = json.loads((directory / "meta.json").read_text())
-    return np.concatenate([np.load(directory / f"{s}.{kind}.npy") for s in meta["shards"]])
-
-
-def in_camera(poses, points):
-    """``points`` (n, k, 3, world) in the camera's (forward, left, up) frame of each sample's level rover."""
+def dolphins_in_camera(directory):
+    """Every sample's dolphins (the target first) in the camera's (forward, left, up) frame, (n, pod size, 3), from
+    the written poses; a sample's rover is level, so its yaw alone turns the world into its frame."""
     from services.geometry import CAMERA_ABOVE_M, CAMERA_AHEAD_M
 
+    poses = _stacked(directory, "poses").astype(float)
+    bodies = np.concatenate([poses[:, None, 6:9], _stacked(directory, "companions")[..., :3]], axis=1)
+    offset = bodies - poses[:, None, :3]
     yaw = np.radians(poses[:, 5])[:, None]
-    offset = points - poses[:, None, :3]
     ahead = np.cos(yaw) * offset[..., 0] + np.sin(yaw) * offset[..., 1]
     left = -np.sin(yaw) * offset[..., 0] + np.cos(yaw) * offset[..., 1]
     return np.stack([ahead - CAMERA_AHEAD_M, left, offset[..., 2] - CAMERA_ABOVE_M], axis=-1)
-
-
-def dolphins_in_camera(directory):
-    """Every sample's dolphins (the target first) in the camera's frame, (n, pod size, 3), from the written poses."""
-    poses = _stacked(directory, "poses").astype(float)
-    bodies = np.concatenate([poses[:, None, 6:9], _stacked(directory, "companions")[..., :3]], axis=1)
-    return in_camera(poses, bodies)
 
 
 def test_a_pod_dataset_replays_from_its_seed_whatever_the_workers_and_keeps_the_targets_labels(tmp_path):
@@ -193,9 +186,10 @@ def test_a_pod_dataset_replays_from_its_seed_whatever_the_workers_and_keeps_the_
 
 
 def test_a_pod_of_one_is_the_dataset_written_without_the_flag(tmp_path):
-    plain = write_dataset(tmp_path / "plain", count=5, seed=5, shard_size=3, progress=False, masks=True)
-    pod = write_dataset(tmp_path / "pod", count=5, seed=5, shard_size=3, world_settings=pod_settings(1),
-                        progress=False, masks=True, sight_share=1.0)  # fmt: skip
+    plain, pod = tmp_path / "plain", tmp_path / "pod"
+    flags = ["--count", "5", "--seed", "5", "--shard-size", "3", "--masks"]
+    assert main(["dataset", "--out", str(plain), *flags]) == 0
+    assert main(["dataset", "--out", str(pod), *flags, "--dolphin-pod-size", "1", "--sight-share", "1"]) == 0
     assert _shard_files(plain) == _shard_files(pod)
     assert "pod" not in json.loads((pod / "meta.json").read_text())
 
