@@ -248,11 +248,10 @@ class World:
         self.rover.reset(depth=float(rover_pos[2]))
         self.dolphin.reset(self.rng, np.asarray(target_pos, float), target_yaw, turn_weight, phase, rover_pos[:2])
         latency_rng = self._spawn_rng()
-        scene_rng = _child(noise_rng) if noise_rng is not None else self._spawn_rng()
+        scene_rng = self._sample_child(noise_rng)
         self.scenery.apply(draw_episode_scene(self._configured_scene, scene_rng), self.data.qpos[:3], rover_yaw)
         if self.pod.size > 1 and sight_share is not None:
-            pod_rng = _child(noise_rng) if noise_rng is not None else self._spawn_rng()
-            self._draw_pod_mid_swim(pod_rng, np.asarray(rover_pos, float), sight_share)
+            self._draw_pod_mid_swim(self._sample_child(noise_rng), np.asarray(rover_pos, float), sight_share)
         elif self.pod.size > 1:  # one dolphin spawns nothing, so its episodes stay as they were
             self._reset_pod(np.asarray(rover_pos, float))
         dolphin = self._dolphin_pose()
@@ -356,6 +355,10 @@ class World:
     def _spawn_rng(self) -> np.random.Generator:
         """A generator of the episode's own, from the world's seed without advancing the world's draws."""
         return _child(self.rng)
+
+    def _sample_child(self, noise_rng: np.random.Generator | None) -> np.random.Generator:
+        """The next child of a dataset sample's generator when ``place`` is given one, else of the world's."""
+        return _child(noise_rng) if noise_rng is not None else self._spawn_rng()
 
     def _discard_prepared(self) -> None:
         if self._prepared is not None:
