@@ -12,7 +12,11 @@ On-disk format (version 1), a directory::
     shard-00000.clean.npy      uint8   (n, 64, 64, 3): paired datasets only (``"paired": true``), the same
                                frames before image noise, the target a denoising encoder reconstructs
     shard-00000.masks.npy      bool    (n, 64, 64): datasets written with ``masks`` (``"masks": true``), which
-                               pixels show the dolphin (MuJoCo's segmentation render of the same pose)
+                               pixels show the dolphin (MuJoCo's segmentation render of the same pose); in a pod,
+                               which show the target (a companion in front of it takes its pixels)
+    shard-00000.others.npy     bool    (n, 64, 64): pod datasets with masks, which pixels show any companion
+    shard-00000.companions.npy float32 (n, size - 1, 6): pod datasets, each companion's x, y, z, roll, pitch, yaw
+                               (the target's pose columns, see POSE_NAMES)
     ...
 
 Each shard is written through a memory map as it is filled and meta.json
@@ -26,6 +30,11 @@ the camera's half field of view, any yaw, any turn weight and tail phase. A
 vertical field of view too, within the dolphin's depth band.
 Sample ``i`` is drawn from its own generator seeded by (seed, i), so a
 dataset is reproducible and any sample can be regenerated alone.
+
+A pod dataset (``--dolphin-pod-size`` > 1, ``"pod"`` in meta.json) places the target's companions round it as at
+any moment of an episode (sim_service/pod.py), from a child of the sample's generator, so its labels and poses
+are the single-dolphin dataset's of the same seed; ``sight_share`` of the samples put one halfway along the line
+of sight, hiding part of the target. Labels stay the target's.
 """
 
 from __future__ import annotations
@@ -102,11 +111,13 @@ class DatasetSettings:
     paired: bool = False  # also keep each noisy frame's clean render (needs noise on, e.g. --noise-preset harsh)
     masks: bool = False  # also write which pixels show the dolphin, for the encoder's mask head (train --mask-weight)
     vertical: bool = False  # the target anywhere in the vertical field of view too, labelled with its elevation
+    sight_share: float = 0.25  # pod datasets (--dolphin-pod-size > 1): samples with a companion hiding the target
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
 
 
-def sample_pose(world: World, rng: np.random.Generator, ranges: SamplingRanges):
-    """Place rover and dolphin at one random pose and return (telemetry, image)."""
+def sample_pose(world: World, rng: np.random.Generator, ranges: SamplingRanges, sight_share: float = 0.0):
+    """Place rover and dolphin (and a pod's companions, ``sight_share`` of the time one on the line of sight) at
+    one random pose and return (telemetry, image)."""
     rover = np.array(
         [*rng.uniform(-ranges.rover_xy, ranges.rover_xy, 2), -rng.uniform(*ranges.rover_depth)], dtype=float
     )
@@ -124,7 +135,7 @@ def sample_pose(world: World, rng: np.random.Generator, ranges: SamplingRanges):
         rise = CAMERA_ABOVE_M + math.dist(target[:2], camera) * math.tan(elevation)  # above the rover's centre
         rover[2] = -_rover_depth_for(rise, rng, ranges)
         target[2] = rover[2] + rise
-    return world.place(rover, rover_yaw, target, target_yaw, turn_weight, phase, noise_rng=rng)
+    return world.place(rover, rover_yaw, target, target_yaw, turn_weight, phase, noise_rng=rng, sight_share=sight_share)
 
 
 def _rover_depth_for(depth_offset: float, rng: np.random.Generator, ranges: SamplingRanges) -> float:
@@ -144,6 +155,13 @@ def labels_and_pose(telemetry, vertical: bool = False) -> tuple[np.ndarray, np.n
     return labels, pose
 
 
+def _companion_poses(world: World) -> np.ndarray:
+    """Each companion's pose as the target's is written: position, then roll, pitch and yaw in degrees."""
+    positions, quats = world.companion_bodies()
+    eulers = np.degrees([quat_to_euler(quat) for quat in quats])
+    return np.concatenate([positions, eulers], axis=1)
+
+
 def _write_shard(
     out: Path,
     index: int,
@@ -152,6 +170,7 @@ def _write_shard(
     seed: int,
     paired: bool,
     masks: bool,
+    sight_share: float,
     world: World,
     ranges: SamplingRanges,
     bar: tqdm | None,
@@ -169,14 +188,28 @@ def _write_shard(
     if masks:
         target_masks = np.lib.format.open_memmap(out / f"{name}.masks.npy", "w+", np.bool_, (n, size, size))
         arrays.append(target_masks)
+    companions = world.pod.size - 1
+    if companions:
+        companion_poses = np.lib.format.open_memmap(
+            out / f"{name}.companions.npy", "w+", np.float32, (n, companions, 6)
+        )
+        arrays.append(companion_poses)
+    others = masks and companions > 0
+    if others:
+        other_masks = np.lib.format.open_memmap(out / f"{name}.others.npy", "w+", np.bool_, (n, size, size))
+        arrays.append(other_masks)
     for j in range(n):
-        telemetry, image = sample_pose(world, np.random.default_rng([seed, start + j]), ranges)
+        telemetry, image = sample_pose(world, np.random.default_rng([seed, start + j]), ranges, sight_share)
         images[j] = image
         if paired:
             clean[j] = world.clean_frame
-        if masks:
+        if others:
+            target_masks[j], other_masks[j] = world.dolphin_masks()
+        elif masks:
             target_masks[j] = world.target_mask()  # the pose just placed; noise never moves pixels
         labels[j], poses[j] = labels_and_pose(telemetry, ranges.vertical)
+        if companions:
+            companion_poses[j] = _companion_poses(world)
         if bar is not None:
             bar.update(1)
     for array in arrays:
@@ -186,11 +219,11 @@ def _write_shard(
 
 def _shard_in_worker(job: tuple) -> tuple[str, int]:
     """Process-pool entry point: each worker process builds its own World (and GL context) once."""
-    out, index, start, n, seed, paired, masks, settings, ranges = job
+    out, index, start, n, seed, paired, masks, sight_share, settings, ranges = job
     global _worker_world
     if _worker_world is None:
         _worker_world = World(settings)
-    return _write_shard(out, index, start, n, seed, paired, masks, _worker_world, ranges, None), n
+    return _write_shard(out, index, start, n, seed, paired, masks, sight_share, _worker_world, ranges, None), n
 
 
 _worker_world: World | None = None
@@ -207,16 +240,19 @@ def write_dataset(
     workers: int = 1,
     paired: bool = False,
     masks: bool = False,
+    sight_share: float = DatasetSettings.sight_share,
 ) -> Path:
     """Render ``count`` labelled frames into ``out_dir`` (see the module docstring); returns the directory.
 
     With ``workers > 1`` shards are rendered by that many processes; per-sample seeds make the
     bytes identical to a single-process run. ``paired`` keeps each frame's clean render too, ``masks`` the
-    dolphin's pixels.
+    dolphin's pixels (and a pod's companions'). A pod (``world_settings.dolphin.pod_size`` > 1) puts a companion
+    on the line of sight in ``sight_share`` of the samples.
     """
     if count <= 0 or shard_size <= 0 or workers <= 0:
         raise ValueError(f"count, shard_size and workers must be positive (got {count}, {shard_size}, {workers})")
     settings = world_settings or WorldSettings()
+    _check_pod(settings, sight_share)
     if paired and not settings.noise.resolved().enabled:
         raise ValueError("a paired dataset pairs noisy frames with clean ones: switch noise on (--noise-preset harsh)")
     out = Path(out_dir)
@@ -225,14 +261,14 @@ def write_dataset(
     out.mkdir(parents=True, exist_ok=True)
     ranges = ranges or SamplingRanges()
     jobs = [
-        (out, index, start, min(shard_size, count - start), seed, paired, masks, settings, ranges)
+        (out, index, start, min(shard_size, count - start), seed, paired, masks, sight_share, settings, ranges)
         for index, start in enumerate(range(0, count, shard_size))
     ]
     with tqdm(total=count, desc=f"dataset {out.name}", unit="img", disable=not progress) as bar:
         if workers == 1:
             world = World(settings)
             try:
-                shards = [_write_shard(*job[:7], world, ranges, bar) for job in jobs]
+                shards = [_write_shard(*job[:8], world, ranges, bar) for job in jobs]
             finally:
                 world.close()
         else:
@@ -257,6 +293,8 @@ def write_dataset(
     }
     if masks:  # recorded only when on, so a dataset without masks is byte for byte what it was before the flag
         meta["masks"] = True
+    if settings.dolphin.pod_size > 1:  # likewise: a lone dolphin's meta.json is what it was before pods
+        meta["pod"] = {"size": settings.dolphin.pod_size, "sight_share": sight_share, "others": masks}
     (out / "meta.json").write_text(json.dumps(meta, indent=2))
     log.info("wrote %d images in %d shards to %s", count, len(shards), out)
     return out
@@ -266,6 +304,16 @@ def run(settings: DatasetSettings) -> int:
     write_dataset(
         settings.out, settings.count, settings.seed, settings.shard_size, settings.world,
         ranges=VERTICAL_RANGES if settings.vertical else None, workers=settings.workers, paired=settings.paired,
-        masks=settings.masks,
+        masks=settings.masks, sight_share=settings.sight_share,
     )  # fmt: skip
     return 0
+
+
+def _check_pod(settings: WorldSettings, sight_share: float) -> None:
+    """Refuse a bad pod before any file is written, naming the flags: a dataset draws its own crossings."""
+    settings.dolphin.check()
+    if settings.dolphin.pod_crossing:
+        raise ValueError("--dolphin-pod-crossing is for episodes: a pod dataset puts companions on the line of sight "
+                         "by itself (--sight-share)")  # fmt: skip
+    if not 0.0 <= sight_share <= 1.0:
+        raise ValueError(f"--sight-share is a share of samples, 0 to 1: got {sight_share}")

@@ -9,7 +9,8 @@ target. Each has its own tail-beat phase and rate, size and shade. Every draw co
 The target is the dolphin the camera is centred on when tracking starts: at the first frame every companion is
 redrawn until it is farther off the camera's axis than the target and does not hide it (:meth:`Pod.centre_target`).
 With ``crossing`` (the crossing split), the first companion is no free swimmer: it sways across the line of sight,
-halfway between the rover and the target, on a fixed schedule (:meth:`Pod.step`).
+halfway between the rover and the target, on a fixed schedule (:meth:`Pod.step`). A dataset's sample puts it there
+at a drawn moment of such a crossing instead (:meth:`Pod.put_on_sight`).
 """
 
 from __future__ import annotations
@@ -42,6 +43,9 @@ class PodParams:
     centring_draws: int = 20  # offsets drawn for a companion too near the axis; the farthest off it if none clears
     crossing_side_m: float = 3.0  # the crossing companion sways this far to either side of the line of sight
     crossing_period_s: float = 20.0  # there and back: it crosses the line of sight every half period
+    #: A companion put on the line of sight (a dataset's sample) is at most this far to its side, so that it hides
+    #: part of the target (their girth discs overlap as the camera sees them).
+    sight_sway_m: float = 0.5
 
 
 @dataclass
@@ -88,7 +92,7 @@ class Pod:
             )  # fmt: skip
             self.companions.append(companion)
         if self.crossing:
-            self.crosser.offset = self._crossing_offset(target, rover_position)
+            self.crosser.offset = self._sight_offset(target, rover_position, self._crossing_sway())
 
     @property
     def crosser(self) -> Companion:
@@ -156,19 +160,31 @@ class Pod:
     def _cross(self, dt: float, target: DolphinBehaviour, rover_position: np.ndarray) -> None:
         """Move the crossing companion along its sway; its drift is its motion seen from the target, for its pose."""
         crosser = self.crosser
-        offset = self._crossing_offset(target, rover_position)
+        offset = self._sight_offset(target, rover_position, self._crossing_sway())
         crosser.drift = (offset - crosser.offset) / dt
         crosser.offset = offset
         speed = target.state.speed + crosser.drift[0]
         crosser.phase = (crosser.phase + target.params.beat_hz_per_mps * crosser.beat_factor * speed * dt) % 1.0
 
-    def _crossing_offset(self, target: DolphinBehaviour, rover_position: np.ndarray) -> np.ndarray:
-        """Halfway from the target to the rover, swayed across the line of sight: crossing it at a quarter period,
+    def _crossing_sway(self) -> float:
+        """How far left of the line of sight the crossing companion is now: it crosses the line at a quarter period,
         then every half period (a cosine, so it eases at either side)."""
-        p, t = self.params, target.state
+        p = self.params
+        return self._crossing_side * p.crossing_side_m * math.cos(2 * math.pi * self.time_s / p.crossing_period_s)
+
+    def put_on_sight(self, rng: np.random.Generator, target: DolphinBehaviour, rover_position: np.ndarray) -> None:
+        """Put the first companion halfway between the rover and the target, hiding part of it: a moment of a crossing
+        (datasets' samples); the sway to the side of the line of sight is drawn from ``rng``."""
+        sway = rng.uniform(-self.params.sight_sway_m, self.params.sight_sway_m)
+        first = self.companions[0]
+        first.offset = self._sight_offset(target, rover_position, sway)
+        first.goal = first.offset.copy()
+
+    def _sight_offset(self, target: DolphinBehaviour, rover_position: np.ndarray, sway: float) -> np.ndarray:
+        """Halfway from the target to the rover, ``sway`` m to the left of the line of sight (seen from the rover)."""
+        t = target.state
         sight = t.position - rover_position
         left_of_sight = np.array([-sight[1], sight[0], 0.0]) / max(math.hypot(sight[0], sight[1]), 1e-9)
-        sway = self._crossing_side * p.crossing_side_m * math.cos(2 * math.pi * self.time_s / p.crossing_period_s)
         away = -0.5 * sight + sway * left_of_sight  # from the target, in the world frame
         cos, sin = math.cos(t.yaw), math.sin(t.yaw)
         return np.array([cos * away[0] + sin * away[1], -sin * away[0] + cos * away[1], away[2]])

@@ -123,6 +123,9 @@ class World:
             for i in range(1, companions + 1)
         ]
         self._target_geoms = np.flatnonzero(np.isin(self.model.geom_bodyid, dolphin_bodies))
+        companion_parts = [self.model.body(name).id for i in range(1, companions + 1) for name in part_names(i)]
+        self._companion_geoms = np.flatnonzero(np.isin(self.model.geom_bodyid, companion_parts))
+        self._companion_bodies = [self.model.body(part_names(i)[0]).id for i in range(1, companions + 1)]
         self._camera = self.model.camera(CAMERA).id
         self.frustum = CameraFrustum.from_model(self.model, self._camera)
         self._prepared: PreparedStep | None = None
@@ -223,6 +226,7 @@ class World:
         turn_weight: float = 0.0,
         phase: float = 0.0,
         noise_rng: np.random.Generator | None = None,
+        sight_share: float | None = None,
     ) -> tuple[Telemetry, np.ndarray | None]:
         """Put rover (at rest, level) and dolphin at given poses: the reset primitive, and datasets' sampler.
 
@@ -230,6 +234,11 @@ class World:
         ``noise_rng`` feeds the image noise (a randomised noise setting's draw first); by default a child of the
         world's generator, drawn without advancing it. The scenery draws from a child of ``noise_rng`` when it is
         given (so each dataset sample has its own), else from the next child of the world's generator.
+
+        A pod is drawn as at engagement (the target the dolphin the camera is centred on) from the next child of the
+        world's generator. With ``sight_share`` (a dataset's sample) it is drawn as at any moment of an episode
+        instead, from the next child of ``noise_rng``: companions where their offsets put them, near the camera's
+        axis or not, and with that probability the first one halfway along the line of sight, hiding the target.
         """
         self._discard_prepared()
         self._noise_rng = noise_rng or self._spawn_rng()
@@ -239,9 +248,11 @@ class World:
         self.rover.reset(depth=float(rover_pos[2]))
         self.dolphin.reset(self.rng, np.asarray(target_pos, float), target_yaw, turn_weight, phase, rover_pos[:2])
         latency_rng = self._spawn_rng()
-        scene_rng = _child(noise_rng) if noise_rng is not None else self._spawn_rng()
+        scene_rng = self._sample_child(noise_rng)
         self.scenery.apply(draw_episode_scene(self._configured_scene, scene_rng), self.data.qpos[:3], rover_yaw)
-        if self.pod.size > 1:  # one dolphin spawns nothing, so its episodes stay as they were
+        if self.pod.size > 1 and sight_share is not None:
+            self._draw_pod_mid_swim(self._sample_child(noise_rng), np.asarray(rover_pos, float), sight_share)
+        elif self.pod.size > 1:  # one dolphin spawns nothing, so its episodes stay as they were
             self._reset_pod(np.asarray(rover_pos, float))
         dolphin = self._dolphin_pose()
         self._pose_dolphin(dolphin)
@@ -293,22 +304,35 @@ class World:
         """Which pixels of the current frame show the dolphin: bool (size, size), from MuJoCo's segmentation render.
 
         The ground truth of where the target is in the image, e.g. to check labels against what the camera sees.
+        A companion in front of the target takes its pixels: the mask is what the camera sees of the target.
         """
+        return self.dolphin_masks()[0]
+
+    def dolphin_masks(self) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels of the current frame that show the target, and those that show any companion, from one
+        segmentation render: bool (size, size) each (the companions' all False for a lone dolphin)."""
         if self._renderer is None:
-            raise RuntimeError("target_mask needs a rendering world (WorldSettings(render=True))")
+            raise RuntimeError("dolphin masks need a rendering world (WorldSettings(render=True))")
         self._renderer.update_scene(self.data, camera=self._camera, scene_option=self.scenery.option)
         self._renderer.enable_segmentation_rendering()
         try:
             segmentation = self._renderer.render()
         finally:
             self._renderer.disable_segmentation_rendering()
-        ids, types = segmentation[..., 0], segmentation[..., 1]
-        mask = (types == mujoco.mjtObj.mjOBJ_GEOM) & np.isin(ids, self._target_geoms)
+        geoms = np.where(segmentation[..., 1] == mujoco.mjtObj.mjOBJ_GEOM, segmentation[..., 0], -1)
+        return self._pooled(np.isin(geoms, self._target_geoms)), self._pooled(np.isin(geoms, self._companion_geoms))
+
+    def companion_bodies(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each companion's body position (companions, 3) and (w, x, y, z) quaternion (companions, 4), now."""
+        return self.data.xpos[self._companion_bodies].copy(), self.data.xquat[self._companion_bodies].copy()
+
+    def _pooled(self, mask: np.ndarray) -> np.ndarray:
+        """``mask`` at the image's size: rendered at a multiple, a pixel shows a dolphin if any of its samples does."""
         size = self.settings.image_size
-        if mask.shape[0] != size:  # rendered at a multiple: a pixel shows the dolphin if any of its samples does
-            scale = mask.shape[0] // size
-            mask = mask.reshape(size, scale, size, scale).any(axis=(1, 3))
-        return mask
+        if mask.shape[0] == size:
+            return mask
+        scale = mask.shape[0] // size
+        return mask.reshape(size, scale, size, scale).any(axis=(1, 3))
 
     @property
     def dt(self) -> float:
@@ -332,6 +356,10 @@ class World:
         """A generator of the episode's own, from the world's seed without advancing the world's draws."""
         return _child(self.rng)
 
+    def _sample_child(self, noise_rng: np.random.Generator | None) -> np.random.Generator:
+        """The next child of a dataset sample's generator when ``place`` is given one, else of the world's."""
+        return _child(noise_rng) if noise_rng is not None else self._spawn_rng()
+
     def _discard_prepared(self) -> None:
         if self._prepared is not None:
             self.rng.bit_generator.state = self._prepared.rng_state
@@ -351,6 +379,17 @@ class World:
         target_left = self._in_camera(self.dolphin.state.position[None])[0, 1] >= 0
         self.pod.reset(self._spawn_rng(), self.dolphin, rover_position, crossing_side=1.0 if target_left else -1.0)
         self.pod.centre_target(self.dolphin, self._in_camera)
+        self._dress_pod()
+
+    def _draw_pod_mid_swim(self, rng: np.random.Generator, rover_position: np.ndarray, sight_share: float) -> None:
+        """Draw the companions from ``rng`` as at any moment of an episode; the first on the line of sight with
+        probability ``sight_share`` (drawn after the pod, so the share never changes the companions' draws)."""
+        self.pod.reset(rng, self.dolphin, rover_position)
+        if rng.uniform() < sight_share:
+            self.pod.put_on_sight(rng, self.dolphin, rover_position)
+        self._dress_pod()
+
+    def _dress_pod(self) -> None:
         for index, companion in enumerate(self.pod.companions, start=1):
             self._pod_looks.dress(index, companion.scale, companion.shade)
 

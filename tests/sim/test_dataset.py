@@ -78,9 +78,10 @@ def test_a_paired_dataset_without_noise_is_refused(tmp_path):
     assert not (tmp_path / "p").exists()
 
 
-def _masks(directory):
+def _stacked(directory, kind):
+    """One per-sample array of a dataset (``kind``: masks, others, companions, ...), its shards concatenated."""
     meta = json.loads((directory / "meta.json").read_text())
-    return np.concatenate([np.load(directory / f"{s}.masks.npy") for s in meta["shards"]])
+    return np.concatenate([np.load(directory / f"{s}.{kind}.npy") for s in meta["shards"]])
 
 
 def test_masks_mark_exactly_the_pixels_the_dolphin_changes(tmp_path):
@@ -90,7 +91,7 @@ def test_masks_mark_exactly_the_pixels_the_dolphin_changes(tmp_path):
 
     out = write_dataset(tmp_path / "ds", count=10, seed=5, shard_size=4, progress=False, masks=True)
     meta, arrays = load(out)
-    masks = _masks(out)
+    masks = _stacked(out, "masks")
     assert meta["masks"] is True and masks.dtype == bool and masks.shape == (10, 64, 64)
     assert masks.any(axis=(1, 2)).all()
     world = World(WorldSettings())
@@ -116,7 +117,8 @@ def test_masks_do_not_depend_on_workers_or_noise_and_are_off_by_default(tmp_path
     noisy = WorldSettings(noise=NoiseSettings(preset="harsh", randomise=True))
     paired = write_dataset(tmp_path / "paired", count=7, seed=5, shard_size=7, world_settings=noisy,
                            progress=False, paired=True, masks=True)  # fmt: skip
-    np.testing.assert_array_equal(_masks(paired), _masks(one))  # noise never moves the dolphin's pixels
+    # Noise never moves the dolphin's pixels.
+    np.testing.assert_array_equal(_stacked(paired, "masks"), _stacked(one, "masks"))
     plain = write_dataset(tmp_path / "plain", count=3, seed=5, progress=False)
     assert "masks" not in json.loads((plain / "meta.json").read_text()) and not list(plain.glob("*.masks.npy"))
 
@@ -139,3 +141,98 @@ def test_a_vertical_dataset_labels_the_elevation_across_the_vertical_field_of_vi
     assert np.abs(planar_poses[:, 8] - planar_poses[:, 2]).max() <= 0.5 + 1e-4
     assert (-poses[:, 8] >= VERTICAL_RANGES.target_depth[0] - 1e-4).all()
     assert (-poses[:, 8] <= VERTICAL_RANGES.target_depth[1] + 1e-4).all()
+
+
+def pod_settings(size: int):
+    from sim_service.settings import DolphinSettings, WorldSettings
+
+    return WorldSettings(dolphin=DolphinSettings(pod_size=size))
+
+
+def _shard_files(directory):
+    return {path.name: path.read_bytes() for path in sorted(directory.iterdir())}
+
+
+def dolphins_in_camera(directory):
+    """Every sample's dolphins (the target first) in the camera's (forward, left, up) frame, (n, pod size, 3), from
+    the written poses; a sample's rover is level, so its yaw alone turns the world into its frame."""
+    from services.geometry import CAMERA_ABOVE_M, CAMERA_AHEAD_M
+
+    poses = _stacked(directory, "poses").astype(float)
+    bodies = np.concatenate([poses[:, None, 6:9], _stacked(directory, "companions")[..., :3]], axis=1)
+    offset = bodies - poses[:, None, :3]
+    yaw = np.radians(poses[:, 5])[:, None]
+    ahead = np.cos(yaw) * offset[..., 0] + np.sin(yaw) * offset[..., 1]
+    left = -np.sin(yaw) * offset[..., 0] + np.cos(yaw) * offset[..., 1]
+    return np.stack([ahead - CAMERA_AHEAD_M, left, offset[..., 2] - CAMERA_ABOVE_M], axis=-1)
+
+
+def test_a_pod_dataset_replays_from_its_seed_whatever_the_workers_and_keeps_the_targets_labels(tmp_path):
+    one = write_dataset(tmp_path / "one", count=7, seed=5, shard_size=3, world_settings=pod_settings(4),
+                        progress=False, masks=True)  # fmt: skip
+    two = write_dataset(tmp_path / "two", count=7, seed=5, shard_size=3, world_settings=pod_settings(4),
+                        progress=False, masks=True, workers=2)  # fmt: skip
+    assert _shard_files(one) == _shard_files(two)
+    meta = json.loads((one / "meta.json").read_text())
+    assert meta["pod"] == {"size": 4, "sight_share": 0.25, "others": True}
+    assert _stacked(one, "companions").shape == (7, 3, 6) and _stacked(one, "others").shape == (7, 64, 64)
+    # The companions draw from a generator of their own: the target's poses and labels are the lone dolphin's.
+    single = write_dataset(tmp_path / "single", count=7, seed=5, shard_size=7, progress=False)
+    for kind in ("labels", "poses"):
+        np.testing.assert_array_equal(_stacked(one, kind), _stacked(single, kind))
+    other_seed = write_dataset(tmp_path / "six", count=7, seed=6, shard_size=7, world_settings=pod_settings(4),
+                               progress=False)  # fmt: skip
+    assert not np.array_equal(_stacked(one, "companions"), _stacked(other_seed, "companions"))
+
+
+def test_a_pod_of_one_is_the_dataset_written_without_the_flag(tmp_path):
+    plain, pod = tmp_path / "plain", tmp_path / "pod"
+    flags = ["--count", "5", "--seed", "5", "--shard-size", "3", "--masks"]
+    assert main(["dataset", "--out", str(plain), *flags]) == 0
+    assert main(["dataset", "--out", str(pod), *flags, "--dolphin-pod-size", "1", "--sight-share", "1"]) == 0
+    assert _shard_files(plain) == _shard_files(pod)
+    assert "pod" not in json.loads((pod / "meta.json").read_text())
+
+
+def test_a_pod_frame_shows_companions_and_the_target_mask_only_what_is_seen_of_the_target(tmp_path):
+    pod = write_dataset(tmp_path / "pod", count=24, seed=3, shard_size=24, world_settings=pod_settings(4),
+                        progress=False, masks=True)  # fmt: skip
+    single = write_dataset(tmp_path / "single", count=24, seed=3, shard_size=24, progress=False, masks=True)
+    target, others, alone = _stacked(pod, "masks"), _stacked(pod, "others"), _stacked(single, "masks")
+    # The same poses and scenes: the companions are all the pod changes, and they change their own pixels (but the
+    # odd one where a look-alike companion in front of the target has the target's very colour).
+    changed = (_stacked(pod, "images") != _stacked(single, "images")).any(axis=3)
+    assert (changed <= others).all() and (others & ~changed).sum() <= 0.01 * others.sum()
+    # The target's mask is the lone dolphin's less what companions in front of it hide, and never a companion's.
+    assert not (target & others).any() and not (target & ~alone).any()
+    assert ((alone & ~target) <= others).all()
+    assert (others.sum(axis=(1, 2)) > 0).mean() >= 0.5  # companions in view in most frames
+
+
+def test_a_pod_dataset_puts_companions_in_front_of_the_target_and_nearer_the_image_centre(tmp_path):
+    from services.identity import hidden, off_axis_deg
+
+    shares = {}
+    for share in (0.0, 1.0):
+        out = write_dataset(tmp_path / f"share-{share}", count=24, seed=3, shard_size=24,
+                            world_settings=pod_settings(4), progress=False, sight_share=share)  # fmt: skip
+        points = dolphins_in_camera(out)
+        occluded = np.array([hidden(sample)[0] for sample in points])
+        angles = np.array([off_axis_deg(sample) for sample in points])
+        shares[share] = occluded.mean(), (angles[:, 1:].min(axis=1) < angles[:, 0]).mean()
+    assert shares[1.0][0] >= 0.8 and shares[0.0][0] < shares[1.0][0]  # the share puts one on the line of sight
+    assert shares[0.0][1] > 0.1  # free companions often nearer the image centre than the target
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--dolphin-pod-size", "7"], "--dolphin-pod-size must be 1 to 6, got 7"),
+        (["--dolphin-pod-size", "4", "--dolphin-pod-crossing"], "--dolphin-pod-crossing is for episodes"),
+        (["--dolphin-pod-size", "4", "--sight-share", "1.5"], "--sight-share is a share of samples, 0 to 1"),
+    ],
+)
+def test_a_bad_pod_is_refused_naming_the_flag_before_anything_is_written(tmp_path, capsys, flags, message):
+    assert main(["dataset", "--out", str(tmp_path / "pod"), "--count", "2", *flags]) == 1
+    assert f"dataset failed: {message}" in capsys.readouterr().err  # the CLI logs the error, not a traceback
+    assert not (tmp_path / "pod").exists()
