@@ -8,6 +8,7 @@ from services.keys import Keys
 from services.presence import live_now
 from sim_service.responder import SimResponder, SimSettings
 from sim_service.settings import WorldSettings
+from tests.services.test_control_presence import wait_until
 
 
 def test_with_blocks_close_what_their_owner_opened_and_leave_what_it_was_lent(
@@ -18,7 +19,8 @@ def test_with_blocks_close_what_their_owner_opened_and_leave_what_it_was_lent(
     lent = zenoh_session(zenoh_router)
     sim_settings = SimSettings(zenoh=settings, world=WorldSettings(render=False), train_envs=1, eval_envs=0)
     with SimResponder(sim_settings) as sim:
-        assert list(lent.get(keys.ctl("train", "0"), timeout=5.0))  # its queryable answers (an empty query: refused)
+        # its queryable answers (an empty query: refused) once the router has seen it declared
+        wait_until(lambda: bool(list(lent.get(keys.ctl("train", "0"), timeout=1.0))))
         with ProxyEnv(TaskSettings(obs="state"), ProxySettings(zenoh=settings)) as env:
             env.reset(seed=1)
             own = env.session
