@@ -46,7 +46,7 @@ log = logging.getLogger(__name__)
 
 HYPERPARAMS_DIR = Path(__file__).parent / "hyperparams"
 SCRIPTED = "scripted"
-LATENT_SCRIPTED = "scripted-camera"  # the scripted tracker on the CMVAE's decoded d and theta (camera only)
+LATENT_SCRIPTED = "scripted-camera"  # the scripted tracker on the CMVAE's decoded d, theta (and elevation)
 SCRIPTED_NAMES = (SCRIPTED, LATENT_SCRIPTED)
 LINEAR_SCHEDULE_PREFIX = "lin_"
 ACTION_NOISES = {"ornstein_uhlenbeck": OrnsteinUhlenbeckActionNoise, "normal": NormalActionNoise}
