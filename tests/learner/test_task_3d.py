@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import math
 
-import mujoco
 import numpy as np
 import pytest
 
@@ -161,7 +160,7 @@ def test_an_unknown_task_is_refused_naming_it() -> None:
 
 @pytest.fixture(scope="module")
 def world_3d():
-    world = World(WorldSettings(render=False, dolphin=DolphinSettings(motion="3d")))
+    world = World(WorldSettings(dolphin=DolphinSettings(motion="3d")))
     world.reset(5)
     yield world
     world.close()
@@ -170,19 +169,7 @@ def world_3d():
 @pytest.fixture(scope="module")
 def dolphin_pixels(world_3d):
     """How many of the nose camera's 64 x 64 pixels show the dolphin now: MuJoCo's segmentation rendering."""
-    model = world_3d.model
-    bodies = [model.body(name).id for name in ("dolphin", "dolphin_peduncle", "dolphin_flukes")]
-    dolphin_geoms = np.flatnonzero(np.isin(model.geom_bodyid, bodies))
-    renderer = mujoco.Renderer(model, 64, 64)
-    renderer.enable_segmentation_rendering()
-
-    def count() -> int:
-        renderer.update_scene(world_3d.data, camera="nose")
-        segments = renderer.render()
-        return int(np.sum((segments[..., 1] == mujoco.mjtObj.mjOBJ_GEOM) & np.isin(segments[..., 0], dolphin_geoms)))
-
-    yield count
-    renderer.close()
+    return lambda: int(world_3d.target_mask().sum())
 
 
 @pytest.mark.parametrize(
