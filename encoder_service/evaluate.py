@@ -27,9 +27,10 @@ from encoder_service.data import CMVAEDataset, count_batches, iter_batches, pref
 from encoder_service.inference import DEFAULT_CHECKPOINT
 from encoder_service.model import (
     CMVAE,
+    EVALUATION_PRIORS_SEED,
     LABEL_NAMES,
     denormalise_labels,
-    images_to_tensor,
+    encoder_input,
     label_errors,
     label_ranges,
     load_model,
@@ -86,8 +87,9 @@ def encode_rows(
     mus, predictions, labels = [], [], []
     abs_error, abs_error_reference, pixels = 0.0, 0.0, 0
     batches = prefetch(iter_batches(dataset, rows, batch_size))
+    priors = np.random.default_rng(EVALUATION_PRIORS_SEED)  # a tracking model's, about the true azimuths
     for batch in tqdm(batches, total=count_batches(len(rows), batch_size), desc=desc, unit="batch", leave=False):
-        outputs = model(images_to_tensor(batch.images, device), sample=False)
+        outputs = model(encoder_input(model, batch.images, batch.labels, device, priors), sample=False)
         reconstructions = tensor_to_images(outputs.image).astype(np.int16)
         abs_error += float(np.abs(reconstructions - batch.images).sum())
         pixels += batch.images.size

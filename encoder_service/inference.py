@@ -22,51 +22,75 @@ import logging
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 from encoder_service import DEFAULT_CHECKPOINT, ENGINES
-from encoder_service.model import denormalise_labels, images_to_tensor, load_model
+from encoder_service.model import CMVAE, PriorReader, denormalise_labels, images_to_tensor, load_model
 from services.messages import IMAGE_SHAPE
 
 log = logging.getLogger(__name__)
 
-Encoder = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+#: (frames, priors) -> (mu, logvar); a model that does not track is run on the frames alone.
+Encoder = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 
-def _traced_or_eager(encoder: torch.nn.Module, device: torch.device) -> Encoder:
-    """A frozen TorchScript trace of the (eval-mode) encoder, or the module itself if tracing fails."""
+def _inputs(model: CMVAE, device: torch.device | str) -> tuple[torch.nn.Module, tuple[torch.Tensor, ...], list[str]]:
+    """The module an engine runs for ``model``'s encoder, an example input and the inputs' names: a tracking
+    encoder reads each frame's prior too (:class:`PriorReader`)."""
     example = images_to_tensor(np.zeros((1, *IMAGE_SHAPE), dtype=np.uint8), device)
+    if model.tracks:
+        return PriorReader(model.encoder), (example, torch.zeros(1, device=device)), ["images", "prior"]
+    return model.encoder, (example,), ["images"]
+
+
+def _traced_or_eager(model: CMVAE, device: torch.device) -> Encoder:
+    """A frozen TorchScript trace of the (eval-mode) encoder, or the module itself if tracing fails."""
+    encoder, example, names = _inputs(model, device)
+    run = _by_name(names)
     try:
         with warnings.catch_warnings(), torch.inference_mode():
             warnings.simplefilter("ignore", FutureWarning)  # the deprecation notice, see the module docstring
-            return torch.jit.freeze(torch.jit.trace(encoder, example).eval())
+            return run(torch.jit.freeze(torch.jit.trace(encoder, example).eval()))
     except Exception as exc:  # any tracing failure leaves a correct, slower path
         log.warning("TorchScript tracing of the encoder failed (%s); using eager mode", exc)
-        return encoder
+        return run(encoder)
 
 
-def _onnx_runtime(encoder: torch.nn.Module, threads: int | None) -> Encoder:
+def _by_name(names: list[str]) -> Callable[[Callable[..., Any]], Encoder]:
+    """Wraps a module of the inputs ``names`` as an :data:`Encoder`: one that does not track drops the priors."""
+
+    def wrap(module: Callable[..., Any]) -> Encoder:
+        if len(names) == 2:
+            return module
+        return lambda images, prior: module(images)
+
+    return wrap
+
+
+def _onnx_runtime(model: CMVAE, threads: int | None) -> Encoder:
     """The encoder exported to ONNX in memory and run by onnxruntime on ``threads`` CPU threads (default 1)."""
     try:
         import onnxruntime
     except ImportError as exc:
         raise ValueError("the onnx engine needs onnxruntime: pip install 'swimm[export]'") from exc
-    example = images_to_tensor(np.zeros((1, *IMAGE_SHAPE), dtype=np.uint8))
+    encoder, example, names = _inputs(model.cpu(), "cpu")
     graph = io.BytesIO()
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")  # torch's notes on its TorchScript-based exporter
-        batch_axis = {name: {0: "batch"} for name in ("images", "mu", "logvar")}
-        torch.onnx.export(encoder.cpu(), example, graph, input_names=["images"], output_names=["mu", "logvar"],
+        batch_axis = {name: {0: "batch"} for name in (*names, "mu", "logvar")}
+        torch.onnx.export(encoder, example, graph, input_names=names, output_names=["mu", "logvar"],
                           dynamic_axes=batch_axis, dynamo=False)  # fmt: skip
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = threads or 1
     options.inter_op_num_threads = 1
     session = onnxruntime.InferenceSession(graph.getvalue(), options, providers=["CPUExecutionProvider"])
 
-    def encode(images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mu, logvar = session.run(None, {"images": np.ascontiguousarray(images.numpy())})
+    def encode(images: torch.Tensor, prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        feeds = {"images": np.ascontiguousarray(images.numpy()), "prior": np.ascontiguousarray(prior.numpy())}
+        mu, logvar = session.run(None, {name: feeds[name] for name in names})
         return torch.from_numpy(mu), torch.from_numpy(logvar)
 
     return encode
@@ -96,9 +120,9 @@ class LatentEncoder:
         self.device = torch.device(device)
         self._model, checkpoint_dict = load_model(path, self.device)
         if engine == "onnx":
-            self._encoder = _onnx_runtime(self._model.encoder, threads)
+            self._encoder = _onnx_runtime(self._model, threads)
         else:
-            self._encoder = _traced_or_eager(self._model.encoder, self.device)
+            self._encoder = _traced_or_eager(self._model, self.device)
         self.engine = engine
         self.n_z = self._model.n_z
         self.checkpoint = path
@@ -117,11 +141,28 @@ class LatentEncoder:
             raise ValueError(f"images must be shaped (N>0, {', '.join(map(str, IMAGE_SHAPE))}), got {images.shape}")
 
     @torch.inference_mode()
-    def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(mu, logvar) for a batch of RGB frames."""
+    def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(mu, logvar) for a batch of RGB frames; a tracking model reads each frame's prior (N,), the azimuth in
+        degrees where its target was last seen (:meth:`next_priors`), the image centre where None (the engagement
+        rule: the target is the dolphin the camera is centred on). A model that does not track ignores them."""
         self.check_images(images)
-        mu, logvar = self._encoder(images_to_tensor(images, self.device))
+        if priors is None:
+            priors = np.zeros(len(images), dtype=np.float32)
+        priors = np.asarray(priors, dtype=np.float32)
+        if priors.shape != (len(images),) or not np.isfinite(priors).all():
+            raise ValueError(f"priors must be {len(images)} finite azimuths in degrees, one per frame, got {priors!r}")
+        prior = torch.from_numpy(priors).to(self.device)
+        mu, logvar = self._encoder(images_to_tensor(images, self.device), prior)
         return mu.float().cpu().numpy(), logvar.float().cpu().numpy()
+
+    @property
+    def tracks(self) -> bool:
+        """Whether the model reads a prior beside each frame (trained with ``swimm train-encoder --track``)."""
+        return self._model.tracks
+
+    def next_priors(self, mu: np.ndarray) -> np.ndarray:
+        """The priors (N,) of each env's next frame: the azimuths, degrees, its latents ``mu`` decode to."""
+        return np.asarray(self.decode_state(mu)[self.labels.index("theta")], dtype=np.float32)
 
     @property
     def labels(self) -> tuple[str, ...]:

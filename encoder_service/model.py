@@ -34,6 +34,7 @@ LABEL_RANGES = {
 #: The label sets a CMVAE learns: the planar task's frames' (the paper's), or the 3d task's, elevation added.
 LABEL_SETS = (LABEL_NAMES, VERTICAL_LABEL_NAMES)
 PSI = LABEL_NAMES.index("psi")  # the one circular label
+THETA = LABEL_NAMES.index("theta")
 
 CHECKPOINT_FORMAT = "swimm-cmvae"
 CHECKPOINT_VERSION = 1
@@ -141,8 +142,71 @@ class WhiteBalance(nn.Module):
 MASK_TAP = 3
 
 
+#: Half-width (image units, the frame spans [-1, 1]) of the stripe a tracking encoder's prior channel draws: ~3 px.
+PRIOR_WIDTH = 0.1
+
+
+def prior_map(azimuth_deg: torch.Tensor, size: int = IMAGE_SHAPE[0]) -> torch.Tensor:
+    """Azimuths (N,) or (N, 1) in degrees (+ = left) -> (N, 1, size, size) in [-1, 1]: a vertical stripe at the
+    column where a target at that azimuth appears in the pinhole camera, -1 elsewhere."""
+    azimuth = azimuth_deg.reshape(-1, 1).float()
+    column = -torch.tan(azimuth * (math.pi / 180.0)) / math.tan(math.radians(ALPHA_DEG))
+    columns = torch.linspace(-1 + 1 / size, 1 - 1 / size, size, device=azimuth.device)
+    stripe = torch.exp(-0.5 * ((columns[None, :] - column) / PRIOR_WIDTH) ** 2)  # (N, size)
+    return (2.0 * stripe - 1.0)[:, None, None, :].expand(-1, 1, size, size)
+
+
+def with_prior(images: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tensor:
+    """A tracking encoder's input: the (N, 3, H, W) frames and the prior's stripe as a fourth channel."""
+    stripe = prior_map(azimuth_deg.to(images.device), images.shape[-1]).to(images.dtype)
+    return torch.cat([images, stripe], dim=1).contiguous(memory_format=torch.channels_last)
+
+
+#: The training prior's spread about the target's true azimuth, degrees: a step's reading error and motion mostly,
+#: a wider miss (a re-acquisition, a fast turn) in a share of frames.
+PRIOR_JITTER_DEG = (3.0, 8.0)
+PRIOR_WIDE_SHARE = 0.2
+#: Validation and evaluation draw their priors from this seed, so every epoch's and model's scores read the same.
+EVALUATION_PRIORS_SEED = 0
+
+
+class PriorReader(nn.Module):
+    """A tracking encoder as the inference engines run it: (frames (N, 3, H, W), priors (N,) degrees) ->
+    (mu, logvar); the stripe is drawn inside, so the ONNX file takes the prior as the azimuth it is."""
+
+    def __init__(self, encoder: nn.Module) -> None:
+        super().__init__()
+        self.encoder = encoder
+
+    def forward(self, images: torch.Tensor, prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.encoder(with_prior(images, prior))
+
+
+def jittered_priors(azimuth_deg: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Training priors (N,) float32: each target's true azimuth plus a miss drawn as :data:`PRIOR_JITTER_DEG` says."""
+    azimuth = np.asarray(azimuth_deg, dtype=np.float64)
+    spread = np.where(rng.random(len(azimuth)) < PRIOR_WIDE_SHARE, *PRIOR_JITTER_DEG[::-1])
+    return (azimuth + rng.normal(size=len(azimuth)) * spread).astype(np.float32)
+
+
+def encoder_input(
+    model: CMVAE, frames: np.ndarray, labels: np.ndarray, device: torch.device | str, rng: np.random.Generator
+) -> torch.Tensor:
+    """uint8 frames as ``model``'s encoder reads them in training and evaluation: a tracking model's with
+    :func:`jittered_priors` about the true azimuths (``labels``, physical, theta in column 1) as the stripe."""
+    images = images_to_tensor(frames, device)
+    if not model.tracks:
+        return images
+    return with_prior(images, torch.from_numpy(jittered_priors(labels[:, THETA], rng)))
+
+
 class ImageEncoder(nn.Module):
     """q(z | image): 64x64x3 -> (mu, logvar), each (N, n_z).
+
+    With ``track`` the input has a fourth channel, :func:`prior_map`'s stripe at where the target was last seen,
+    and the first three latents describe the dolphin under that stripe: the one the rover follows, among others
+    that look alike (docs/encoder.md, pods). The loop hands each frame its prior (the azimuth the previous frame's
+    latent decodes to, the image centre at an episode's first frame), so the encoder itself keeps no state.
 
     With ``locate`` a :class:`MaskHead` (the locator) maps the 8x8 feature map to where the dolphin is, and the
     head reads, beside the pooled features, that map's soft-argmax: the expected column and row of the dolphin
@@ -153,14 +217,15 @@ class ImageEncoder(nn.Module):
 
     FEATURES = 128 * 2 * 2  # the flattened 2x2 map after the last residual block
 
-    def __init__(self, n_z: int, input_norm: str = "none", locate: bool = False) -> None:
+    def __init__(self, n_z: int, input_norm: str = "none", locate: bool = False, track: bool = False) -> None:
         super().__init__()
         if input_norm not in INPUT_NORMS:
             raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
         self.input_norm = input_norm
+        self.tracks = track
         self.normalise = WhiteBalance() if input_norm == "channel" else nn.Identity()
         self.features = nn.Sequential(
-            nn.Conv2d(3, 32, 5, stride=2, padding=2),  # 64 -> 32
+            nn.Conv2d(4 if track else 3, 32, 5, stride=2, padding=2),  # 64 -> 32
             nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16
             ResidualBlock(32, 32),  # 16 -> 8
             ResidualBlock(32, 64),  # 8 -> 4
@@ -187,13 +252,19 @@ class ImageEncoder(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(mu, logvar) as ``forward`` gives them, the 8x8 map after the first residual block (N, 32, 8, 8), and
         the locator's logits (N, 8, 8) (None without one)."""
-        feature_map = self.features[:MASK_TAP](self.normalise(images))
+        feature_map = self.features[:MASK_TAP](self._normalised(images))
         pooled = self.features[MASK_TAP:](feature_map)
         where = None
         if self.locator is not None:
             where = self.locator(feature_map)
             pooled = torch.cat([pooled, soft_argmax(where)], dim=1)
         return *self._split(self.head(pooled)), feature_map, where
+
+    def _normalised(self, images: torch.Tensor) -> torch.Tensor:
+        """The input norm applied to the colour channels; a tracking encoder's prior stripe passes as it is."""
+        if not self.tracks:
+            return self.normalise(images)
+        return torch.cat([self.normalise(images[:, :3]), images[:, 3:]], dim=1)
 
     def _split(self, stats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return stats[:, : self.n_z], stats[:, self.n_z :]
@@ -285,6 +356,7 @@ class CMVAE(nn.Module):
         mask_head: bool = False,
         labels: tuple[str, ...] = LABEL_NAMES,
         locate: bool = False,
+        track: bool = False,
     ) -> None:
         super().__init__()
         self.labels = check_label_names(labels, "CMVAE")
@@ -294,7 +366,7 @@ class CMVAE(nn.Module):
             raise ValueError("a CMVAE that locates the dolphin trains its locator on the masks: no mask head besides")
         self.n_z = n_z
         self.input_norm = input_norm
-        self.encoder = ImageEncoder(n_z, input_norm, locate)
+        self.encoder = ImageEncoder(n_z, input_norm, locate, track)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
         # made last, so a model without it draws every other weight as before the head existed
@@ -306,6 +378,11 @@ class CMVAE(nn.Module):
     @property
     def locates(self) -> bool:
         return self.encoder.locator is not None
+
+    @property
+    def tracks(self) -> bool:
+        """Whether the encoder reads a prior (:func:`with_prior`) beside each frame."""
+        return self.encoder.tracks
 
     def encode_with_mask(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(mu, logvar) and the mask logits (N, 8, 8) of the mask head or the locator, or None with neither."""
@@ -542,6 +619,7 @@ def make_checkpoint(
             "mask_head": model.mask_head is not None,
             "labels": list(model.labels),
             "locate": model.locates,
+            "track": model.tracks,
         },
         "state_dict": state_dict,
         "epoch": int(epoch),
@@ -574,6 +652,7 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CM
         mask_head=config.get("mask_head", False),
         labels=check_label_names(config.get("labels", LABEL_NAMES), str(path)),  # older checkpoints: planar
         locate=config.get("locate", False),
+        track=config.get("track", False),
     )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()

@@ -36,6 +36,7 @@ from encoder_service.data import (
 )
 from encoder_service.model import (
     CMVAE,
+    EVALUATION_PRIORS_SEED,
     INPUT_NORMS,
     LABEL_NAMES,
     SPEC_STATE_LOSS,
@@ -46,6 +47,7 @@ from encoder_service.model import (
     cmvae_loss,
     denormalise_labels,
     distillation_loss,
+    encoder_input,
     images_to_tensor,
     label_errors,
     load_model,
@@ -86,6 +88,7 @@ class TrainEncoderSettings:
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
     locate: bool = False  # the encoder reads where the dolphin is off a locator the masks train (needs --mask-weight)
+    track: bool = False  # the encoder reads a prior, where the target was last seen, beside each frame: pods
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -205,16 +208,17 @@ def _loss(
     device: torch.device,
     teacher: CMVAE | None,
     jitter_rng: np.random.Generator | None = None,
+    priors: np.random.Generator | None = None,
 ) -> LossParts | DistillationParts:
     """The batch's loss parts: the CMVAE loss, or with a ``teacher`` the distillation loss; ``jitter_rng`` jitters
-    a share of the inputs (never the targets)."""
+    a share of the inputs (never the targets); ``priors`` draws a tracking model's priors."""
     inputs, targets = inputs_and_targets(batch, feed_clean)
     if jitter_rng is not None and settings.augment > 0:
         inputs = jitter(inputs, jitter_rng, settings.augment)
     if jitter_rng is not None and settings.augment_bands > 0:
         inputs = bands(inputs, jitter_rng, settings.augment_bands)
     labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
-    images = images_to_tensor(inputs, device)
+    images = encoder_input(model, inputs, batch.labels, device, priors)
     masks = _masks_tensor(batch, settings.mask_weight, device)
     mask_args = {"masks": masks, "mask_weight": settings.mask_weight}
     if teacher is None:
@@ -252,6 +256,7 @@ def _train_epoch(
     flips = np.random.default_rng((settings.seed, epoch, 1))
     feeds = np.random.default_rng((settings.seed, epoch, 3))
     jitters = np.random.default_rng((settings.seed, epoch, 4))
+    priors = np.random.default_rng((settings.seed, epoch, 5))
     with tqdm(
         prefetch(batches),
         total=n_batches,
@@ -264,7 +269,7 @@ def _train_epoch(
             if settings.mirror > 0:
                 batch = mirror_batch(batch, flips.random(len(batch.indices)) < settings.mirror)
             feed_clean = feeds.random(len(batch.indices)) < settings.clean_share
-            loss = _loss(model, batch, feed_clean, settings, device, teacher, jitters)
+            loss = _loss(model, batch, feed_clean, settings, device, teacher, jitters, priors)
             optimiser.zero_grad(set_to_none=True)
             loss.total.backward()
             optimiser.step()
@@ -302,9 +307,11 @@ def recalibrate_batch_norm(
         layer.reset_running_stats()
         layer.momentum = None  # a plain average over the batches below
     feeds = np.random.default_rng((settings.seed, epoch, 4))
+    priors = np.random.default_rng((settings.seed, epoch, 6))
     for batch in iter_batches(dataset, indices, settings.batch_size, (settings.seed, epoch, 2), settings.bn_batches):
         inputs, _ = inputs_and_targets(batch, feeds.random(len(batch.indices)) < settings.clean_share)
-        model(images_to_tensor(inputs, device), sample=False)  # eval decodes mu, so the decoder's layers see mu
+        # eval decodes mu, so the decoder's layers see mu
+        model(encoder_input(model, inputs, batch.labels, device, priors), sample=False)
     for layer, momentum in zip(layers, momenta, strict=True):
         layer.momentum = momentum
 
@@ -335,11 +342,13 @@ def validate(
     totals: dict[str, float] = {}
     errors = np.zeros(len(model.labels))
     seen, overlap = 0, np.zeros(2)
+    priors = np.random.default_rng(EVALUATION_PRIORS_SEED)  # every validation reads the same priors
     for batch in prefetch(iter_batches(dataset, indices, batch_size)):
         chosen = np.full(len(batch.indices), feed_clean)
         inputs, targets = inputs_and_targets(batch, chosen)
         labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
-        images, targets_t = images_to_tensor(inputs, device), images_to_tensor(targets, device)
+        images = encoder_input(model, inputs, batch.labels, device, priors)
+        targets_t = images_to_tensor(targets, device)
         masks = _masks_tensor(batch, mask_weight, device)
         mask_args = {"masks": masks, "mask_weight": mask_weight}
         if teacher is None:
@@ -394,7 +403,8 @@ def save_mask_figure(model: CMVAE, dataset: AnyDataset, rows: np.ndarray, path: 
     """Frames (top), their true masks pooled to the head's grid (middle) and the head's predictions (bottom)."""
     model.eval()
     batch = dataset.read(rows)
-    predicted = torch.sigmoid(model(images_to_tensor(batch.images, device)).mask).cpu().numpy()
+    images = encoder_input(model, batch.images, batch.labels, device, np.random.default_rng(EVALUATION_PRIORS_SEED))
+    predicted = torch.sigmoid(model(images).mask).cpu().numpy()
     true = pool_masks(torch.from_numpy(batch.masks), predicted.shape[-1]).numpy()
     overlays = [batch.images, figures.mask_overlay(batch.images, true), figures.mask_overlay(batch.images, predicted)]
     return figures.image_grid(
@@ -445,22 +455,26 @@ def revive_latent(model: CMVAE, dim: int) -> None:
 
 #: Parts a CMVAE has or lacks by its settings: the mask head, the locator and the elevation label's state decoder.
 OPTIONAL_PARTS = ("mask_head.", "encoder.locator.", f"state_decoders.{len(LABEL_NAMES)}.")
-#: The layer that reads the locator's soft-argmax beside the pooled features: two input columns more with one.
-LOCATOR_READER = "encoder.head.0.weight"
+#: Layers whose input widens with a part: the head reads the locator's soft-argmax beside the pooled features (two
+#: columns more), the first convolution a tracking encoder's prior stripe beside the colours (one channel more).
+WIDENED_INPUTS = ("encoder.head.0.weight", "encoder.features.0.weight")
 
 
 def _matched_to(weights: dict[str, torch.Tensor], model: CMVAE) -> dict[str, torch.Tensor]:
     """``weights`` with the optional parts matched to ``model``'s: its fresh part where the checkpoint has none,
-    the checkpoint's dropped where the model has none (the encoder is what carries over). A model that locates,
-    started from one that does not, reads the soft-argmax through zero weights: it starts as the checkpoint."""
+    the checkpoint's dropped where the model has none (the encoder is what carries over). A model that locates or
+    tracks, started from one that does not, reads the soft-argmax or the prior through zero weights: it starts as
+    the checkpoint."""
     own = model.state_dict()
     kept = {name: tensor for name, tensor in weights.items() if name in own or not name.startswith(OPTIONAL_PARTS)}
     fresh = {name: tensor for name, tensor in own.items() if name.startswith(OPTIONAL_PARTS) and name not in weights}
-    reader, wanted = kept[LOCATOR_READER], own[LOCATOR_READER].shape[1]
-    if reader.shape[1] < wanted:
-        kept[LOCATOR_READER] = torch.cat([reader, reader.new_zeros(reader.shape[0], wanted - reader.shape[1])], 1)
-    elif reader.shape[1] > wanted:
-        kept[LOCATOR_READER] = reader[:, :wanted]
+    for name in WIDENED_INPUTS:
+        reader, wanted = kept[name], own[name].shape[1]
+        if reader.shape[1] < wanted:
+            extra = reader.new_zeros(reader.shape[0], wanted - reader.shape[1], *reader.shape[2:])
+            kept[name] = torch.cat([reader, extra], 1)
+        elif reader.shape[1] > wanted:
+            kept[name] = reader[:, :wanted]
     return kept | fresh
 
 
@@ -529,7 +543,7 @@ def run(settings: TrainEncoderSettings) -> int:
     if settings.locate and settings.mask_weight <= 0:
         raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
     mask_head = settings.mask_weight > 0 and not settings.locate  # a locator learns the masks itself
-    model = CMVAE(settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate)
+    model = CMVAE(settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate, settings.track)
     model.to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
     if teacher is not None:
@@ -546,8 +560,9 @@ def run(settings: TrainEncoderSettings) -> int:
             raise ValueError(
                 f"{last_path} learns labels {last['config'].get('labels')}, the dataset {list(model.labels)}"
             )
-        if last["config"].get("locate", False) != settings.locate:
-            raise ValueError(f"{last_path} was trained with locate={last['config'].get('locate', False)}: resume it so")
+        for flag in ("locate", "track"):
+            if last["config"].get(flag, False) != getattr(settings, flag):
+                raise ValueError(f"{last_path} was trained with {flag}={last['config'].get(flag, False)}: resume it so")
         model.load_state_dict(last["state_dict"])
         optimiser.load_state_dict(last["optimizer"])
         torch.set_rng_state(last["torch_rng_state"])
