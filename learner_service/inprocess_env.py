@@ -54,7 +54,9 @@ class TrackingEnv(gym.Env):
     The episode number is ``info["ep"]``, never ``"episode"``: SB3 reads ``info["episode"]`` as Monitor statistics.
 
     ``encoder`` is any object with ``encode(images uint8 (N, 64, 64, 3)) -> (mu, logvar)``; in cmvae mode without
-    one, the default :class:`encoder_service.inference.LatentEncoder` checkpoint is loaded at the first reset.
+    one, the default :class:`encoder_service.inference.LatentEncoder` checkpoint is loaded at the first reset. One
+    that ``tracks`` reads each frame's prior too, as the distributed loop hands it: the azimuth its previous latent
+    decoded to (``next_priors``), the image centre at an episode's first frame.
     """
 
     metadata = {"render_modes": ["rgb_array"]}
@@ -79,6 +81,7 @@ class TrackingEnv(gym.Env):
         self.episode = 0
         self._encoder = encoder
         self._last_image: np.ndarray | None = None
+        self._prior = 0.0
 
     @property
     def encoder(self) -> Any:
@@ -106,6 +109,7 @@ class TrackingEnv(gym.Env):
         self.episode += 1
         world_seed = episode_seed(self.base_seed, self.episode)
         telemetry, image = self.world.reset(world_seed, noise, scene=scene)
+        self._prior = 0.0
         obs = self.task.reset(self._frame(telemetry, image), seed=world_seed)
         info = self.task.info(telemetry, self.task.settings.task) | {"ep": self.episode, "seed": world_seed}
         log.debug(
@@ -133,7 +137,11 @@ class TrackingEnv(gym.Env):
         self._last_image = image
         if self.task.settings.obs != "cmvae":
             return Frame(telemetry, image=image)
-        mu, logvar = self.encoder.encode(image[None])
+        if not getattr(self.encoder, "tracks", False):
+            mu, logvar = self.encoder.encode(image[None])
+        else:
+            mu, logvar = self.encoder.encode(image[None], np.array([self._prior], dtype=np.float32))
+            self._prior = float(self.encoder.next_priors(mu)[0])
         return Frame(telemetry, image=image, mu=mu[0], logvar=logvar[0])
 
     def close(self) -> None:

@@ -1,0 +1,123 @@
+"""The tracking CMVAE: an encoder that reads, beside each frame, where its target was last seen (pods)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from encoder_service.export import export_checkpoint
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import CMVAE, images_to_tensor, load_model, make_checkpoint, prior_map, with_prior
+from encoder_service.train import TrainEncoderSettings, load_init_weights, run
+
+GENERAL = Path(__file__).parents[2] / "encoder_service" / "models" / "cmvae_general.pt"
+
+
+@pytest.fixture(scope="module")
+def pod(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small dataset of a pod of 3, with the target's masks."""
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when MuJoCo is first imported
+    from sim_service.dataset import write_dataset
+    from sim_service.settings import DolphinSettings, WorldSettings
+
+    root = tmp_path_factory.mktemp("tracking") / "pod"
+    world = WorldSettings(render=True, dolphin=DolphinSettings(pod_size=3))
+    return write_dataset(root, count=96, seed=4, shard_size=48, world_settings=world, progress=False, masks=True)
+
+
+def _settings(dataset: Path, out: Path, **overrides: object) -> TrainEncoderSettings:
+    base = {"dataset": [str(dataset)], "out": str(out), "epochs": 1, "val_fraction": 0.25, "device": "cpu",
+            "tensorboard": False, "bn_batches": 0, "track": True, "input_norm": "channel"}  # fmt: skip
+    return TrainEncoderSettings(**{**base, **overrides})
+
+
+def test_the_prior_stripe_sits_where_the_camera_shows_the_target(pod: Path) -> None:
+    """The stripe's brightest column against the target's pixels (MuJoCo's segmentation) in rendered pod frames."""
+    masks = np.load(pod / "shard-00000.masks.npy")
+    azimuths = np.load(pod / "shard-00000.labels.npy")[:, 1]
+    stripes = prior_map(torch.from_numpy(azimuths)).numpy()[:, 0, 0]  # one row: every row is the same
+    assert stripes.min() >= -1.0 and stripes.max() <= 1.0
+    seen = masks.sum(axis=(1, 2)) >= 10
+    assert seen.sum() >= 20
+    target_columns = np.array([np.nonzero(mask)[1].mean() for mask in masks[seen]])
+    stripe_columns = stripes[seen].argmax(axis=1)
+    assert np.median(np.abs(target_columns - stripe_columns)) < 2.0  # pixels of 64
+
+
+def test_a_tracking_encoder_starts_as_the_model_it_is_initialised_from(pod: Path) -> None:
+    """The prior reaches the first convolution through zero weights at first: the latents are the checkpoint's."""
+    started = CMVAE(input_norm="channel", track=True)
+    load_init_weights(started, str(GENERAL), n_z=10)
+    general, _ = load_model(GENERAL)
+    frames = images_to_tensor(np.load(pod / "shard-00000.images.npy")[:8])
+    with torch.no_grad():
+        tracked = started.eval().encode(with_prior(frames, torch.linspace(-20, 20, 8)))
+        torch.testing.assert_close(tracked, general.encode(frames), rtol=1e-5, atol=1e-5)
+
+
+def test_a_trained_tracker_reads_its_prior_in_torch_onnx_and_export(pod: Path, tmp_path: Path) -> None:
+    run(_settings(pod, tmp_path / "run", epochs=2, lr=1e-3, batch_size=16, init=str(GENERAL)))
+    checkpoint = tmp_path / "run" / "last.pt"
+    assert torch.load(checkpoint, weights_only=True)["config"]["track"] is True
+    frames = np.load(pod / "shard-00001.images.npy")[:6]
+    priors = np.array([-15.0, -5.0, 0.0, 3.0, 10.0, 20.0], dtype=np.float32)
+    encoder = LatentEncoder(checkpoint)
+    assert encoder.tracks and not LatentEncoder(GENERAL).tracks
+    torch_mu, _ = encoder.encode(frames, priors)
+    onnx_mu, _ = LatentEncoder(checkpoint, engine="onnx").encode(frames, priors)
+    np.testing.assert_allclose(onnx_mu, torch_mu, rtol=1e-4, atol=1e-4)
+    assert np.abs(encoder.encode(frames, -priors)[0] - torch_mu).max() > 1e-4  # the prior is read
+    centred, _ = encoder.encode(frames)  # no priors: the image centre, the engagement rule
+    np.testing.assert_array_equal(centred, encoder.encode(frames, np.zeros(6, np.float32))[0])
+
+    next_priors = encoder.next_priors(torch_mu)
+    np.testing.assert_allclose(next_priors, encoder.decode_state(torch_mu)[1], rtol=1e-6)
+
+    exported = export_checkpoint(checkpoint, tmp_path / "exported.pt")
+    exported_mu, _ = LatentEncoder(exported).encode(frames, priors)
+    np.testing.assert_allclose(exported_mu, torch_mu, atol=2e-2)  # float16 weights
+
+
+def test_refusals_name_what_is_wrong(pod: Path, tmp_path: Path) -> None:
+    encoder = LatentEncoder(GENERAL)
+    frames = np.load(pod / "shard-00000.images.npy")[:2]
+    for bad in (np.zeros(3), np.array([0.0, np.nan]), np.zeros((2, 1))):
+        with pytest.raises(ValueError, match="priors must be 2 finite azimuths"):
+            encoder.encode(frames, bad)
+    run(_settings(pod, tmp_path / "plain", track=False))
+    with pytest.raises(ValueError, match="track=False: resume it so"):
+        run(_settings(pod, tmp_path / "plain", epochs=2, resume=True))
+
+
+class _Recording(LatentEncoder):
+    """The real encoder, noting the priors the env hands it."""
+
+    def __init__(self, checkpoint: Path) -> None:
+        super().__init__(checkpoint)
+        self.seen: list[float] = []
+
+    def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        self.seen.append(float(priors[0]))
+        return super().encode(images, priors)
+
+
+def test_the_in_process_env_hands_each_frame_the_prior_its_last_latent_decoded_to(tmp_path: Path) -> None:
+    from learner_service.inprocess_env import TrackingEnv
+    from learner_service.task import TaskSettings
+
+    model = CMVAE(input_norm="channel", track=True)
+    load_init_weights(model, str(GENERAL), n_z=10)
+    torch.save(make_checkpoint(model.eval(), 8.0, 1, 0.0, {}), tmp_path / "tracking.pt")
+    encoder = _Recording(tmp_path / "tracking.pt")
+    env = TrackingEnv(TaskSettings(obs="cmvae", use_latent_mean=True), base_seed=5, encoder=encoder)
+    latents = [env.reset()[0]]
+    latents += [env.step(np.zeros(env.action_space.shape, np.float32))[0] for _ in range(3)]
+    env.reset()
+    env.close()
+    assert encoder.seen[0] == 0.0 and encoder.seen[4] == 0.0  # each episode starts at the image centre
+    mus = np.stack([latent[: encoder.n_z] for latent in latents[:3]])
+    np.testing.assert_allclose(encoder.seen[1:4], encoder.next_priors(mus), rtol=1e-5)
