@@ -6,13 +6,17 @@ keeps the only state there is:
 
     inputs   frame           uint8 (N, 64, 64, 3), RGB, as the sim's camera renders it
              action_history  float32 (N, 20): ActPrev, the last 10 actions oldest first, zeros at an episode's start
+             prior           float32 (N,): a tracking CMVAE's only: degrees (+ = left) where its target was last
+                             seen, zeros at an episode's start
     outputs  action          float32 (N, 2): (surge, yaw) in [-1, 1]
              next_history    float32 (N, 20): action_history with the action appended (feed it back next frame)
+             next_prior      float32 (N,): a tracking CMVAE's only: the azimuth the latent decodes to (feed it back)
 
 The rest of the contract (sizes, colour order, normalisation, control rate, action names, where it came from) is in
 the model's metadata (``metadata_props``), which `verify` and a pilot read. Before the file is kept it is checked
 against the Python path: a deterministic episode of real frames is played in-process with the stable-baselines3
-model choosing every action, and onnxruntime must give the same actions from the same frames and histories.
+model choosing every action, and onnxruntime must give the same actions from the same frames and histories (and
+a tracking CMVAE's next priors from the same priors).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import torch
 
 from encoder_service import DEFAULT_CHECKPOINT
 from encoder_service.inference import LatentEncoder
-from encoder_service.model import load_model
+from encoder_service.model import CMVAE, LABEL_RANGES, PriorReader, load_model
 from learner_service.identity import encoder_for, policy_task
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
@@ -41,6 +45,12 @@ log = logging.getLogger(__name__)
 SHIPPED_POLICY = Path(__file__).parent / "models" / "sac_cmvae_general.zip"  # the policy to fly (docs/learner.md)
 INPUTS = ("frame", "action_history")
 OUTPUTS = ("action", "next_history")
+#: What a tracking CMVAE's file carries besides: where its target was last seen, fed back as ActPrev is.
+TRACKING_INPUTS = ("prior",)
+TRACKING_OUTPUTS = ("next_prior",)
+#: The unit the check's tolerance is a share of, per output: actions span [-1, 1]; a next prior is in degrees, the
+#: state decoder's [-1, 1] stretched over the azimuth range (float32 rounding grows with it).
+CHECK_UNITS = {"action": 1.0, "next_prior": (LABEL_RANGES["theta"][1] - LABEL_RANGES["theta"][0]) / 2}
 OPSET = 17
 
 
@@ -52,16 +62,20 @@ class ExportSettings:
     out: str = "runs/export/policy.onnx"
     check_frames: int = 1000  # frames of a real in-process episode both paths must agree on
     check_seed: int = 9001  # the episode's seed
-    tolerance: float = 1e-4  # largest allowed |onnx - python| action difference
+    tolerance: float = 1e-4  # largest allowed |onnx - python| action difference (a next prior's: of its range)
     threads: int = 1  # torch CPU threads of the Python path (docs/eval.md: one is faster beside other work)
 
 
 class CameraToAction(torch.nn.Module):
-    """Frame and ActPrev in, action and the next ActPrev out: the encoder's mean feeding the actor."""
+    """Frame and ActPrev in, action and the next ActPrev out: the encoder's mean feeding the actor. A tracking
+    CMVAE's prior comes in too, and the azimuth its latent decodes to goes out as the next frame's prior."""
 
-    def __init__(self, encoder: torch.nn.Module, policy: Any, history_size: int) -> None:
+    def __init__(self, cmvae: CMVAE, policy: Any, history_size: int) -> None:
         super().__init__()
-        self.encoder = encoder
+        self.tracks = cmvae.tracks
+        self.encoder = PriorReader(cmvae.encoder) if self.tracks else cmvae.encoder
+        self.theta = cmvae.labels.index("theta")  # the latent and state decoder LatentEncoder.next_priors reads
+        self.decoder = cmvae.state_decoders[self.theta]
         self.policy = policy
         self.history_size = history_size
         low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (policy.action_space.low,
@@ -69,16 +83,37 @@ class CameraToAction(torch.nn.Module):
         self.register_buffer("low", low)
         self.register_buffer("high", high)
 
-    def forward(self, frame: torch.Tensor, action_history: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return INPUTS + TRACKING_INPUTS if self.tracks else INPUTS
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        return OUTPUTS + TRACKING_OUTPUTS if self.tracks else OUTPUTS
+
+    def example(self) -> tuple[torch.Tensor, ...]:
+        """An input of each name in :attr:`inputs`, batch 1, for the exporter's trace."""
+        example = (torch.zeros(1, 64, 64, 3, dtype=torch.uint8), torch.zeros(1, self.history_size))
+        return example + (torch.zeros(1),) if self.tracks else example
+
+    def forward(self, frame: torch.Tensor, action_history: torch.Tensor,
+                prior: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:  # fmt: skip
         images = frame.permute(0, 3, 1, 2).float() / 127.5 - 1.0  # encoder_service.model.images_to_tensor
-        mu, _ = self.encoder(images)
+        mu, _ = self.encoder(images) if prior is None else self.encoder(images, prior)
         actions = deterministic_action(self.policy, torch.cat([mu, action_history], dim=1))
         # What BasePolicy.predict does after the network: back from the squashed [-1, 1] or clip to the bounds.
         if self.policy.squash_output:
             actions = self.low + 0.5 * (actions + 1.0) * (self.high - self.low)
         action = torch.minimum(torch.maximum(actions, self.low), self.high)
         next_history = torch.cat([action_history[:, action.shape[1] :], action], dim=1)
-        return action, next_history
+        if prior is None:
+            return action, next_history
+        return action, next_history, self.azimuth(mu)
+
+    def azimuth(self, mu: torch.Tensor) -> torch.Tensor:
+        """(N,) degrees the latents decode to, as ``LatentEncoder.next_priors`` (denormalise_labels) gives them."""
+        low, high = LABEL_RANGES["theta"]
+        return (self.decoder(mu[:, self.theta : self.theta + 1])[:, 0] + 1.0) * (0.5 * (high - low)) + low
 
 
 #: How the vehicle holds or changes depth under each task's actions (`swimm pilot` flies heave in ALT_HOLD only).
@@ -88,21 +123,28 @@ DIVE_MODES = {
 }
 
 
-def contract(settings: ExportSettings, policy_path: Path, encoder_path: Path, task: TrackingTask) -> dict[str, str]:
+def contract(
+    settings: ExportSettings, policy_path: Path, encoder_path: Path, task: TrackingTask, tracks: bool
+) -> dict[str, str]:
     """The file's metadata: what a caller must feed it and where it came from (values are strings in ONNX)."""
     names = task.settings.action_names
+    inputs = {
+        "frame": "uint8 NHWC (N, 64, 64, 3), RGB, the sim camera's 64x64 render (79.95 deg HFOV)",
+        "action_history": f"float32 (N, {task.history_size}): the last {task.settings.n_prev_actions} actions, "
+        "oldest first, zeros at an episode's start",
+    }
+    outputs = {"action": f"float32 (N, {len(names)}) in [-1, 1]", "next_history": "the next action_history"}
+    if tracks:
+        inputs["prior"] = (
+            "float32 (N,): degrees (+ = left) where the CMVAE's target was last seen, zeros at an "
+            "episode's start (the image centre: the target is the dolphin the camera is centred on)"
+        )
+        outputs["next_prior"] = "the next prior: the azimuth the latent decodes to"
     return {
         "swimm.contract": json.dumps(
             {
-                "inputs": {
-                    "frame": "uint8 NHWC (N, 64, 64, 3), RGB, the sim camera's 64x64 render (79.95 deg HFOV)",
-                    "action_history": f"float32 (N, {task.history_size}): the last {task.settings.n_prev_actions} "
-                    "actions, oldest first, zeros at an episode's start",
-                },
-                "outputs": {
-                    "action": f"float32 (N, {len(names)}) in [-1, 1]",
-                    "next_history": "the next action_history",
-                },
+                "inputs": inputs,
+                "outputs": outputs,
                 "normalisation": "frame / 127.5 - 1, inside the graph",
                 "action_names": list(names),
                 "task": task.settings.task,
@@ -117,15 +159,18 @@ def contract(settings: ExportSettings, policy_path: Path, encoder_path: Path, ta
 
 
 def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: int, seed: int) -> dict[str, np.ndarray]:
-    """Play the model deterministically in-process for ``frames`` steps: every frame, ActPrev and chosen action."""
+    """Play the model deterministically in-process for ``frames`` steps: every frame, its prior (zeros for a CMVAE
+    that does not track) and the azimuth its latent decodes to, ActPrev and the chosen action."""
     from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only
 
-    seen: list[np.ndarray] = []
+    seen: list[tuple[np.ndarray, np.float32, np.float32]] = []
 
     class Recording(LatentEncoder):
-        def encode(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            seen.append(images[0].copy())
-            return super().encode(images)
+        def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+            mu, logvar = super().encode(images, priors)
+            prior = np.float32(0.0 if priors is None else priors[0])
+            seen.append((images[0].copy(), prior, self.next_priors(mu)[0]))
+            return mu, logvar
 
     env = TrackingEnv(task.settings, base_seed=seed, encoder=Recording(encoder_path))
     histories, actions = [], []
@@ -138,36 +183,45 @@ def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: i
             obs, _, terminated, truncated, _ = env.step(action)
             if terminated or truncated:
                 obs, _ = env.reset()
-                seen.pop()  # the frame that ended the episode is never acted on
+                del seen[-2]  # the frame that ended the episode (the one before the reset's) is never acted on
     finally:
         env.close()
-    return {"frame": np.stack(seen[:frames]), "action_history": np.stack(histories), "action": np.stack(actions)}
+    frame, prior, next_prior = (np.stack(column) for column in zip(*seen[:frames], strict=True))
+    return {"frame": frame, "prior": prior, "next_prior": next_prior, "action_history": np.stack(histories),
+            "action": np.stack(actions)}  # fmt: skip
 
 
 def torch_latency_ms(model: Any, encoder_path: Path, recorded: dict[str, np.ndarray]) -> float:
     """The Python path's time per frame on the same frames: the CMVAE encoder, then the model's predict."""
     encoder = LatentEncoder(encoder_path)
     started = time.perf_counter()
-    for frame, history in zip(recorded["frame"], recorded["action_history"], strict=True):
-        mu, _ = encoder.encode(frame[None])
+    for frame, prior, history in zip(recorded["frame"], recorded["prior"], recorded["action_history"], strict=True):
+        mu, _ = encoder.encode(frame[None], prior[None])
         model.predict(np.concatenate([mu[0], history]), deterministic=True)
     return (time.perf_counter() - started) * 1000 / len(recorded["frame"])
 
 
 def verify(path: Path, recorded: dict[str, np.ndarray], tolerance: float) -> dict[str, float]:
-    """Run the ONNX file under onnxruntime on recorded frames; the largest action difference and the latency."""
+    """Run the ONNX file under onnxruntime on recorded frames (and priors, where it takes them); the largest
+    difference of each output it shares with the Python path (actions; a tracking CMVAE's next priors, degrees) and
+    the latency."""
     import onnxruntime  # the export extra: only where a file is checked
 
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    inputs = [node.name for node in session.get_inputs()]
+    checked = ["action", *TRACKING_OUTPUTS] if "prior" in inputs else ["action"]
     started = time.perf_counter()
-    actions = [session.run(["action"], {"frame": frame[None], "action_history": history[None]})[0][0]
-               for frame, history in zip(recorded["frame"], recorded["action_history"], strict=True)]  # fmt: skip
-    per_frame_ms = (time.perf_counter() - started) * 1000 / len(actions)
-    difference = float(np.abs(np.stack(actions) - recorded["action"]).max())
-    if not difference <= tolerance:
-        raise ValueError(f"{path}: onnxruntime's actions differ from the Python path's by up to {difference:.2e} "
-                         f"(allowed {tolerance:.0e}); the file is not kept")  # fmt: skip
-    return {"max_action_difference": difference, "onnx_ms_per_frame": per_frame_ms}
+    results = [session.run(checked, {name: recorded[name][i : i + 1] for name in inputs})
+               for i in range(len(recorded["frame"]))]  # fmt: skip
+    per_frame_ms = (time.perf_counter() - started) * 1000 / len(results)
+    report = {}
+    for name, got in zip(checked, zip(*results, strict=True), strict=True):
+        difference, allowed = float(np.abs(np.concatenate(got) - recorded[name]).max()), tolerance * CHECK_UNITS[name]
+        if not difference <= allowed:
+            raise ValueError(f"{path}: onnxruntime's {name} differs from the Python path's by up to "
+                             f"{difference:.2e} (allowed {allowed:.1e}); the file is not kept")  # fmt: skip
+        report[f"max_{name}_difference"] = difference
+    return report | {"onnx_ms_per_frame": per_frame_ms}
 
 
 def run(settings: ExportSettings) -> int:
@@ -188,25 +242,24 @@ def run(settings: ExportSettings) -> int:
         raise ValueError(f"{policy_path} observes {model.observation_space.shape}, not cmvae's {expected}: only "
                          "camera-only (cmvae) policies export")  # fmt: skip
     cmvae, _ = load_model(encoder_path, "cpu")
-    graph = CameraToAction(cmvae.encoder.float(), model.policy.eval(), task.history_size).eval()
+    graph = CameraToAction(cmvae.float(), model.policy.eval(), task.history_size).eval()
     out = Path(settings.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(out.name + ".partial")
-    example = (torch.zeros(1, 64, 64, 3, dtype=torch.uint8), torch.zeros(1, task.history_size))
     # Argument checks of torch.distributions (the actor builds one even for its deterministic action) would be traced
     # as constant branches; the graph needs none of them.
     torch.distributions.Distribution.set_default_validate_args(False)
     try:
         with torch.no_grad():
-            torch.onnx.export(graph, example, str(partial), input_names=list(INPUTS), output_names=list(OUTPUTS),
-                              dynamic_axes={name: {0: "batch"} for name in INPUTS + OUTPUTS}, opset_version=OPSET,
-                              dynamo=False)  # fmt: skip
+            torch.onnx.export(graph, graph.example(), str(partial), input_names=list(graph.inputs),
+                              output_names=list(graph.outputs), opset_version=OPSET, dynamo=False,
+                              dynamic_axes={name: {0: "batch"} for name in graph.inputs + graph.outputs})  # fmt: skip
     finally:
         torch.distributions.Distribution.set_default_validate_args(__debug__)  # torch's default
     import onnx  # the export extra: only where a file is written
 
     onnx_model = onnx.load(str(partial))
-    for key, value in contract(settings, policy_path, encoder_path, task).items():
+    for key, value in contract(settings, policy_path, encoder_path, task, graph.tracks).items():
         onnx_model.metadata_props.add(key=key, value=value)
     onnx.save(onnx_model, str(partial))
     log.info("checking %s against the Python path on %d frames (seed %d)", out, settings.check_frames,

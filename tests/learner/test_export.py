@@ -42,7 +42,8 @@ def test_the_contract_is_in_the_metadata_and_the_batch_is_free(exported: Path) -
     contract = json.loads(meta["swimm.contract"])
     assert contract["action_names"] == ["surge", "yaw"] and contract["control_rate_hz"] == 50
     assert meta["swimm.algo"] == "sac" and len(meta["swimm.policy_sha256"]) == 64
-    assert [i.name for i in session.get_inputs()] == ["frame", "action_history"]
+    assert [i.name for i in session.get_inputs()] == ["frame", "action_history"]  # no prior: this CMVAE does not track
+    assert [o.name for o in session.get_outputs()] == ["action", "next_history"] and "prior" not in contract["inputs"]
     frames = np.random.default_rng(0).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
     history = np.random.default_rng(1).uniform(-1, 1, (3, 20)).astype(np.float32)
     action, next_history = session.run(None, {"frame": frames, "action_history": history})
@@ -77,6 +78,7 @@ def test_the_recorded_episode_is_the_python_paths_own(exported: Path) -> None:
         "encoder_service/models/cmvae.pt"), 30, 9001)  # fmt: skip
     np.testing.assert_allclose(recorded["action_history"][1:, -2:], np.clip(recorded["action"][:-1], -1, 1))
     assert recorded["frame"].shape == (30, 64, 64, 3) and len(np.unique(recorded["frame"][:, 32, 32, 0])) > 1
+    assert not recorded["prior"].any()  # a CMVAE that does not track is fed none
 
 
 def test_bad_requests_name_the_problem_and_leave_no_file(tmp_path: Path) -> None:
@@ -135,3 +137,71 @@ def test_a_3d_policy_exports_its_three_actions_and_the_pilot_flies_them(tmp_path
     policy = OnnxPolicy(out)
     assert policy.action_names == ["surge", "heave", "yaw"] and policy.contract["task"] == "3d"
     assert policy.history_size == 30 and policy.act(np.zeros((64, 64, 3), np.uint8)).shape == (3,)
+
+
+@pytest.fixture(scope="module")
+def tracking_export(tmp_path_factory) -> Path:
+    """An untrained camera-only SAC on a tracking CMVAE whose latent reads the prior (its stripe's weights drawn at
+    random: the shipped weights start them at zero), exported and checked."""
+    import torch
+
+    from encoder_service.inference import LatentEncoder
+    from encoder_service.model import CMVAE, make_checkpoint
+    from encoder_service.train import load_init_weights
+
+    root = tmp_path_factory.mktemp("tracking")
+    cmvae = CMVAE(input_norm="channel", track=True)
+    load_init_weights(cmvae, "encoder_service/models/cmvae_general.pt", n_z=10)
+    with torch.no_grad():
+        cmvae.encoder.features[0].weight[:, 3] = torch.randn_like(cmvae.encoder.features[0].weight[:, 3]) * 0.1
+    torch.save(make_checkpoint(cmvae.eval(), 8.0, 1, 0.0, {}), root / "tracking.pt")
+    task = TaskSettings(obs="cmvae", max_steps=20)
+    env = make_vec_env("inprocess", task, n_envs=1, base_seed=1, encoder=LatentEncoder(root / "tracking.pt"))
+    try:
+        model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
+        stamp(model, policy_identity(root / "tracking.pt", "cmvae", "swimm2", "planar"))
+        model.save(root / "cmvae-tracking.zip")
+    finally:
+        env.close()
+    out = root / "tracking.onnx"
+    assert run(ExportSettings(checkpoint=str(root / "cmvae-tracking.zip"), out=str(out), check_frames=FRAMES)) == 0
+    return out
+
+
+def test_a_policy_on_a_tracking_cmvae_carries_its_prior_and_agrees_with_the_python_path(tracking_export: Path) -> None:
+    """The file takes the prior and gives the next one, documented in its contract; the export's own check fed it
+    the in-process episode's priors and its actions and next priors matched the Python path's; the next prior is the
+    azimuth the encoder's latent decodes to, and the action depends on the prior."""
+    from encoder_service.inference import LatentEncoder
+
+    report = json.loads(tracking_export.with_suffix(".json").read_text())
+    assert report["max_action_difference"] <= 1e-4 and report["max_next_prior_difference"] <= 4e-3
+    session = onnxruntime.InferenceSession(str(tracking_export), providers=["CPUExecutionProvider"])
+    assert [i.name for i in session.get_inputs()] == ["frame", "action_history", "prior"]
+    assert [o.name for o in session.get_outputs()] == ["action", "next_history", "next_prior"]
+    contract = json.loads(session.get_modelmeta().custom_metadata_map["swimm.contract"])
+    assert "prior" in contract["inputs"] and "next_prior" in contract["outputs"]
+
+    frames = np.random.default_rng(0).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    priors = np.array([-20.0, 0.0, 15.0], np.float32)
+    feeds = {"frame": frames, "action_history": np.zeros((3, 20), np.float32), "prior": priors}
+    action, _, next_prior = session.run(None, feeds)
+    encoder = LatentEncoder(tracking_export.with_name("tracking.pt"))
+    np.testing.assert_allclose(next_prior, encoder.next_priors(encoder.encode(frames, priors)[0]), atol=1e-3)
+    assert np.abs(session.run(["action"], feeds | {"prior": -priors})[0] - action).max() > 1e-4  # the prior is read
+
+
+def test_the_recorded_priors_are_those_the_in_process_env_fed_a_tracking_cmvae(tracking_export: Path) -> None:
+    """Each frame's prior is the previous frame's next prior, and the image centre at each 20-step episode's start
+    (the frame that ended an episode dropped, as never acted on)."""
+    from stable_baselines3 import SAC
+
+    from learner_service.task import TrackingTask
+
+    model = SAC.load(tracking_export.with_name("cmvae-tracking.zip"), device="cpu")
+    task = TrackingTask(TaskSettings(obs="cmvae", max_steps=20))
+    recorded = episode_frames(model, task, tracking_export.with_name("tracking.pt"), 45, 9001)
+    assert recorded["prior"][0] == 0.0 and recorded["prior"][20] == 0.0 and recorded["prior"][40] == 0.0
+    np.testing.assert_array_equal(recorded["prior"][1:20], recorded["next_prior"][:19])
+    np.testing.assert_array_equal(recorded["prior"][21:40], recorded["next_prior"][20:39])
+    assert np.all(recorded["prior"][1:20] != 0.0)
