@@ -1,4 +1,5 @@
-"""An exported policy (`swimm export`) under onnxruntime, holding its own action history (ActPrev)."""
+"""An exported policy (`swimm export`) under onnxruntime, holding its own action history (ActPrev) and, for a
+tracking CMVAE, where its target was last seen (the prior)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from services.messages import POLICY_ACTIONS
 
 INPUTS = {"frame", "action_history"}
 OUTPUTS = {"action", "next_history"}
+#: The state a file feeds back, as (input, the output that is its next value): a tracking CMVAE's prior optional.
+CARRIED = {"action_history": "next_history", "prior": "next_prior"}
 #: The actions a policy may drive: the planar task's, and the 3d task's with heave (a climb rate in ALT_HOLD).
 ACTION_SETS = [list(names) for names in POLICY_ACTIONS.values()]
 
@@ -20,8 +23,8 @@ class ContractError(ValueError):
 
 
 class OnnxPolicy:
-    """Frame in, (surge, yaw) or (surge, heave, yaw) out; the history the file feeds back is kept here and cleared
-    by ``reset``."""
+    """Frame in, (surge, yaw) or (surge, heave, yaw) out; the history (and a tracking CMVAE's prior) the file feeds
+    back is kept here and cleared by ``reset``."""
 
     def __init__(self, path: str | Path, threads: int = 1) -> None:
         import onnxruntime  # the pilot extra: loaded only when a policy is
@@ -37,10 +40,13 @@ class OnnxPolicy:
         inputs = {node.name: node.shape for node in self.session.get_inputs()}
         outputs = {node.name for node in self.session.get_outputs()}
         metadata = self.session.get_modelmeta().custom_metadata_map
-        if set(inputs) != INPUTS or not OUTPUTS <= outputs or "swimm.contract" not in metadata:
+        tracks = "prior" in inputs  # a policy on a tracking CMVAE
+        wanted_in, wanted_out = (INPUTS | {"prior"}, OUTPUTS | {"next_prior"}) if tracks else (INPUTS, OUTPUTS)
+        if set(inputs) != wanted_in or not wanted_out <= outputs or "swimm.contract" not in metadata:
             raise ContractError(f"{path} is not a swimm policy: inputs {sorted(inputs)}, outputs {sorted(outputs)}, "
-                                f"metadata {sorted(metadata)}; expected inputs {sorted(INPUTS)} and outputs "
-                                f"{sorted(OUTPUTS)} with swimm.contract (written by `swimm export`)")  # fmt: skip
+                                f"metadata {sorted(metadata)}; expected inputs {sorted(wanted_in)} and outputs "
+                                f"{sorted(wanted_out)} with swimm.contract (written by `swimm export`)")  # fmt: skip
+        self.carried = {name: (CARRIED[name], tuple(inputs[name][1:])) for name in CARRIED if name in inputs}
         self.contract = json.loads(metadata["swimm.contract"])
         self.image_size = int(inputs["frame"][1])
         self.history_size = int(inputs["action_history"][1])
@@ -55,14 +61,15 @@ class OnnxPolicy:
         self.reset()
 
     def reset(self) -> None:
-        """A new episode: an empty history, as the policy met at every training episode's start."""
-        self.history = np.zeros((1, self.history_size), np.float32)
+        """A new episode: an empty history and the prior at the image centre, as at every training episode's start."""
+        self.state = {name: np.zeros((1, *shape), np.float32) for name, (_, shape) in self.carried.items()}
 
     def act(self, frame: np.ndarray) -> np.ndarray:
         """The action for one RGB frame of the contract's size."""
         expected = (self.image_size, self.image_size, 3)
         if frame.shape != expected or frame.dtype != np.uint8:
             raise ContractError(f"the policy takes uint8 frames of shape {expected}, got {frame.dtype} {frame.shape}")
-        action, self.history = self.session.run(["action", "next_history"],
-                                                {"frame": frame[None], "action_history": self.history})  # fmt: skip
+        action, *carried = self.session.run(["action", *(output for output, _ in self.carried.values())],
+                                            {"frame": frame[None], **self.state})  # fmt: skip
+        self.state = dict(zip(self.carried, carried, strict=True))
         return action[0]

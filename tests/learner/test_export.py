@@ -205,3 +205,25 @@ def test_the_recorded_priors_are_those_the_in_process_env_fed_a_tracking_cmvae(t
     np.testing.assert_array_equal(recorded["prior"][1:20], recorded["next_prior"][:19])
     np.testing.assert_array_equal(recorded["prior"][21:40], recorded["next_prior"][20:39])
     assert np.all(recorded["prior"][1:20] != 0.0)
+
+
+def test_the_pilot_feeds_a_tracking_policy_its_last_next_prior_and_the_centre_after_a_reset(
+    tracking_export: Path,
+) -> None:
+    """`swimm pilot`'s policy runner acts as onnxruntime fed by hand each frame's previous next_prior (and next
+    history), and after a reset (frames back after the watchdog) as at an episode's start: the prior at 0."""
+    from pilot_service.policy import OnnxPolicy
+
+    policy = OnnxPolicy(tracking_export)
+    session = onnxruntime.InferenceSession(str(tracking_export), providers=["CPUExecutionProvider"])
+    frames = np.random.default_rng(2).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    history, prior = np.zeros((1, 20), np.float32), np.zeros(1, np.float32)
+    for frame in frames:
+        action, history, prior = session.run(None, {"frame": frame[None], "action_history": history, "prior": prior})
+        np.testing.assert_array_equal(policy.act(frame), action[0])
+        assert prior[0] != 0.0  # what the next frame is fed
+    policy.reset()
+    fresh = {"frame": frames[:1], "action_history": np.zeros((1, 20), np.float32), "prior": np.zeros(1, np.float32)}
+    first = session.run(["action"], fresh)[0]
+    assert not np.array_equal(session.run(["action"], fresh | {"prior": prior})[0], first)  # the reset prior mattered
+    np.testing.assert_array_equal(policy.act(frames[0]), first[0])
