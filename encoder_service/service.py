@@ -229,11 +229,13 @@ class EncoderService(Service):
     def _encode(self, frames: list[_Frame]) -> None:
         """One forward pass for every frame of every group in ``frames``, then one message of latents per group."""
         groups = [group for frame in frames if (group := self._decode(frame)) is not None]
-        images = [obs.image for group in groups for obs in group.observations if isinstance(obs, ObservationMsg)]
-        if images:
-            mu, logvar = self.encoder.encode(np.stack(images))
-            self.metrics.record_batch(len(images))
-        rows = iter(range(len(images)))
+        observed = [obs for group in groups for obs in group.observations if isinstance(obs, ObservationMsg)]
+        if observed:
+            priors = [0.0 if obs.prior is None else obs.prior for obs in observed]  # None: the image centre
+            mu, logvar = self.encoder.encode(np.stack([obs.image for obs in observed]), np.asarray(priors))
+            next_priors = self.encoder.next_priors(mu).tolist() if self.encoder.tracks else [None] * len(observed)
+            self.metrics.record_batch(len(observed))
+        rows = iter(range(len(observed)))
         for group in groups:
             items = []
             for source, obs in zip(group.batch.items, group.observations, strict=True):
@@ -241,12 +243,12 @@ class EncoderService(Service):
                     items.append(BatchItem(source.env, source.ep, source.seq, error=obs))
                     continue
                 row = next(rows)
-                items.append(BatchItem.of(obs.env, self._latent(obs, mu[row], logvar[row])))
+                items.append(BatchItem.of(obs.env, self._latent(obs, mu[row], logvar[row], next_priors[row])))
             reply = BatchMsg(group.batch.group, self.ident, tuple(items), group.batch.to)
             self._publisher(self.keys.latent(group.channel, group.batch.group)).put(reply.encode())
             self.metrics.observe_ms("latency", (time.perf_counter() - group.frame.received_at) * 1e3)
 
-    def _latent(self, obs: ObservationMsg, mu: np.ndarray, logvar: np.ndarray) -> LatentMsg:
+    def _latent(self, obs: ObservationMsg, mu: np.ndarray, logvar: np.ndarray, next_prior: float | None) -> LatentMsg:
         return LatentMsg(
             env=obs.env,
             ep=obs.ep,
@@ -255,6 +257,7 @@ class EncoderService(Service):
             mu=tuple(mu.tolist()),
             logvar=tuple(logvar.tolist()),
             encoder=self.ident,
+            next_prior=next_prior,
         )
 
     def _publisher(self, key: str) -> zenoh.Publisher:

@@ -9,8 +9,9 @@ twice, whatever the network or an encoder does.
 
 In ``cmvae`` mode the reply is the encoder's latents, and the link chooses which encoder encodes them by
 rendezvous hashing of its name over the live encoders; a retry recomputes the choice, which is how load moves
-off a dead encoder. Claims and resets go per env over the control plane (services/control.py); a reset's
-observation comes back as its env's group of one.
+off a dead encoder. A tracking encoder's ``next_prior`` goes back with each env's next action (the sim echoes it
+to the encoder), so the encoder keeps no state and a failover loses none. Claims and resets go per env over the
+control plane (services/control.py); a reset's observation comes back as its env's group of one.
 """
 
 from __future__ import annotations
@@ -57,13 +58,15 @@ class StepRefused(RuntimeError):
     """The sim refused a step or reset; the message carries its reason."""
 
 
-def decode_reply(item: BatchItem, encoded: bool) -> Frame:
-    """One env's reply: the encoder's latent (``encoded``) or the sim's observation; BadMessage if unreadable."""
+def decode_reply(item: BatchItem, encoded: bool) -> tuple[Frame, float | None]:
+    """One env's reply: the encoder's latent (``encoded``) or the sim's observation, with the prior for the env's
+    next action (a tracking encoder's ``next_prior``, else None); BadMessage if unreadable."""
     if encoded:
         msg = LatentMsg.from_item(item)
-        return Frame(msg.telemetry, mu=np.asarray(msg.mu, np.float32), logvar=np.asarray(msg.logvar, np.float32))
+        mu, logvar = np.asarray(msg.mu, np.float32), np.asarray(msg.logvar, np.float32)
+        return Frame(msg.telemetry, mu=mu, logvar=logvar), msg.next_prior
     obs = ObservationMsg.from_item(item)
-    return Frame(obs.telemetry, image=obs.image)
+    return Frame(obs.telemetry, image=obs.image), None
 
 
 def new_holder_id(role: str) -> str:
@@ -73,7 +76,7 @@ def new_holder_id(role: str) -> str:
 
 class EnvLink:
     """The learner's end of ``envs`` (one or several) on ``channel``, stepped as group ``group`` (default and for one
-    env: the env's id). ``ep``, ``seq`` and ``claimed`` are per env, in the link's order."""
+    env: the env's id). ``ep``, ``seq``, ``priors`` and ``claimed`` are per env, in the link's order."""
 
     def __init__(
         self,
@@ -106,6 +109,7 @@ class EnvLink:
         self.claimed = [False] * len(envs)  # set by a granted claim; only then does release() send anything
         self.ep = [0] * len(envs)
         self.seq = [0] * len(envs)
+        self.priors: list[float | None] = [None] * len(envs)  # the last latent's next_prior, for the next action
         self.duplicates_dropped = 0
         self.retries = 0
         self._replies: Inbox[BatchMsg | None] = Inbox(poll_seconds(poll_ms))  # None: an unreadable message
@@ -176,7 +180,7 @@ class EnvLink:
         """Start episode ``ep`` of env ``index``; ``noise`` switches the sim's image noise (on, off, a map of noise
         settings), ``latency`` its camera and control delays (a map of sim_service.latency settings) and ``scene``
         its scenery (a map of sim_service.scenery settings); None leaves each as it is."""
-        self.ep[index], self.seq[index] = ep, 0
+        self.ep[index], self.seq[index], self.priors[index] = ep, 0, None  # a new episode's target: the image centre
         self._resetting = (index, ResetRequest(self.holder, ep, seed, noise=noise, latency=latency, scene=scene))
         self._expected = [(self.envs[index], ep, 0)]
         try:
@@ -202,8 +206,10 @@ class EnvLink:
             control.request(self.session, self._ctl(index), replace(reset, route=route), self.step_timeout_s)
             return
         items = tuple(
-            BatchItem.of(env, ActionMsg(ep, seq, action, dive_mode, route, self.holder))
-            for (env, ep, seq), (action, dive_mode) in zip(self._expected, self._actions, strict=True)
+            BatchItem.of(env, ActionMsg(ep, seq, action, dive_mode, route, self.holder, prior=prior))
+            for (env, ep, seq), (action, dive_mode), prior in zip(
+                self._expected, self._actions, self.priors, strict=True
+            )
         )
         self._publisher.put(BatchMsg(self.group, self.holder, items).encode())
 
@@ -246,7 +252,10 @@ class EnvLink:
             except BadMessage as exc:
                 log.warning("%s: unreadable reply for env %s: %s; waiting for a re-send", self.name, item.env, exc)
                 return None
-        return replies
+        indices = [self._resetting[0]] if self._resetting is not None else range(len(self.envs))  # envs answered
+        for index, (_, prior) in zip(indices, replies, strict=True):
+            self.priors[index] = prior
+        return [frame for frame, _ in replies]
 
     def _missing_service_message(self) -> str:
         steps = ", ".join(f"{self.channel}/{env} episode {ep} seq {seq}" for env, ep, seq in self._expected)

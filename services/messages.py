@@ -28,7 +28,9 @@ M = TypeVar("M")
 #: steps; ErrorMsg and the err key are gone, a refusal travelling as its env's error item (docs/architecture.md).
 #: 3: an item carries its message's fields as a map, not the message encoded on its own (one msgpack pass).
 #: 4: telemetry carries a pod's identity ground truth (pod_size, followed, target_occluded; services/identity.py).
-PROTOCOL_VERSION = 4
+#: 5: a tracking encoder's prior travels with the env's messages (ActionMsg.prior, ObservationMsg.prior,
+#: LatentMsg.next_prior), so the encoder keeps no state.
+PROTOCOL_VERSION = 5
 #: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)
@@ -113,13 +115,30 @@ def _float_list(body: dict[str, Any], name: str, size: int | None) -> tuple[floa
     return numbers
 
 
+def _optional_float(body: dict[str, Any], name: str) -> float | None:
+    """A finite number, or None when absent."""
+    value = body.get(name)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise BadMessage(f"field {name!r} must be a finite number or absent, got {value!r}")
+    return float(value)
+
+
+def _if_set(name: str, value: float | None) -> dict[str, float]:
+    """``{name: value}``, or nothing for None: an unset prior costs no bytes."""
+    return {} if value is None else {name: value}
+
+
 @dataclass(frozen=True)
 class ActionMsg:
     """Learner -> sim: apply ``action`` as step ``seq`` of episode ``ep``.
 
     ``route`` names the encoder that must encode the resulting observation
     (or ``direct``); the learner chooses it so the party that notices a dead
-    encoder (by timing out) is the one that re-routes.
+    encoder (by timing out) is the one that re-routes. ``prior`` is the previous
+    latent's ``next_prior`` handed back (None at an episode's start or from a
+    non-tracking encoder): the sim echoes it to the encoder, which keeps no state.
     """
 
     ep: int
@@ -129,6 +148,7 @@ class ActionMsg:
     route: str = DIRECT_ROUTE
     sender: str = ""  # the claimant's id; the sim refuses actions from anyone but the holder
     sent_at: float = field(default_factory=time.time)
+    prior: float | None = None  # azimuth (deg) where the tracking encoder last saw the target
 
     def fields(self) -> dict[str, Any]:
         return {
@@ -137,6 +157,7 @@ class ActionMsg:
             "dive_mode": self.dive_mode.value,
             "route": self.route,
             "sender": self.sender,
+            **_if_set("prior", self.prior),
         }
 
     @classmethod
@@ -157,6 +178,7 @@ class ActionMsg:
             route=_str(body, "route", DIRECT_ROUTE),
             sender=_str(body, "sender", ""),
             sent_at=_time(body),
+            prior=_optional_float(body, "prior"),
         )
 
 
@@ -194,10 +216,11 @@ class ObservationMsg:
     telemetry: Telemetry
     image: np.ndarray | None  # HxWx3 uint8; None from a sim that does not render (state observations)
     sent_at: float = field(default_factory=time.time)
+    prior: float | None = None  # the action's prior, echoed for the encoder; None after a reset
 
     def fields(self) -> dict[str, Any]:
         image = image_to_fields(self.image) if self.image is not None else {}
-        return {"t": self.sent_at, "telemetry": self.telemetry.to_dict(), **image}
+        return {"t": self.sent_at, "telemetry": self.telemetry.to_dict(), **image, **_if_set("prior", self.prior)}
 
     @classmethod
     def from_item(cls, item: BatchItem, expected_shape: tuple[int, ...] | None = None) -> ObservationMsg:
@@ -212,6 +235,7 @@ class ObservationMsg:
             telemetry=_telemetry(body),
             image=image_from_fields(body, expected_shape) if "image" in body else None,
             sent_at=_time(body),
+            prior=_optional_float(body, "prior"),
         )
 
 
@@ -237,6 +261,7 @@ class LatentMsg:
     logvar: tuple[float, ...]
     encoder: str
     sent_at: float = field(default_factory=time.time)
+    next_prior: float | None = None  # a tracking encoder's prior for the env's next frame, for the learner to hand back
 
     def fields(self) -> dict[str, Any]:
         return {
@@ -245,6 +270,7 @@ class LatentMsg:
             "mu": list(self.mu),
             "logvar": list(self.logvar),
             "encoder": self.encoder,
+            **_if_set("next_prior", self.next_prior),
         }
 
     @classmethod
@@ -260,6 +286,7 @@ class LatentMsg:
             logvar=_float_list(body, "logvar", len(mu)),
             encoder=_str(body, "encoder"),
             sent_at=_time(body),
+            next_prior=_optional_float(body, "next_prior"),
         )
 
 

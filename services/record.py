@@ -10,9 +10,10 @@ as a video and Rerun's MCAP loader reads. The recorded namespace is in the file'
 
 `swimm replay FILE` publishes the msgpack channels back into the same keys, at the recorded pace or as fast as
 it can (``--speed full``), under the recorded namespace or another (``--namespace``): an encoder started there
-answers replayed observations as it answered them live. The bytes are the recorded ones, so a replayed episode
-is bit-exact. Control requests (claim, reset) are request/reply, not samples: they are not in a recording, and an
-episode's start shows as its observation of step 0. Liveliness tokens are not samples either.
+answers replayed observations as it answered them live (a tracking one too: each observation carries its prior).
+The bytes are the recorded ones, so a replayed episode is bit-exact. Control requests (claim, reset) are
+request/reply, not samples: they are not in a recording, and an episode's start shows as its observation of step 0.
+Liveliness tokens are not samples either.
 """
 
 from __future__ import annotations

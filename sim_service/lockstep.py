@@ -7,14 +7,15 @@ This is the lock-step contract, free of Zenoh so it can be tested directly:
   the cached observation instead of drawing a new episode;
 * action ``seq`` must be the next one (current + 1) and steps the world once;
   the current ``seq`` again is a retry and is answered from the cache
-  without stepping; anything else is refused with the reason.
+  without stepping; anything else is refused with the reason;
+* each observation carries its action's ``prior`` (a retry's too), a reset's none.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, BatchItem, EnvState, ObservationMsg
 from sim_service.latency import LatencySettings
@@ -44,9 +45,10 @@ class LockstepEnv:
         self.ep = 0
         self.seq = 0
         self.seed: int | None = None
-        self._last: BatchItem | None = None
+        self._last: ObservationMsg | None = None
         self.route = DIRECT_ROUTE  # where this env's observations go (set by reset and each action)
         self.action = (0.0, 0.0, 0.0, 0.0)  # held between steps in real-time mode
+        self.prior: float | None = None  # held with the action in real-time mode
         self.pending: ActionMsg | None = None  # real-time mode: the latest action, applied at the next tick
 
     @property
@@ -91,14 +93,14 @@ class LockstepEnv:
         self._check_holder(sender)
         self.route = route
         if ep == self.ep and self.seq == 0 and self._last is not None and seed == self.seed:
-            return Outcome(self._last, replayed=True)
+            return self._replay(None)
         if ep <= self.ep and self._last is not None:
             raise Refusal(f"env {self.name}: episode {ep} is not after the current episode {self.ep}")
         if latency is not None:
             self.world.configure_latency(latency)
         telemetry, image = self.world.reset(seed, noise, scene)
         self.ep, self.seq, self.seed = ep, 0, seed
-        self.action = (0.0, 0.0, 0.0, 0.0)
+        self.action, self.prior = (0.0, 0.0, 0.0, 0.0), None
         return self._emit(telemetry, image)
 
     def act(self, msg: ActionMsg) -> Outcome:
@@ -107,11 +109,11 @@ class LockstepEnv:
         if msg.ep != self.ep or self._last is None:
             raise Refusal(f"env {self.name}: action for episode {msg.ep}, but the current episode is {self.ep}")
         if msg.seq == self.seq:
-            return Outcome(self._last, replayed=True)
+            return self._replay(msg.prior)
         if msg.seq != self.seq + 1:
             raise Refusal(f"env {self.name}: action seq {msg.seq} out of order (expected {self.seq + 1})")
         telemetry, image = self.world.step(msg.action, msg.dive_mode)
-        self.seq = msg.seq
+        self.seq, self.prior = msg.seq, msg.prior
         return self._emit(telemetry, image)
 
     def step_realtime(self) -> Outcome | None:
@@ -120,17 +122,19 @@ class LockstepEnv:
             return None
         if self.pending is not None:
             self._check_holder(self.pending.sender)
-            self.action, self.route, self.pending = self.pending.action, self.pending.route, None
+            self.action, self.prior, self.route = self.pending.action, self.pending.prior, self.pending.route
+            self.pending = None
         telemetry, image = self.world.step(self.action)
         self.seq += 1
         return self._emit(telemetry, image)
 
     def _emit(self, telemetry, image) -> Outcome:
-        msg = ObservationMsg(
-            env=self.env, ep=self.ep, seq=self.seq, telemetry=telemetry, image=image, sent_at=time.time()
-        )
-        self._last = BatchItem.of(self.env, msg)
-        return Outcome(self._last, replayed=False)
+        self._last = ObservationMsg(self.env, self.ep, self.seq, telemetry, image, time.time(), self.prior)
+        return Outcome(BatchItem.of(self.env, self._last), replayed=False)
+
+    def _replay(self, prior: float | None) -> Outcome:
+        """The cached observation again, with the retry's prior: a failover's retry goes to an encoder that has none."""
+        return Outcome(BatchItem.of(self.env, replace(self._last, prior=prior)), replayed=True)
 
     def state(self) -> EnvState:
         return EnvState(self.channel, self.env, self.holder, self.ep, self.seq)

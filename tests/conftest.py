@@ -11,6 +11,7 @@ import os
 import sys
 import uuid
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -125,3 +126,23 @@ def zenoh_session(zenoh_settings: Callable[[str], ZenohSettings]) -> Iterator[Ca
     yield connect
     for session in opened:
         session.close()
+
+
+@pytest.fixture(scope="session")
+def tracking_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tracking CMVAE (``--track``) from the shipped general one, its prior channel randomised: --init leaves it
+    zero, and the latents must depend on the prior for a test to see it carried."""
+    import torch  # here, not at the top: most tests never load torch
+
+    from encoder_service.model import CMVAE, make_checkpoint
+    from encoder_service.train import load_init_weights
+
+    torch.manual_seed(5)
+    model = CMVAE(10, "channel", track=True)
+    load_init_weights(model, str(Path(__file__).parents[1] / "encoder_service/models/cmvae_general.pt"), 10)
+    with torch.no_grad():
+        prior_weights = model.encoder.features[0].weight[:, 3]
+        prior_weights.copy_(torch.randn_like(prior_weights) * 0.5)
+    path = tmp_path_factory.mktemp("tracking") / "cmvae_track.pt"
+    torch.save(make_checkpoint(model.eval(), 8.0, 1, 0.0, {}), path)
+    return path

@@ -70,10 +70,8 @@ def start_service(
     with ExitStack() as started:
 
         def start(**overrides) -> EncoderService:
-            settings = EncoderSettings(
-                zenoh=zenoh_settings(zenoh_router), checkpoint=str(checkpoint), ident=IDENT, threads=1, **overrides
-            )
-            return started.enter_context(EncoderService(settings))
+            fields = {"zenoh": zenoh_settings(zenoh_router), "checkpoint": str(checkpoint), "ident": IDENT}
+            return started.enter_context(EncoderService(EncoderSettings(**fields | {"threads": 1} | overrides)))
 
         yield start
 
@@ -103,8 +101,8 @@ class Feeder:
         self._encoders.wait_for(1, timeout_s=20)  # the encoder announces itself once it listens
         self.session.put(self.keys.obs(channel, group, IDENT), payload, congestion_control=BLOCK)  # as the sim does
 
-    def frame(self, env: str, seq: int, image: np.ndarray) -> BatchItem:
-        return BatchItem.of(env, ObservationMsg(env=env, ep=1, seq=seq, telemetry=telemetry(seq), image=image))
+    def frame(self, env: str, seq: int, image: np.ndarray, prior: float | None = None) -> BatchItem:
+        return BatchItem.of(env, ObservationMsg(env, 1, seq, telemetry(seq), image, prior=prior))
 
     def take_latents(self, count: int, timeout_s: float = 20.0) -> list[LatentMsg]:
         deadline = time.monotonic() + timeout_s
@@ -137,9 +135,27 @@ def test_latents_match_the_encoder_on_the_same_images(start_service, feeder: Fee
     for seq, msg in by_seq.items():
         assert (msg.env, msg.ep, msg.encoder) == (str(seq % 3), 1, IDENT)
         assert msg.telemetry == telemetry(seq)  # passed through unchanged
+        assert msg.next_prior is None  # the model does not track
         np.testing.assert_allclose(msg.mu, expected_mu[seq], rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(msg.logvar, expected_logvar[seq], rtol=1e-4, atol=1e-5)
     assert feeder.latents.empty() and feeder.errors.empty()
+
+
+def test_a_tracking_encoder_reads_each_frames_prior_and_answers_the_next(
+    start_service, feeder: Feeder, tracking_checkpoint: Path
+) -> None:
+    start_service(checkpoint=str(tracking_checkpoint), max_wait_ms=20.0)
+    image = images(1, seed=8)[0]
+    priors = [None, 0.0, 25.0, -25.0]  # one frame seen with each; None: the image centre, as 0.0
+    for seq, prior in enumerate(priors):
+        feeder.send(str(seq), feeder.frame(str(seq), seq, image, prior))
+    by_seq = {msg.seq: msg for msg in feeder.take_latents(len(priors))}
+    reference = LatentEncoder(tracking_checkpoint, threads=1)
+    for seq, prior in enumerate(priors):
+        expected, _ = reference.encode(image[None], [prior or 0.0])
+        np.testing.assert_allclose(by_seq[seq].mu, expected[0], rtol=1e-4, atol=1e-4)
+        assert by_seq[seq].next_prior == pytest.approx(reference.next_priors(expected)[0], abs=1e-3)
+    assert not np.allclose(by_seq[2].mu, by_seq[1].mu, atol=1e-3)  # the prior changed what it described
 
 
 def test_frames_arriving_together_are_encoded_in_batches(start_service, feeder: Feeder) -> None:

@@ -259,6 +259,33 @@ def test_bad_input_is_refused_with_a_reason_and_the_sim_keeps_serving(group, con
     assert group.services[1].alive
 
 
+def test_the_sim_echoes_each_actions_prior_into_its_observation_a_retrys_too(group, connect_client, namespace):
+    endpoint = group.start_router()
+    start_sim(group, endpoint, namespace)
+    client = connect_client(endpoint)
+    client.roster("sim").wait_for(1, timeout_s=60)
+    answers: queue.Queue[BatchItem] = queue.Queue()
+    key = client.keys.obs("train", "0", DIRECT_ROUTE)
+    sub = client.session.declare_subscriber(key, lambda s: answers.put(BatchMsg.decode(s.payload.to_bytes()).items[0]))
+    link = client.link()
+    link.claim()
+    link.send_reset(1, 3)
+    link.wait()
+    assert ObservationMsg.from_item(answers.get(timeout=10)).prior is None  # a reset's target: the image centre
+
+    def answer(seq: int, prior) -> BatchItem:
+        """The sim's answer to env 0's step (1, seq) carrying ``prior``."""
+        action = ActionMsg(1, seq, (0, 0, 0.5, 0), sender=client.holder).fields() | {"prior": prior}
+        client.session.put(client.keys.action("train", "0"), BatchMsg.alone(BatchItem("0", 1, seq, action)).encode())
+        return answers.get(timeout=10)
+
+    assert ObservationMsg.from_item(answer(1, 12.5)).prior == 12.5
+    assert ObservationMsg.from_item(answer(1, -4.0)).prior == -4.0  # a retry, answered from the cache
+    assert "field 'prior' must be a finite number" in answer(2, "left").error
+    sub.undeclare()
+    link.close()
+
+
 def forward_speed(telemetry) -> float:
     return float(np.dot(telemetry.rover_lin_vel, telemetry.rover_forward))
 

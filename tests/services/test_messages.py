@@ -89,6 +89,7 @@ def test_action_round_trips_every_field():
         route="enc-2",
         sender="learner-ab12",
         sent_at=1700000000.5,
+        prior=-12.5,
     )
     assert ActionMsg.from_item(_wire(sent)) == sent
 
@@ -102,9 +103,10 @@ def test_action_defaults_to_depth_hold_and_direct_route():
 
 def test_observation_round_trips_image_bytes_and_telemetry():
     image = _image(seed=7)
-    sent = ObservationMsg(env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25)
+    sent = ObservationMsg(env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25, prior=7.5)
     received = ObservationMsg.from_item(_wire(sent, "3"), expected_shape=(64, 64, 3))
     assert (received.env, received.ep, received.seq, received.sent_at) == ("3", 2, 99, 1700000001.25)
+    assert received.prior == 7.5
     assert received.telemetry == TELEMETRY
     assert received.image.dtype == np.uint8
     assert received.image.shape == (64, 64, 3)
@@ -136,8 +138,21 @@ def test_latent_round_trips_every_field():
         logvar=(-2.0,) * 10,
         encoder="enc-1",
         sent_at=1700000002.0,
+        next_prior=31.25,
     )
     assert LatentMsg.from_item(_wire(sent, "1")) == sent
+
+
+def test_an_unset_prior_is_absent_from_the_wire_and_reads_back_as_none():
+    messages = (
+        ActionMsg(ep=1, seq=2, action=(0, 0, 0, 0)),
+        ObservationMsg("0", 1, 2, TELEMETRY, None),
+        LatentMsg("0", 1, 2, TELEMETRY, (0.0,), (0.0,), "enc-1"),
+    )
+    for message, name in zip(messages, ("prior", "prior", "next_prior"), strict=True):
+        item = _wire(message)
+        assert name not in item.body
+        assert getattr(type(message).from_item(item), name) is None
 
 
 def test_a_step_message_carries_version_and_send_time_and_each_item_its_episode_and_sequence():
@@ -297,6 +312,18 @@ def test_latent_with_mismatched_logvar_or_nan_mean_is_refused():
         LatentMsg.from_item(BatchItem("0", 0, 0, fields | {"logvar": [0.0, 0.0, 0.0]}))
     with pytest.raises(BadMessage, match="field 'mu' holds NaN or infinity"):
         LatentMsg.from_item(BatchItem("0", 0, 0, fields | {"mu": [math.nan, 0.0]}))
+
+
+@pytest.mark.parametrize("prior", ["left", True, math.nan, math.inf, [1.0]])
+def test_a_prior_that_is_not_a_finite_number_is_refused_naming_its_field(prior):
+    latent = LatentMsg("0", 0, 0, TELEMETRY, (0.0,), (0.0,), "enc-1").fields()
+    for read, fields, name in (
+        (ActionMsg.from_item, _action_item().body, "prior"),
+        (ObservationMsg.from_item, _observation_item().body, "prior"),
+        (LatentMsg.from_item, latent, "next_prior"),
+    ):
+        with pytest.raises(BadMessage, match=f"field '{name}' must be a finite number or absent"):
+            read(BatchItem("0", 1, 2, fields | {name: prior}))
 
 
 def test_a_batch_round_trips_its_items_fields_errors_and_addressee():
