@@ -69,3 +69,9 @@ def connect_client(namespace):
 
 def start_sim(group: ProcessGroup, endpoint: str, namespace: str, *args: str, name: str = "sim"):
     return group.start(name, "sim", "--connect", endpoint, "--namespace", namespace, *args)
+
+
+def start_encoders(group: ProcessGroup, endpoint: str, namespace: str, checkpoint, idents, *args: str) -> dict:
+    """One `swimm encoder` process on ``checkpoint`` per ident, one thread each, keyed by ident."""
+    common = ("--connect", endpoint, "--namespace", namespace, "--checkpoint", str(checkpoint), "--threads", "1")
+    return {ident: group.start(ident, "encoder", *args, *common, "--ident", ident) for ident in idents}

@@ -26,7 +26,7 @@ from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.task import Frame
 from services.messages import LatentMsg, batch_messages
 from services.presence import rendezvous_choice
-from tests.integration.conftest import start_sim
+from tests.integration.conftest import start_encoders, start_sim
 
 pytestmark = pytest.mark.slow
 
@@ -65,25 +65,7 @@ def test_killing_an_encoder_mid_run_moves_its_envs_and_loses_or_repeats_no_step(
     torch.save(make_checkpoint(CMVAE(), beta=8.0, epoch=0, val_loss=1.0, metrics={}), checkpoint)
     endpoint = group.start_router()
     start_sim(group, endpoint, namespace, "--train-envs", str(len(ENVS)), "--eval-envs", "0", "--mode", mode)
-    encoders = {
-        ident: group.start(
-            ident,
-            "encoder",
-            "--mode",
-            mode,
-            "--connect",
-            endpoint,
-            "--namespace",
-            namespace,
-            "--checkpoint",
-            str(checkpoint),
-            "--ident",
-            ident,
-            "--threads",
-            "1",
-        )  # fmt: skip
-        for ident in ENCODERS
-    }
+    encoders = start_encoders(group, endpoint, namespace, checkpoint, ENCODERS, "--mode", mode)
     client = connect_client(endpoint, mode)
     client.roster("sim").wait_for(1, timeout_s=60)
     roster = client.roster("encoder")

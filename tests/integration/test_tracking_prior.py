@@ -11,14 +11,13 @@ import os
 import signal
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from encoder_service.inference import LatentEncoder
 from services.messages import ActionMsg, LatentMsg, ObservationMsg, batch_messages
-from tests.integration.conftest import start_sim
+from tests.integration.conftest import start_encoders, start_sim
 
 pytestmark = pytest.mark.slow
 
@@ -58,32 +57,12 @@ class Tap:
             subscriber.undeclare()
 
 
-def start_encoders(group, endpoint: str, namespace: str, checkpoint: Path, *idents: str) -> dict:
-    return {
-        ident: group.start(
-            ident,
-            "encoder",
-            "--connect",
-            endpoint,
-            "--namespace",
-            namespace,
-            "--checkpoint",
-            str(checkpoint),
-            "--ident",
-            ident,
-            "--threads",
-            "1",
-        )  # fmt: skip
-        for ident in idents
-    }
-
-
 def test_the_link_hands_each_next_prior_back_on_the_next_action_and_a_reset_clears_it(
     group, connect_client, namespace, tracking_checkpoint
 ):
     endpoint = group.start_router()
     start_sim(group, endpoint, namespace, "--train-envs", "2", "--eval-envs", "0")
-    start_encoders(group, endpoint, namespace, tracking_checkpoint, "enc-a")
+    start_encoders(group, endpoint, namespace, tracking_checkpoint, ("enc-a",))
     client = connect_client(endpoint)
     client.roster("sim").wait_for(1, timeout_s=60)
     roster = client.roster("encoder")
@@ -122,7 +101,7 @@ def test_a_tracking_encoder_killed_mid_episode_loses_no_perception_state(
 ):
     endpoint = group.start_router()
     start_sim(group, endpoint, namespace, "--train-envs", "1", "--eval-envs", "0")
-    encoders = start_encoders(group, endpoint, namespace, tracking_checkpoint, "enc-a", "enc-b")
+    encoders = start_encoders(group, endpoint, namespace, tracking_checkpoint, ("enc-a", "enc-b"))
     client = connect_client(endpoint)
     client.roster("sim").wait_for(1, timeout_s=60)
     roster = client.roster("encoder")
