@@ -48,26 +48,19 @@ def _inputs(model: CMVAE, device: torch.device | str) -> tuple[torch.nn.Module, 
 
 def _traced_or_eager(model: CMVAE, device: torch.device) -> Encoder:
     """A frozen TorchScript trace of the (eval-mode) encoder, or the module itself if tracing fails."""
-    encoder, example, names = _inputs(model, device)
-    run = _by_name(names)
+    encoder, example, _ = _inputs(model, device)
     try:
         with warnings.catch_warnings(), torch.inference_mode():
             warnings.simplefilter("ignore", FutureWarning)  # the deprecation notice, see the module docstring
-            return run(torch.jit.freeze(torch.jit.trace(encoder, example).eval()))
+            return _as_encoder(torch.jit.freeze(torch.jit.trace(encoder, example).eval()), model.tracks)
     except Exception as exc:  # any tracing failure leaves a correct, slower path
         log.warning("TorchScript tracing of the encoder failed (%s); using eager mode", exc)
-        return run(encoder)
+        return _as_encoder(encoder, model.tracks)
 
 
-def _by_name(names: list[str]) -> Callable[[Callable[..., Any]], Encoder]:
-    """Wraps a module of the inputs ``names`` as an :data:`Encoder`: one that does not track drops the priors."""
-
-    def wrap(module: Callable[..., Any]) -> Encoder:
-        if len(names) == 2:
-            return module
-        return lambda images, prior: module(images)
-
-    return wrap
+def _as_encoder(module: Callable[..., Any], tracks: bool) -> Encoder:
+    """``module`` as an :data:`Encoder`: one that does not track is called on the frames alone."""
+    return module if tracks else lambda images, prior: module(images)
 
 
 def _onnx_runtime(model: CMVAE, threads: int | None) -> Encoder:

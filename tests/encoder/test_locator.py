@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,8 @@ import torch
 from encoder_service.export import export_checkpoint
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, images_to_tensor, load_model, soft_argmax
-from encoder_service.train import TrainEncoderSettings, load_init_weights, run
+from encoder_service.train import load_init_weights, run
+from tests.encoder.quick_training import quick_settings
 
 GENERAL = Path(__file__).parents[2] / "encoder_service" / "models" / "cmvae_general.pt"
 
@@ -26,11 +28,7 @@ def masked(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_dataset(root, count=96, seed=4, shard_size=48, progress=False, masks=True)
 
 
-def _settings(dataset: Path, out: Path, **overrides: object) -> TrainEncoderSettings:
-    base = {"dataset": [str(dataset)], "out": str(out), "epochs": 1, "val_fraction": 0.25, "device": "cpu",
-            "tensorboard": False, "bn_batches": 0, "locate": True, "mask_weight": 1.0,
-            "input_norm": "channel"}  # fmt: skip
-    return TrainEncoderSettings(**{**base, **overrides})
+_settings = partial(quick_settings, locate=True, mask_weight=1.0, input_norm="channel")
 
 
 def test_soft_argmax_is_the_expected_cell_centre() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,8 @@ from encoder_service.data import CMVAEDataset, DatasetFormatError, DatasetUnion,
 from encoder_service.export import export_checkpoint
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, MaskHead, images_to_tensor, load_model, make_checkpoint, pool_masks
-from encoder_service.train import TrainEncoderSettings, mirror_batch, run
+from encoder_service.train import mirror_batch, run
+from tests.encoder.quick_training import quick_settings
 
 SHIPPED = Path(__file__).parents[2] / "encoder_service" / "models" / "cmvae_general.pt"
 
@@ -36,10 +38,7 @@ def unmasked(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return _sim_dataset(tmp_path_factory.mktemp("mask-head") / "unmasked", masks=False)
 
 
-def _settings(dataset: Path, out: Path, **overrides: object) -> TrainEncoderSettings:
-    base = {"dataset": [str(dataset)], "out": str(out), "epochs": 1, "val_fraction": 0.25, "device": "cpu",
-            "tensorboard": False, "bn_batches": 2}  # fmt: skip
-    return TrainEncoderSettings(**{**base, **overrides})
+_settings = partial(quick_settings, bn_batches=2)
 
 
 def _column_side(masks: np.ndarray) -> np.ndarray:
