@@ -52,7 +52,7 @@ class SceneSettings:
     a field left at None takes the preset's range.
     """
 
-    preset: str = "plain"  # plain (the paper's world) | varied (the training ranges); fields set here win
+    preset: str = "plain"  # plain (the paper's world) | varied (training ranges) | wide (wider); fields set here win
     seabed_textures: list[str] | None = None  # seabed looks drawn from (sand, rippled, gravel, mud, meadow)
     relief_m: list[float] | None = None  # height range of the seabed's mounds, metres
     rocks: list[int] | None = None  # range of the number of rocks on a 40 m seabed tile
@@ -95,7 +95,7 @@ def scene_option(value: object) -> SceneSettings | None:
     raise ValueError(f"'scene' must be a map of scene settings or absent, got {value!r}")
 
 
-#: Named presets: ``plain`` is the paper's world; ``varied`` holds the training ranges.
+#: Named presets: ``plain`` is the paper's world; ``varied`` holds the training ranges; ``wide`` stretches them.
 PRESETS = {
     "plain": SceneSettings(
         preset="plain", seabed_textures=[], relief_m=[], rocks=[], seagrass=[], sun_intensity=[],
@@ -106,6 +106,14 @@ PRESETS = {
         preset="varied", seabed_textures=list(SEABED_TEXTURES), relief_m=[0.5, 2.5], rocks=[0, 8], seagrass=[0, 16],
         sun_intensity=[0.6, 1.3], sun_elevation_deg=[40.0, 90.0], light_shafts=[0, 2], shaft_strength=[0.04, 0.14],
         particles=[5, 20], fish_shoals=[0, 2], fish_per_shoal=[3, 6], dolphin_scale=[0.85, 1.15],
+        dolphin_shade=[0.7, 1.25],
+    ),
+    # The varied world's ranges stretched toward every scenery split without reaching one: lower and stronger
+    # suns' shafts, rougher seabeds, more life in the water (docs/encoder.md, "Wider scenery").
+    "wide": SceneSettings(
+        preset="wide", seabed_textures=list(SEABED_TEXTURES), relief_m=[0.5, 3.2], rocks=[0, 9], seagrass=[0, 19],
+        sun_intensity=[0.5, 1.4], sun_elevation_deg=[32.0, 90.0], light_shafts=[0, 3], shaft_strength=[0.04, 0.19],
+        particles=[5, 35], fish_shoals=[0, 2], fish_per_shoal=[3, 6], dolphin_scale=[0.85, 1.15],
         dolphin_shade=[0.7, 1.25],
     ),
 }  # fmt: skip

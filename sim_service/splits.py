@@ -29,8 +29,8 @@ TRAINING_NOISE = dataclasses.replace(PRESETS["harsh"], randomise=True)
 COLOUR_TOLERANCE = 12.0
 
 
-#: The training range of the varied world (sim_service.scenery): the scenery future models train under.
-TRAINING_SCENE = SCENE_PRESETS["varied"]
+#: The widest scenery any model trains under (sim_service.scenery's ``wide``, which holds ``varied``).
+TRAINING_SCENE = SCENE_PRESETS["wide"]
 
 
 @dataclass(frozen=True)
