@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from encoder_service.model import IMAGE_SHAPE, LABEL_SETS
+from services.identity import TARGET, followed_dolphin, level_camera_points
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,9 @@ class Batch:
     indices: np.ndarray  # int64 (B,): dataset rows, to pair a frame with its twin in another dataset
     clean: np.ndarray | None = None  # uint8 (B, 64, 64, 3): paired datasets' frames before noise, else None
     masks: np.ndarray | None = None  # bool (B, 64, 64): the dolphin's pixels, datasets written with --masks, else None
+    #: bool (B,): whether the target is the dolphin nearest the image centre, the one tracking engages on (always,
+    #: for a lone dolphin); None: not known, read as always
+    centred: np.ndarray | None = None
 
 
 class CMVAEDataset:
@@ -50,6 +54,7 @@ class CMVAEDataset:
         self._labels: list[np.ndarray] = []
         self._clean: list[np.ndarray] = []
         self._masks: list[np.ndarray] = []
+        self._dolphins: list[tuple[np.ndarray, np.ndarray]] = []  # pods: each shard's (poses, companions)
         for shard in self.meta["shards"]:
             images, labels = _open_shard(self.root, shard, len(self.label_names))
             self._images.append(images)
@@ -58,6 +63,8 @@ class CMVAEDataset:
                 self._clean.append(_open_clean(self.root, shard, len(images)))
             if self.has_masks:
                 self._masks.append(_open_masks(self.root, shard, len(images)))
+            if self.pod_size > 1:
+                self._dolphins.append(_open_dolphins(self.root, shard, len(images), self.pod_size))
         sizes = [len(images) for images in self._images]
         if sum(sizes) != self.meta["count"]:
             raise DatasetFormatError(
@@ -87,6 +94,11 @@ class CMVAEDataset:
     def has_masks(self) -> bool:
         """True when each frame has the dolphin's pixels beside it (`swimm dataset --masks`)."""
         return bool(self.meta.get("masks", False))
+
+    @property
+    def pod_size(self) -> int:
+        """Dolphins in each frame, the target included (`swimm dataset --dolphin-pod-size`); 1 for a lone dolphin."""
+        return int(self.meta.get("pod", {}).get("size", 1))
 
     def read_labels(self, indices: np.ndarray) -> np.ndarray:
         """Labels of rows ``indices`` only (no image reads), float32 (len, labels)."""
@@ -125,6 +137,7 @@ class CMVAEDataset:
         labels = np.empty((len(indices), len(self.label_names)), dtype=np.float32)
         clean = np.empty_like(images) if self.paired else None
         masks = np.empty(images.shape[:3], dtype=bool) if self.has_masks else None
+        centred = np.ones(len(indices), dtype=bool)  # a lone dolphin is always the one nearest the centre
         order = np.argsort(indices, kind="stable")
         shard_of = np.searchsorted(self._starts, indices[order], side="right") - 1
         for shard in np.unique(shard_of):
@@ -136,7 +149,10 @@ class CMVAEDataset:
                 clean[positions] = self._clean[shard][rows]
             if masks is not None:
                 masks[positions] = self._masks[shard][rows]
-        return Batch(images=images, labels=labels, indices=indices, clean=clean, masks=masks)
+            if self._dolphins:
+                poses, companions = self._dolphins[shard]
+                centred[positions] = centred_targets(poses[rows], companions[rows])
+        return Batch(images=images, labels=labels, indices=indices, clean=clean, masks=masks, centred=centred)
 
 
 class DatasetUnion:
@@ -211,6 +227,7 @@ class DatasetUnion:
         labels = np.empty((len(indices), len(self.label_names)), dtype=np.float32)
         clean = np.empty_like(images) if self.paired else None
         masks = np.empty(images.shape[:3], dtype=bool) if self.has_masks else None
+        centred = np.empty(len(indices), dtype=bool)
         for part, positions, rows in self._by_part(indices):
             batch = part.read(rows)
             images[positions], labels[positions] = batch.images, batch.labels
@@ -218,7 +235,8 @@ class DatasetUnion:
                 clean[positions] = batch.clean
             if masks is not None:
                 masks[positions] = batch.masks
-        return Batch(images=images, labels=labels, indices=indices, clean=clean, masks=masks)
+            centred[positions] = batch.centred
+        return Batch(images=images, labels=labels, indices=indices, clean=clean, masks=masks, centred=centred)
 
 
 AnyDataset = CMVAEDataset | DatasetUnion
@@ -305,6 +323,37 @@ def _open_masks(root: Path, shard: str, count: int) -> np.ndarray:
         shape = ", ".join(map(str, IMAGE_SHAPE[:2]))
         raise DatasetFormatError(f"{path}: expected bool ({count}, {shape}), got {masks.dtype} {masks.shape}")
     return masks
+
+
+def _open_dolphins(root: Path, shard: str, count: int, pod_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """A pod shard's poses (count, 12) and companions' poses (count, pod_size - 1, 6), memory-mapped."""
+    arrays = []
+    for part, shape in (("poses", (count, 12)), ("companions", (count, pod_size - 1, 6))):
+        path = root / f"{shard}.{part}.npy"
+        if not path.is_file():
+            raise DatasetFormatError(f"meta.json says the dataset is a pod, but shard file {path} is missing")
+        array = np.load(path, mmap_mode="r")
+        if array.shape != shape:
+            raise DatasetFormatError(f"{path}: expected shape {shape}, got {array.shape}")
+        arrays.append(array)
+    poses, companions = arrays
+    return poses, companions
+
+
+#: Datasets place the rover level (its roll and pitch 0 but for float error); the camera frame assumes it.
+LEVEL_TOLERANCE_DEG = 0.01
+
+
+def centred_targets(poses: np.ndarray, companions: np.ndarray) -> np.ndarray:
+    """Whether each row's target is the dolphin the sim's rover would follow, the one in view, not hidden and
+    nearest the image centre (services.identity): poses (N, 12) and companions (N, K, 6) as a pod dataset stores
+    them. Such a target is the one tracking engages on when the camera is centred on it."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if np.abs(poses[:, 3:5]).max(initial=0.0) > LEVEL_TOLERANCE_DEG:
+        raise DatasetFormatError("a pod dataset's rover must be level (roll and pitch 0): the camera frame assumes it")
+    positions = np.concatenate([poses[:, None, 6:9], np.asarray(companions, dtype=np.float64)[..., :3]], axis=1)
+    points = level_camera_points(poses[:, :3], poses[:, 5], positions)
+    return np.array([followed_dolphin(row) == TARGET for row in points], dtype=bool)
 
 
 def split_indices(count: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from services.geometry import ALPHA_DEG, BETA_DEG
+from services.geometry import ALPHA_DEG, BETA_DEG, CAMERA_ABOVE_M, camera_centred
 
 TARGET, NONE = 0, -1
 #: Half a dolphin's girth (the target box's width, 0.88 m): the sphere round a body centre that hides what is behind.
@@ -37,6 +37,18 @@ def off_axis_deg(points: np.ndarray) -> np.ndarray:
     points = np.asarray(points, dtype=float)
     cosine = points[:, 0] / np.maximum(np.linalg.norm(points, axis=1), 1e-12)
     return np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
+
+
+def level_camera_points(rover: np.ndarray, rover_yaw_deg: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """World ``positions`` (N, K, 3) in the camera's (forward, left, up) frame of N level rovers at ``rover`` (N, 3)
+    heading ``rover_yaw_deg`` (N,): a dataset's dolphins as the camera saw them (datasets place the rover level)."""
+    rover = np.asarray(rover, dtype=float)[:, None, :]
+    positions = np.asarray(positions, dtype=float)
+    yaw = np.asarray(rover_yaw_deg, dtype=float)[:, None]
+    distance, azimuth = camera_centred(rover[..., :2], yaw, positions[..., :2])
+    up = positions[..., 2] - rover[..., 2] - CAMERA_ABOVE_M
+    azimuth = np.radians(azimuth)
+    return np.stack([distance * np.cos(azimuth), distance * np.sin(azimuth), up], axis=-1)
 
 
 def in_view(points: np.ndarray) -> np.ndarray:

@@ -7,12 +7,32 @@ import math
 import numpy as np
 import pytest
 
-from services.identity import NONE, episode_identity, followed_dolphin, in_view, off_axis_deg, target_occluded
+from services.identity import (
+    NONE,
+    episode_identity,
+    followed_dolphin,
+    in_view,
+    level_camera_points,
+    off_axis_deg,
+    target_occluded,
+)
 
 
 def test_off_axis_angles():
     points = np.array([(1, 0, 0), (1, 1, 0), (0, 0, 1), (-1, 0, 0)])
     assert off_axis_deg(points) == pytest.approx([0.0, 45.0, 90.0, 180.0])
+
+
+def test_a_level_rovers_camera_sees_from_its_nose():
+    # The camera sits 0.235 m ahead of the rover's centre and 0.02 m above it, looking along its heading.
+    rovers = np.array([(0.0, 0.0, -2.0), (1.0, 1.0, 0.0)])
+    positions = np.array([
+        [(0, 5, -1), (-3, 0, -2)],  # heading 90 deg (+y): 4.765 ahead, 0.98 up; 3 m to its left, 0.235 behind
+        [(2, 1, 0.5), (1, 3, 0)],  # heading 0 (+x): 0.765 ahead, 0.48 up; 2 m to its left, 0.235 behind
+    ])  # fmt: skip
+    points = level_camera_points(rovers, np.array([90.0, 0.0]), positions)
+    expected = [[(4.765, 0, 0.98), (-0.235, 3, -0.02)], [(0.765, 0, 0.48), (-0.235, 2, -0.02)]]
+    np.testing.assert_allclose(points, expected, atol=1e-12)
 
 
 def test_in_view_is_inside_the_image_and_in_front():
