@@ -89,7 +89,7 @@ def encode_rows(
     batches = prefetch(iter_batches(dataset, rows, batch_size))
     priors = np.random.default_rng(EVALUATION_PRIORS_SEED)  # a tracking model's, about the true azimuths
     for batch in tqdm(batches, total=count_batches(len(rows), batch_size), desc=desc, unit="batch", leave=False):
-        outputs = model(encoder_input(model, batch.images, batch.labels, device, priors), sample=False)
+        outputs = model(encoder_input(model, batch.images, batch.labels, device, priors, batch.centred), sample=False)
         reconstructions = tensor_to_images(outputs.image).astype(np.int16)
         abs_error += float(np.abs(reconstructions - batch.images).sum())
         pixels += batch.images.size

@@ -168,6 +168,10 @@ def with_prior(images: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tensor:
 #: fifth wide, it leant on the prior and lagged the target in closed loop (docs/encoder.md, pods).
 PRIOR_JITTER_DEG = (5.0, 10.0)
 PRIOR_WIDE_SHARE = 0.3
+#: The share of frames whose target is the dolphin nearest the image centre that get the engagement prior instead,
+#: exactly the centre (0 deg), as the loop's first frame does: without them the encoder never saw a centre prior far
+#: from its target, and lost it at engagement when the nearest dolphin was well off the centre (docs/encoder.md).
+ENGAGEMENT_SHARE = 0.2
 #: Validation and evaluation draw their priors from this seed, so every epoch's and model's scores read the same.
 EVALUATION_PRIORS_SEED = 0
 
@@ -191,15 +195,33 @@ def jittered_priors(azimuth_deg: np.ndarray, rng: np.random.Generator) -> np.nda
     return (azimuth + rng.normal(size=len(azimuth)) * spread).astype(np.float32)
 
 
+def training_priors(azimuth_deg: np.ndarray, centred: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:
+    """:func:`jittered_priors`, but :data:`ENGAGEMENT_SHARE` of the frames whose target is the dolphin nearest the
+    image centre (``centred``, bool (N,); None: every frame's, a lone dolphin's) get the engagement prior, 0 deg.
+    The share is drawn for every frame, so which frames qualify never shifts the other draws."""
+    priors = jittered_priors(azimuth_deg, rng)
+    engaged = rng.random(len(priors)) < ENGAGEMENT_SHARE
+    if centred is not None:
+        engaged &= np.asarray(centred, dtype=bool)
+    priors[engaged] = 0.0
+    return priors
+
+
 def encoder_input(
-    model: CMVAE, frames: np.ndarray, labels: np.ndarray, device: torch.device | str, rng: np.random.Generator
+    model: CMVAE,
+    frames: np.ndarray,
+    labels: np.ndarray,
+    device: torch.device | str,
+    rng: np.random.Generator,
+    centred: np.ndarray | None = None,
 ) -> torch.Tensor:
     """uint8 frames as ``model``'s encoder reads them in training and evaluation: a tracking model's with
-    :func:`jittered_priors` about the true azimuths (``labels``, physical, theta in column 1) as the stripe."""
+    :func:`training_priors` about the true azimuths (``labels``, physical, theta in column 1) as the stripe,
+    the engagement prior on a share of the frames ``centred`` (a batch's) marks."""
     images = images_to_tensor(frames, device)
     if not model.tracks:
         return images
-    return with_prior(images, torch.from_numpy(jittered_priors(labels[:, THETA], rng)))
+    return with_prior(images, torch.from_numpy(training_priors(labels[:, THETA], centred, rng)))
 
 
 class ImageEncoder(nn.Module):

@@ -159,6 +159,7 @@ def mirror_batch(batch: Batch, flip: np.ndarray) -> Batch:
         indices=batch.indices,
         clean=_mirrored(batch.clean, flip),
         masks=_mirrored(batch.masks, flip),
+        centred=batch.centred,  # a mirror image keeps who is nearest the centre
     )
 
 
@@ -218,7 +219,7 @@ def _loss(
     if jitter_rng is not None and settings.augment_bands > 0:
         inputs = bands(inputs, jitter_rng, settings.augment_bands)
     labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
-    images = encoder_input(model, inputs, batch.labels, device, priors)
+    images = encoder_input(model, inputs, batch.labels, device, priors, batch.centred)
     masks = _masks_tensor(batch, settings.mask_weight, device)
     mask_args = {"masks": masks, "mask_weight": settings.mask_weight}
     if teacher is None:
@@ -311,7 +312,7 @@ def recalibrate_batch_norm(
     for batch in iter_batches(dataset, indices, settings.batch_size, (settings.seed, epoch, 2), settings.bn_batches):
         inputs, _ = inputs_and_targets(batch, feeds.random(len(batch.indices)) < settings.clean_share)
         # eval decodes mu, so the decoder's layers see mu
-        model(encoder_input(model, inputs, batch.labels, device, priors), sample=False)
+        model(encoder_input(model, inputs, batch.labels, device, priors, batch.centred), sample=False)
     for layer, momentum in zip(layers, momenta, strict=True):
         layer.momentum = momentum
 
@@ -347,7 +348,7 @@ def validate(
         chosen = np.full(len(batch.indices), feed_clean)
         inputs, targets = inputs_and_targets(batch, chosen)
         labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
-        images = encoder_input(model, inputs, batch.labels, device, priors)
+        images = encoder_input(model, inputs, batch.labels, device, priors, batch.centred)
         targets_t = images_to_tensor(targets, device)
         masks = _masks_tensor(batch, mask_weight, device)
         mask_args = {"masks": masks, "mask_weight": mask_weight}
@@ -403,7 +404,8 @@ def save_mask_figure(model: CMVAE, dataset: AnyDataset, rows: np.ndarray, path: 
     """Frames (top), their true masks pooled to the head's grid (middle) and the head's predictions (bottom)."""
     model.eval()
     batch = dataset.read(rows)
-    images = encoder_input(model, batch.images, batch.labels, device, np.random.default_rng(EVALUATION_PRIORS_SEED))
+    priors = np.random.default_rng(EVALUATION_PRIORS_SEED)
+    images = encoder_input(model, batch.images, batch.labels, device, priors, batch.centred)
     predicted = torch.sigmoid(model(images).mask).cpu().numpy()
     true = pool_masks(torch.from_numpy(batch.masks), predicted.shape[-1]).numpy()
     overlays = [batch.images, figures.mask_overlay(batch.images, true), figures.mask_overlay(batch.images, predicted)]
