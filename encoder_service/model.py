@@ -118,8 +118,10 @@ class ResidualBlock(nn.Module):
 #: How the encoder normalises its input: ``none`` reads the frame as it is (every model before input norms);
 #: ``channel`` white-balances it (gray world: each colour channel scaled so its mean is the clean world's), so a
 #: tint or a brightness the water gives a whole frame is gone before the first convolution, while the dolphin's
-#: contrast against the water, a distance cue, stays (docs/encoder.md).
-INPUT_NORMS = ("none", "channel")
+#: contrast against the water, a distance cue, stays (docs/encoder.md). ``local`` first evens out light that varies
+#: across the frame (light shafts, a glowing surface) by taking away each pixel's neighbourhood mean, then
+#: white-balances: a shaft keeps only its edges, the dolphin its contrast against what surrounds it.
+INPUT_NORMS = ("none", "channel", "local")
 #: The clean world's mean intensity per channel (0 to 1, over reset frames): the white balance's target, so a model
 #: fine-tuned from one that read raw frames starts near what it knew.
 REFERENCE_MEAN = (0.1043, 0.2862, 0.3415)
@@ -136,6 +138,21 @@ class WhiteBalance(nn.Module):
         intensity = (images + 1.0) * 0.5  # [-1, 1] -> [0, 1]
         mean = intensity.mean(dim=(2, 3), keepdim=True).clamp_min(1e-3)  # a black frame stays black, not NaN
         return intensity * (self.target / mean) * 2.0 - 1.0
+
+
+#: Side (pixels of a 64x64 frame) of the neighbourhood whose mean :class:`LocalContrast` takes away: wider than a
+#: dolphin at 4 m, narrower than a light shaft's wedge.
+LOCAL_WINDOW = 17
+
+
+class LocalContrast(WhiteBalance):
+    """Each pixel's neighbourhood mean replaced by the frame's mean, then the white balance: light added to part of
+    the frame is taken away, and what differs from its surroundings stays (part of the ONNX graph)."""
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        pad = LOCAL_WINDOW // 2
+        local = F.avg_pool2d(F.pad(images, (pad, pad, pad, pad), mode="replicate"), LOCAL_WINDOW, stride=1)
+        return super().forward(images - local + images.mean(dim=(2, 3), keepdim=True))
 
 
 #: Layers of ``ImageEncoder.features`` up to the first residual block: their 8x8 map is what the mask head reads.
@@ -247,7 +264,7 @@ class ImageEncoder(nn.Module):
             raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
         self.input_norm = input_norm
         self.tracks = track
-        self.normalise = WhiteBalance() if input_norm == "channel" else nn.Identity()
+        self.normalise = {"none": nn.Identity, "channel": WhiteBalance, "local": LocalContrast}[input_norm]()
         self.features = nn.Sequential(
             nn.Conv2d(4 if track else 3, 32, 5, stride=2, padding=2),  # 64 -> 32
             nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16

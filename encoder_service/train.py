@@ -83,7 +83,7 @@ class TrainEncoderSettings:
     teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
     state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # of d, theta, psi in the state error
-    input_norm: str = "none"  # none | channel: white-balance each frame first (model.INPUT_NORMS)
+    input_norm: str = "none"  # none | channel: white-balance each frame | local: and even out its light (INPUT_NORMS)
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from encoder_service.augment import BANDS_MAX, bands, jitter
-from encoder_service.model import CMVAE, images_to_tensor, load_model, make_checkpoint
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import CMVAE, LOCAL_WINDOW, images_to_tensor, load_model, make_checkpoint
 from encoder_service.train import TrainEncoderSettings, run
 from tests.encoder.cmvae_testdata import write_dataset
 
@@ -30,12 +31,51 @@ def test_a_channel_norm_encoder_reads_a_tinted_and_dimmed_frame_as_the_original(
         assert (not torch.allclose(mu, mu_tinted, atol=1e-4)) == moves, input_norm
 
 
+def _water_with_a_dolphin_under_a_shaft() -> tuple[torch.Tensor, torch.Tensor]:
+    """A water-coloured frame with a dark blob, and the same frame under a wide band of added light."""
+    water = np.broadcast_to(np.array([27, 73, 87], dtype=np.uint8), (1, 64, 64, 3)).copy()
+    water[:, 28:36, 24:40] = (60, 60, 60)
+    frame = images_to_tensor(water)
+    columns = torch.linspace(0.0, 1.0, 64).view(1, 1, 1, 64)
+    lit = (frame + 0.6 * columns).clamp(-1.0, 1.0)  # light growing across the frame, as a shaft's wedge does
+    return frame, lit
+
+
+def test_a_local_norm_encoder_evens_out_light_across_the_frame() -> None:
+    """Light added across the frame is gone from the water after the local norm (away from the borders, whose
+    neighbourhoods are padded, and from the dolphin's), where the white balance alone keeps it; the dolphin still
+    stands out from the water."""
+    frame, lit = _water_with_a_dolphin_under_a_shaft()
+    water = torch.ones(1, 1, 64, 64, dtype=torch.bool)
+    water[..., 20:44, 16:48] = False  # the dolphin and its neighbourhood
+    water[..., :LOCAL_WINDOW, :] = water[..., -LOCAL_WINDOW:, :] = False
+    water[..., :LOCAL_WINDOW] = water[..., -LOCAL_WINDOW:] = False
+    water = water.expand(1, 3, 64, 64)
+    changes = {}
+    for input_norm in ("channel", "local"):
+        normalise = CMVAE(input_norm=input_norm).encoder.normalise
+        changes[input_norm] = (normalise(lit) - normalise(frame))[water].abs().max().item()
+        seen = normalise(lit)
+        assert (seen[..., 30:34, 28:36].mean() - seen[..., 30:34, 44:50].mean()).abs() > 0.02, input_norm
+    assert changes["local"] < 1e-4 < 0.05 < changes["channel"], changes
+
+
+def test_a_local_norm_encoder_runs_the_same_in_onnx(tmp_path: Path) -> None:
+    torch.manual_seed(3)
+    path = tmp_path / "local.pt"
+    torch.save(make_checkpoint(CMVAE(input_norm="local"), beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
+    frames = np.random.default_rng(4).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
+    torch_mu, _ = LatentEncoder(path, threads=1).encode(frames)
+    onnx_mu, _ = LatentEncoder(path, engine="onnx").encode(frames)
+    np.testing.assert_allclose(onnx_mu, torch_mu, atol=1e-4)
+
+
 def test_the_input_norm_travels_in_the_checkpoint(tmp_path: Path) -> None:
     path = tmp_path / "cmvae.pt"
     torch.save(make_checkpoint(CMVAE(input_norm="channel"), beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
     model, checkpoint = load_model(path)
     assert checkpoint["config"]["input_norm"] == "channel" and model.encoder.input_norm == "channel"
-    with pytest.raises(ValueError, match="input_norm must be one of none, channel"):
+    with pytest.raises(ValueError, match="input_norm must be one of none, channel, local"):
         CMVAE(input_norm="retinex")
 
 
