@@ -95,6 +95,12 @@ def scene_option(value: object) -> SceneSettings | None:
     raise ValueError(f"'scene' must be a map of scene settings or absent, got {value!r}")
 
 
+_VARIED = SceneSettings(
+    preset="varied", seabed_textures=list(SEABED_TEXTURES), relief_m=[0.5, 2.5], rocks=[0, 8], seagrass=[0, 16],
+    sun_intensity=[0.6, 1.3], sun_elevation_deg=[40.0, 90.0], light_shafts=[0, 2], shaft_strength=[0.04, 0.14],
+    particles=[5, 20], fish_shoals=[0, 2], fish_per_shoal=[3, 6], dolphin_scale=[0.85, 1.15],
+    dolphin_shade=[0.7, 1.25],
+)  # fmt: skip
 #: Named presets: ``plain`` is the paper's world; ``varied`` holds the training ranges; ``wide`` stretches them.
 PRESETS = {
     "plain": SceneSettings(
@@ -102,19 +108,12 @@ PRESETS = {
         sun_elevation_deg=[], light_shafts=[], shaft_strength=[], particles=[], fish_shoals=[], fish_per_shoal=[],
         dolphin_scale=[], dolphin_shade=[],
     ),
-    "varied": SceneSettings(
-        preset="varied", seabed_textures=list(SEABED_TEXTURES), relief_m=[0.5, 2.5], rocks=[0, 8], seagrass=[0, 16],
-        sun_intensity=[0.6, 1.3], sun_elevation_deg=[40.0, 90.0], light_shafts=[0, 2], shaft_strength=[0.04, 0.14],
-        particles=[5, 20], fish_shoals=[0, 2], fish_per_shoal=[3, 6], dolphin_scale=[0.85, 1.15],
-        dolphin_shade=[0.7, 1.25],
-    ),
+    "varied": _VARIED,
     # The varied world's ranges stretched toward every scenery split without reaching one: lower and stronger
     # suns' shafts, rougher seabeds, more life in the water (docs/encoder.md, "Wider scenery").
-    "wide": SceneSettings(
-        preset="wide", seabed_textures=list(SEABED_TEXTURES), relief_m=[0.5, 3.2], rocks=[0, 9], seagrass=[0, 19],
-        sun_intensity=[0.5, 1.4], sun_elevation_deg=[32.0, 90.0], light_shafts=[0, 3], shaft_strength=[0.04, 0.19],
-        particles=[5, 35], fish_shoals=[0, 2], fish_per_shoal=[3, 6], dolphin_scale=[0.85, 1.15],
-        dolphin_shade=[0.7, 1.25],
+    "wide": dataclasses.replace(
+        _VARIED, preset="wide", relief_m=[0.5, 3.2], rocks=[0, 9], seagrass=[0, 19], sun_intensity=[0.5, 1.4],
+        sun_elevation_deg=[32.0, 90.0], light_shafts=[0, 3], shaft_strength=[0.04, 0.19], particles=[5, 35],
     ),
 }  # fmt: skip
 

@@ -13,10 +13,8 @@ import torch
 from encoder_service.export import export_checkpoint
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, images_to_tensor, load_model, soft_argmax
-from encoder_service.train import load_init_weights, run
-from tests.encoder.quick_training import quick_settings
-
-GENERAL = Path(__file__).parents[2] / "encoder_service" / "models" / "cmvae_general.pt"
+from encoder_service.train import run
+from tests.encoder.quick_training import quick_settings, started_from_general
 
 
 @pytest.fixture(scope="module")
@@ -40,12 +38,9 @@ def test_soft_argmax_is_the_expected_cell_centre() -> None:
 
 def test_a_locating_encoder_starts_as_the_model_it_is_initialised_from(masked: Path) -> None:
     """The head reads the soft-argmax through zero weights at first: the latents are the checkpoint's."""
-    started = CMVAE(input_norm="channel", locate=True)
-    load_init_weights(started, str(GENERAL), n_z=10)
-    general, _ = load_model(GENERAL)
-    frames = images_to_tensor(np.load(masked / "shard-00000.images.npy")[:8])
+    started, general, frames = started_from_general(masked, locate=True)
     with torch.no_grad():
-        torch.testing.assert_close(started.eval().encode(frames), general.encode(frames), rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(started.encode(frames), general.encode(frames), rtol=1e-5, atol=1e-5)
 
 
 def test_a_trained_locator_reaches_inference_export_and_onnx(masked: Path, tmp_path: Path) -> None:

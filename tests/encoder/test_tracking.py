@@ -18,8 +18,6 @@ from encoder_service.model import (
     ENGAGEMENT_SHARE,
     EVALUATION_PRIORS_SEED,
     encoder_input,
-    images_to_tensor,
-    load_model,
     make_checkpoint,
     prior_map,
     training_priors,
@@ -28,9 +26,7 @@ from encoder_service.model import (
 from encoder_service.train import load_init_weights, mirror_batch, run
 from services.identity import TARGET
 from tests.encoder.cmvae_testdata import write_dataset as write_lone_dataset
-from tests.encoder.quick_training import quick_settings
-
-GENERAL = Path(__file__).parents[2] / "encoder_service" / "models" / "cmvae_general.pt"
+from tests.encoder.quick_training import GENERAL, quick_settings, started_from_general
 
 
 @pytest.fixture(scope="module")
@@ -126,12 +122,9 @@ def test_the_prior_stripe_sits_where_the_camera_shows_the_target(pod: Path) -> N
 
 def test_a_tracking_encoder_starts_as_the_model_it_is_initialised_from(pod: Path) -> None:
     """The prior reaches the first convolution through zero weights at first: the latents are the checkpoint's."""
-    started = CMVAE(input_norm="channel", track=True)
-    load_init_weights(started, str(GENERAL), n_z=10)
-    general, _ = load_model(GENERAL)
-    frames = images_to_tensor(np.load(pod / "shard-00000.images.npy")[:8])
+    started, general, frames = started_from_general(pod, track=True)
     with torch.no_grad():
-        tracked = started.eval().encode(with_prior(frames, torch.linspace(-20, 20, 8)))
+        tracked = started.encode(with_prior(frames, torch.linspace(-20, 20, 8)))
         torch.testing.assert_close(tracked, general.encode(frames), rtol=1e-5, atol=1e-5)
 
 
