@@ -115,13 +115,6 @@ class ResidualBlock(nn.Module):
         return self.branch(x) + self.shortcut(x)
 
 
-#: How the encoder normalises its input: ``none`` reads the frame as it is (every model before input norms);
-#: ``channel`` white-balances it (gray world: each colour channel scaled so its mean is the clean world's), so a
-#: tint or a brightness the water gives a whole frame is gone before the first convolution, while the dolphin's
-#: contrast against the water, a distance cue, stays (docs/encoder.md). ``local`` first evens out light that varies
-#: across the frame (light shafts, a glowing surface) by taking away each pixel's neighbourhood mean, then
-#: white-balances: a shaft keeps only its edges, the dolphin its contrast against what surrounds it.
-INPUT_NORMS = ("none", "channel", "local")
 #: The clean world's mean intensity per channel (0 to 1, over reset frames): the white balance's target, so a model
 #: fine-tuned from one that read raw frames starts near what it knew.
 REFERENCE_MEAN = (0.1043, 0.2862, 0.3415)
@@ -135,9 +128,13 @@ class WhiteBalance(nn.Module):
         self.register_buffer("target", torch.tensor(REFERENCE_MEAN).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        intensity = (images + 1.0) * 0.5  # [-1, 1] -> [0, 1]
-        mean = intensity.mean(dim=(2, 3), keepdim=True).clamp_min(1e-3)  # a black frame stays black, not NaN
-        return intensity * (self.target / mean) * 2.0 - 1.0
+        return self.balanced(images, images)
+
+    def balanced(self, images: torch.Tensor, by: torch.Tensor) -> torch.Tensor:
+        """``images`` scaled by the gain that brings ``by``'s channel means to the target."""
+        mean = (by.mean(dim=(2, 3), keepdim=True) + 1.0) * 0.5  # [-1, 1] -> [0, 1]
+        # a black frame stays black, not NaN
+        return (images + 1.0) * 0.5 * (self.target / mean.clamp_min(1e-3)) * 2.0 - 1.0
 
 
 #: Side (pixels of a 64x64 frame) of the neighbourhood whose mean :class:`LocalContrast` takes away: wider than a
@@ -150,11 +147,45 @@ class LocalContrast(WhiteBalance):
     the frame is taken away, and what differs from its surroundings stays (part of the ONNX graph)."""
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
+        evened, _ = self.evened(images)
+        return self.balanced(evened, evened)
+
+    def evened(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(the frame with each pixel's neighbourhood mean replaced by the frame's mean, those means)."""
         pad = LOCAL_WINDOW // 2
         padded = F.pad(images, (pad, pad, pad, pad), mode="replicate")
         # A box mean is separable: a row pass and a column pass cost 2k, not k^2, per pixel.
         local = F.avg_pool2d(F.avg_pool2d(padded, (1, LOCAL_WINDOW), stride=1), (LOCAL_WINDOW, 1), stride=1)
-        return super().forward(images - local + images.mean(dim=(2, 3), keepdim=True))
+        return images - local + images.mean(dim=(2, 3), keepdim=True), local
+
+
+class LocalContrastAndLight(LocalContrast):
+    """:class:`LocalContrast`'s evened frame and, as channels 3 to 5, the neighbourhood means it took away, both
+    scaled by the evened frame's gain: together they hold what the white-balanced frame holds, the light apart
+    from the detail (part of the ONNX graph)."""
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        evened, local = self.evened(images)
+        return torch.cat([self.balanced(evened, evened), self.balanced(local, evened)], dim=1)
+
+
+#: How the encoder normalises its input: ``none`` reads the frame as it is (every model before input norms);
+#: ``channel`` white-balances it (gray world: each colour channel scaled so its mean is the clean world's), so a
+#: tint or a brightness the water gives a whole frame is gone before the first convolution, while the dolphin's
+#: contrast against the water, a distance cue, stays (docs/encoder.md). ``local`` first evens out light that varies
+#: across the frame (light shafts, a glowing surface) by taking away each pixel's neighbourhood mean, then
+#: white-balances: a shaft keeps only its edges, the dolphin its contrast against what surrounds it. ``light`` is
+#: ``local`` with the light it took away beside it, as three more channels: the evened frame for where the dolphin
+#: is, a coarse copy of the light for what the water's haze says of distance.
+NORMALISERS = {"none": nn.Identity, "channel": WhiteBalance, "local": LocalContrast, "light": LocalContrastAndLight}
+INPUT_NORMS = tuple(NORMALISERS)
+
+
+def input_channels(input_norm: str, track: bool) -> tuple[str, ...]:
+    """The first convolution's input channels by name: the normalised frame's colours, a tracking encoder's prior
+    stripe, the light's colours. Starting a model from another matches its weights by these names."""
+    light = ("light red", "light green", "light blue") if input_norm == "light" else ()
+    return ("red", "green", "blue") + (("prior",) if track else ()) + light
 
 
 #: Layers of ``ImageEncoder.features`` up to the first residual block: their 8x8 map is what the mask head reads.
@@ -266,9 +297,10 @@ class ImageEncoder(nn.Module):
             raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
         self.input_norm = input_norm
         self.tracks = track
-        self.normalise = {"none": nn.Identity, "channel": WhiteBalance, "local": LocalContrast}[input_norm]()
+        self.normalise = NORMALISERS[input_norm]()
+        self.input_channels = input_channels(input_norm, track)
         self.features = nn.Sequential(
-            nn.Conv2d(4 if track else 3, 32, 5, stride=2, padding=2),  # 64 -> 32
+            nn.Conv2d(len(self.input_channels), 32, 5, stride=2, padding=2),  # 64 -> 32
             nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16
             ResidualBlock(32, 32),  # 16 -> 8
             ResidualBlock(32, 64),  # 8 -> 4
@@ -304,10 +336,12 @@ class ImageEncoder(nn.Module):
         return *self._split(self.head(pooled)), feature_map, where
 
     def _normalised(self, images: torch.Tensor) -> torch.Tensor:
-        """The input norm applied to the colour channels; a tracking encoder's prior stripe passes as it is."""
+        """The input norm applied to the colour channels; a tracking encoder's prior stripe passes as it is, in
+        the place :func:`input_channels` gives it."""
         if not self.tracks:
             return self.normalise(images)
-        return torch.cat([self.normalise(images[:, :3]), images[:, 3:]], dim=1)
+        normalised = self.normalise(images[:, :3])
+        return torch.cat([normalised[:, :3], images[:, 3:], normalised[:, 3:]], dim=1)
 
     def _split(self, stats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return stats[:, : self.n_z], stats[:, self.n_z :]

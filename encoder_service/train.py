@@ -49,6 +49,7 @@ from encoder_service.model import (
     distillation_loss,
     encoder_input,
     images_to_tensor,
+    input_channels,
     label_errors,
     load_model,
     make_checkpoint,
@@ -83,7 +84,7 @@ class TrainEncoderSettings:
     teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
     state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # of d, theta, psi in the state error
-    input_norm: str = "none"  # none | channel: white-balance each frame | local: and even out its light (INPUT_NORMS)
+    input_norm: str = "none"  # none | channel: white-balance | local: and even out the light | light: local + light
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
@@ -427,7 +428,9 @@ def load_init_weights(model: CMVAE, path: str, n_z: int) -> None:
     if checkpoint["config"]["n_z"] != n_z:
         raise ValueError(f"--init {path} has n_z={checkpoint['config']['n_z']}, settings say {n_z}")
     weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
-    model.load_state_dict(_matched_to(weights, model))
+    config = checkpoint["config"]
+    inherited_inputs = input_channels(config.get("input_norm", "none"), config.get("track", False))
+    model.load_state_dict(_matched_to(weights, model, inherited_inputs))
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
     inherited = len(checkpoint["config"].get("labels", LABEL_NAMES))
     for dim in range(inherited, len(model.labels)):
@@ -457,26 +460,30 @@ def revive_latent(model: CMVAE, dim: int) -> None:
 
 #: Parts a CMVAE has or lacks by its settings: the mask head, the locator and the elevation label's state decoder.
 OPTIONAL_PARTS = ("mask_head.", "encoder.locator.", f"state_decoders.{len(LABEL_NAMES)}.")
-#: Layers whose input widens with a part: the head reads the locator's soft-argmax beside the pooled features (two
-#: columns more), the first convolution a tracking encoder's prior stripe beside the colours (one channel more).
-WIDENED_INPUTS = ("encoder.head.0.weight", "encoder.features.0.weight")
 
 
-def _matched_to(weights: dict[str, torch.Tensor], model: CMVAE) -> dict[str, torch.Tensor]:
+def _matched_to(
+    weights: dict[str, torch.Tensor], model: CMVAE, inherited_inputs: tuple[str, ...]
+) -> dict[str, torch.Tensor]:
     """``weights`` with the optional parts matched to ``model``'s: its fresh part where the checkpoint has none,
-    the checkpoint's dropped where the model has none (the encoder is what carries over). A model that locates or
-    tracks, started from one that does not, reads the soft-argmax or the prior through zero weights: it starts as
-    the checkpoint."""
+    the checkpoint's dropped where the model has none (the encoder is what carries over). A model that locates,
+    tracks or reads the light, started from one that does not, reads the soft-argmax, the prior or the light
+    through zero weights: it starts as the checkpoint. The first convolution's weights go to the input channels of
+    the same name (``inherited_inputs``: the checkpoint's, :func:`input_channels`)."""
     own = model.state_dict()
     kept = {name: tensor for name, tensor in weights.items() if name in own or not name.startswith(OPTIONAL_PARTS)}
     fresh = {name: tensor for name, tensor in own.items() if name.startswith(OPTIONAL_PARTS) and name not in weights}
-    for name in WIDENED_INPUTS:
-        reader, wanted = kept[name], own[name].shape[1]
-        if reader.shape[1] < wanted:
-            extra = reader.new_zeros(reader.shape[0], wanted - reader.shape[1], *reader.shape[2:])
-            kept[name] = torch.cat([reader, extra], 1)
-        elif reader.shape[1] > wanted:
-            kept[name] = reader[:, :wanted]
+    # The head reads the locator's soft-argmax as two columns after the pooled features.
+    head, wanted = kept["encoder.head.0.weight"], own["encoder.head.0.weight"].shape[1]
+    widened = head.new_zeros(head.shape[0], wanted)
+    widened[:, : min(wanted, head.shape[1])] = head[:, :wanted]
+    kept["encoder.head.0.weight"] = widened
+    first = kept["encoder.features.0.weight"]
+    matched = first.new_zeros(own["encoder.features.0.weight"].shape)
+    for channel, name in enumerate(model.encoder.input_channels):
+        if name in inherited_inputs:
+            matched[:, channel] = first[:, inherited_inputs.index(name)]
+    kept["encoder.features.0.weight"] = matched
     return kept | fresh
 
 

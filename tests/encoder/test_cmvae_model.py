@@ -96,7 +96,8 @@ def test_loss_parts_are_finite_and_kl_scales_with_beta(model: CMVAE, frames: np.
     assert plain.kl.item() > 0
     assert plain.total.item() == pytest.approx(plain.image.item() + plain.state.item(), rel=1e-6)
     values_per_image = 64 * 64 * 3  # the KL is weighed per image value, like the per-pixel mean MSE
-    assert heavy.total.item() - plain.total.item() == pytest.approx(8.0 * plain.kl.item() / values_per_image, rel=1e-4)
+    # compared as totals, not as their small difference, which float32 rounding dominates
+    assert heavy.total.item() == pytest.approx(plain.total.item() + 8.0 * plain.kl.item() / values_per_image, rel=1e-6)
 
 
 def test_kl_is_zero_at_the_prior_and_matches_the_closed_form() -> None:

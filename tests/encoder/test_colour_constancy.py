@@ -11,8 +11,16 @@ import torch
 
 from encoder_service.augment import BANDS_MAX, bands, jitter
 from encoder_service.inference import LatentEncoder
-from encoder_service.model import CMVAE, LOCAL_WINDOW, images_to_tensor, load_model, make_checkpoint
-from encoder_service.train import TrainEncoderSettings, run
+from encoder_service.model import (
+    CMVAE,
+    LOCAL_WINDOW,
+    REFERENCE_MEAN,
+    images_to_tensor,
+    load_model,
+    make_checkpoint,
+    with_prior,
+)
+from encoder_service.train import TrainEncoderSettings, load_init_weights, run
 from tests.encoder.cmvae_testdata import write_dataset
 
 
@@ -60,10 +68,33 @@ def test_a_local_norm_encoder_evens_out_light_across_the_frame() -> None:
     assert changes["local"] < 1e-4 < 0.05 < changes["channel"], changes
 
 
-def test_a_local_norm_encoder_runs_the_same_in_onnx(tmp_path: Path) -> None:
+def test_a_light_norm_encoder_keeps_the_light_the_local_norm_takes_away_beside_the_evened_frame() -> None:
+    """Channels 0 to 2 are the local norm's; channels 3 to 5 carry the light added across the frame, coarse (no
+    sharper than the neighbourhood), and with the evened frame they give back the white-balanced frame."""
+    frame, lit = _water_with_a_dolphin_under_a_shaft()
+    light = CMVAE(input_norm="light").encoder.normalise
+    local = CMVAE(input_norm="local").encoder.normalise
+    seen, seen_lit = light(frame), light(lit)
+    assert seen.shape == (1, 6, 64, 64)
+    torch.testing.assert_close(seen[:, :3], local(frame))
+    # across the water above the dolphin, the light channels are flat in the frame and rise with the added light
+    for image, rise in ((seen, 0.0), (seen_lit, 0.3)):
+        water_rows = image[:, 3:, :10]
+        assert (water_rows[..., -1] - water_rows[..., 0]).mean().item() == pytest.approx(rise, abs=0.1)
+    assert seen[:, 3:].diff(dim=-1).abs().max() < 0.2 * seen[:, :3].diff(dim=-1).abs().max()  # the dolphin's edges
+    # evened + local = the frame + its mean, so in [0, 1] intensity the two halves sum to the white balance's
+    # frame plus the balanced frame mean, which is the target
+    target = torch.tensor(REFERENCE_MEAN).view(1, 3, 1, 1)
+    halves = (seen[:, :3] + 1) / 2 + (seen[:, 3:] + 1) / 2
+    balanced = (CMVAE(input_norm="channel").encoder.normalise(frame) + 1) / 2
+    torch.testing.assert_close(halves, balanced + target, rtol=0, atol=2e-3)
+
+
+@pytest.mark.parametrize("input_norm", ["local", "light"])
+def test_a_local_or_light_norm_encoder_runs_the_same_in_onnx(tmp_path: Path, input_norm: str) -> None:
     torch.manual_seed(3)
     path = tmp_path / "local.pt"
-    torch.save(make_checkpoint(CMVAE(input_norm="local"), beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
+    torch.save(make_checkpoint(CMVAE(input_norm=input_norm), beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
     frames = np.random.default_rng(4).integers(0, 256, (3, 64, 64, 3), dtype=np.uint8)
     torch_mu, _ = LatentEncoder(path, threads=1).encode(frames)
     onnx_mu, _ = LatentEncoder(path, engine="onnx").encode(frames)
@@ -75,7 +106,7 @@ def test_the_input_norm_travels_in_the_checkpoint(tmp_path: Path) -> None:
     torch.save(make_checkpoint(CMVAE(input_norm="channel"), beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
     model, checkpoint = load_model(path)
     assert checkpoint["config"]["input_norm"] == "channel" and model.encoder.input_norm == "channel"
-    with pytest.raises(ValueError, match="input_norm must be one of none, channel, local"):
+    with pytest.raises(ValueError, match="input_norm must be one of none, channel, local, light"):
         CMVAE(input_norm="retinex")
 
 
@@ -122,3 +153,27 @@ def test_a_run_with_norm_and_jitter_trains_and_refuses_bad_values(tmp_path: Path
     for change, message in refusals:
         with pytest.raises(ValueError, match=message):
             run(TrainEncoderSettings(dataset=[str(dataset)], out=str(tmp_path / "bad"), **change))
+
+
+@pytest.mark.parametrize(
+    ("start", "started"),
+    [
+        ({"input_norm": "local"}, {"input_norm": "light"}),
+        ({"input_norm": "light"}, {"input_norm": "light", "track": True}),
+    ],
+)
+def test_a_model_started_from_one_without_the_light_or_prior_reads_as_it(
+    tmp_path: Path, start: dict, started: dict
+) -> None:
+    """Weights go to the input channels of the same name, the new ones through zeros: a light model started from a
+    local one, or a light tracker from a light model (its prior between the colours and the light), starts as it."""
+    torch.manual_seed(6)
+    path = tmp_path / "start.pt"
+    original = CMVAE(**start).eval()
+    torch.save(make_checkpoint(original, beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
+    model = CMVAE(**started).eval()
+    load_init_weights(model, str(path), n_z=10)
+    frames = images_to_tensor(np.random.default_rng(7).integers(0, 256, (4, 64, 64, 3), dtype=np.uint8))
+    with torch.no_grad():
+        inputs = with_prior(frames, torch.linspace(-20, 20, 4)) if model.tracks else frames
+        torch.testing.assert_close(model.encode(inputs), original.encode(frames), rtol=1e-5, atol=1e-5)
