@@ -79,9 +79,9 @@ def test_a_noise_robust_cmvae_scores_its_documented_errors_on_fresh_clean_and_mu
 #: The shipped CMVAEs, each told apart from every other by its readings on IDENTITY_FRAMES fixed frames.
 SHIPPED = ("cmvae.pt", "cmvae_robust.pt", "cmvae_mixture.pt", "cmvae_general.pt", "cmvae_light.pt")
 IDENTITY_FRAMES, IDENTITY_SEED = 8, 5
-#: Each shipped CMVAE's readings (d metres, theta degrees) on those frames, measured at commit 9eb0b59 (cmvae_light.pt: its commit) by
-#: `MUJOCO_GL=egl PYTHONPATH=. python tests/encoder/test_shipped_encoder.py`, which prints this table. psi is left
-#: out: it wraps at +-180 degrees and is the noisiest reading.
+#: Each shipped CMVAE's readings (d metres, theta degrees) on those frames, measured at commit 9eb0b59 (cmvae_light.pt
+#: at the commit that added it) by `MUJOCO_GL=egl PYTHONPATH=. python tests/encoder/test_shipped_encoder.py`, which
+#: prints this table. psi is left out: it wraps at +-180 degrees and is the noisiest reading.
 READINGS = {
     "cmvae.pt": [[2.4537, -10.1413], [6.1562, 2.1554], [2.2378, 1.498], [2.2498, -29.8259],
                  [8.8362, -37.2408], [4.7082, 35.6585], [8.8233, -16.939], [4.0606, -1.9325]],
