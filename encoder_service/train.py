@@ -425,14 +425,14 @@ def _save(checkpoint: dict[str, Any], path: Path) -> None:
 def load_init_weights(model: CMVAE, path: str, n_z: int) -> None:
     """Copy a checkpoint's weights (float32 or the shipped float16) into ``model``."""
     checkpoint = read_checkpoint(path)
-    if checkpoint["config"]["n_z"] != n_z:
-        raise ValueError(f"--init {path} has n_z={checkpoint['config']['n_z']}, settings say {n_z}")
-    weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
     config = checkpoint["config"]
+    if config["n_z"] != n_z:
+        raise ValueError(f"--init {path} has n_z={config['n_z']}, settings say {n_z}")
+    weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
     inherited_inputs = input_channels(config.get("input_norm", "none"), config.get("track", False))
     model.load_state_dict(_matched_to(weights, model, inherited_inputs))
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
-    inherited = len(checkpoint["config"].get("labels", LABEL_NAMES))
+    inherited = len(config.get("labels", LABEL_NAMES))
     for dim in range(inherited, len(model.labels)):
         revive_latent(model, dim)
         log.info("z[%d] restarts for the new label %r", dim, model.labels[dim])
