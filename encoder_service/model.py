@@ -35,6 +35,8 @@ LABEL_RANGES = {
 LABEL_SETS = (LABEL_NAMES, VERTICAL_LABEL_NAMES)
 PSI = LABEL_NAMES.index("psi")  # the one circular label
 THETA = LABEL_NAMES.index("theta")
+#: Labels a left-right flip of the frame negates (the target at -theta, facing -psi); d and the elevation keep theirs.
+MIRROR_NEGATED = ("theta", "psi")
 
 CHECKPOINT_FORMAT = "swimm-cmvae"
 CHECKPOINT_VERSION = 1
@@ -188,6 +190,12 @@ def input_channels(input_norm: str, track: bool) -> tuple[str, ...]:
     return ("red", "green", "blue") + (("prior",) if track else ()) + light
 
 
+def mirror_signs(labels: tuple[str, ...], n_z: int) -> tuple[float, ...]:
+    """Per latent, how a left-right flip of the frame changes it: -1 for the labels it negates, +1 for the rest
+    (the other labels and the latents no label ties, which the mirror average then makes symmetric)."""
+    return tuple(-1.0 if i < len(labels) and labels[i] in MIRROR_NEGATED else 1.0 for i in range(n_z))
+
+
 #: Layers of ``ImageEncoder.features`` up to the first residual block: their 8x8 map is what the mask head reads.
 MASK_TAP = 3
 
@@ -287,12 +295,26 @@ class ImageEncoder(nn.Module):
     in [-1, 1]. The azimuth then has a path from where the animal is, not only from the 2x2 map at the end,
     which a bright structure elsewhere in the frame can sway. Trained with ``--mask-weight``, the locator learns
     the dataset's masks.
+
+    With ``mirror_signs`` (one +-1 per latent) the encoder reads each frame and its left-right mirror image and
+    averages the two readings, the mirror's latents multiplied by those signs (-1 where a flip negates the
+    label). The latents are then exactly as symmetric as the world: a dolphin dead ahead reads theta 0, where a
+    single reading can sit a degree or two to one side, which the tracker and a policy then hold.
     """
 
     FEATURES = 128 * 2 * 2  # the flattened 2x2 map after the last residual block
 
-    def __init__(self, n_z: int, input_norm: str = "none", locate: bool = False, track: bool = False) -> None:
+    def __init__(
+        self,
+        n_z: int,
+        input_norm: str = "none",
+        locate: bool = False,
+        track: bool = False,
+        mirror_signs: tuple[float, ...] | None = None,
+    ) -> None:
         super().__init__()
+        if mirror_signs is not None and len(mirror_signs) != n_z:
+            raise ValueError(f"mirror_signs needs one sign per latent ({n_z}), got {len(mirror_signs)}")
         if input_norm not in INPUT_NORMS:
             raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
         self.input_norm = input_norm
@@ -317,6 +339,13 @@ class ImageEncoder(nn.Module):
             nn.Linear(32, 2 * n_z),
         )
         self.n_z = n_z
+        self.mirror_signs: torch.Tensor | None
+        signs = None if mirror_signs is None else torch.tensor(mirror_signs, dtype=torch.float32)
+        self.register_buffer("mirror_signs", signs, persistent=False)  # not a weight: checkpoints stay as they were
+
+    @property
+    def mirror_averages(self) -> bool:
+        return self.mirror_signs is not None
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mu, logvar, _, _ = self.with_feature_map(images)
@@ -326,14 +355,23 @@ class ImageEncoder(nn.Module):
         self, images: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(mu, logvar) as ``forward`` gives them, the 8x8 map after the first residual block (N, 32, 8, 8), and
-        the locator's logits (N, 8, 8) (None without one)."""
+        the locator's logits (N, 8, 8) (None without one); a mirror-averaging encoder's map and logits are the
+        frames' own, not their mirror images'."""
+        count = images.shape[0]
+        if self.mirror_signs is not None:
+            images = torch.cat([images, images.flip(-1)])  # NCHW: -1 is the width; a prior stripe flips with it
         feature_map = self.features[:MASK_TAP](self._normalised(images))
         pooled = self.features[MASK_TAP:](feature_map)
         where = None
         if self.locator is not None:
             where = self.locator(feature_map)
             pooled = torch.cat([pooled, soft_argmax(where)], dim=1)
-        return *self._split(self.head(pooled)), feature_map, where
+        mu, logvar = self._split(self.head(pooled))
+        if self.mirror_signs is not None:
+            mu = (mu[:count] + self.mirror_signs * mu[count:]) / 2
+            logvar = (logvar[:count] + logvar[count:]) / 2
+            feature_map, where = feature_map[:count], None if where is None else where[:count]
+        return mu, logvar, feature_map, where
 
     def _normalised(self, images: torch.Tensor) -> torch.Tensor:
         """The input norm applied to the colour channels; a tracking encoder's prior stripe passes as it is, in
@@ -434,6 +472,7 @@ class CMVAE(nn.Module):
         labels: tuple[str, ...] = LABEL_NAMES,
         locate: bool = False,
         track: bool = False,
+        mirror_average: bool = False,
     ) -> None:
         super().__init__()
         self.labels = check_label_names(labels, "CMVAE")
@@ -443,7 +482,8 @@ class CMVAE(nn.Module):
             raise ValueError("a CMVAE that locates the dolphin trains its locator on the masks: no mask head besides")
         self.n_z = n_z
         self.input_norm = input_norm
-        self.encoder = ImageEncoder(n_z, input_norm, locate, track)
+        signs = mirror_signs(self.labels, n_z) if mirror_average else None
+        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
         # made last, so a model without it draws every other weight as before the head existed
@@ -460,6 +500,11 @@ class CMVAE(nn.Module):
     def tracks(self) -> bool:
         """Whether the encoder reads a prior (:func:`with_prior`) beside each frame."""
         return self.encoder.tracks
+
+    @property
+    def mirror_averages(self) -> bool:
+        """Whether the encoder averages each frame's reading with its mirror image's (``mirror_signs``)."""
+        return self.encoder.mirror_averages
 
     def encode_with_mask(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(mu, logvar) and the mask logits (N, 8, 8) of the mask head or the locator, or None with neither."""
@@ -697,6 +742,7 @@ def make_checkpoint(
             "labels": list(model.labels),
             "locate": model.locates,
             "track": model.tracks,
+            "mirror_average": model.mirror_averages,
         },
         "state_dict": state_dict,
         "epoch": int(epoch),
@@ -730,6 +776,7 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CM
         labels=check_label_names(config.get("labels", LABEL_NAMES), str(path)),  # older checkpoints: planar
         locate=config.get("locate", False),
         track=config.get("track", False),
+        mirror_average=config.get("mirror_average", False),
     )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()

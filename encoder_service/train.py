@@ -39,6 +39,7 @@ from encoder_service.model import (
     EVALUATION_PRIORS_SEED,
     INPUT_NORMS,
     LABEL_NAMES,
+    MIRROR_NEGATED,
     SPEC_STATE_LOSS,
     DistillationParts,
     LossParts,
@@ -90,6 +91,7 @@ class TrainEncoderSettings:
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
     locate: bool = False  # the encoder reads where the dolphin is off a locator the masks train (needs --mask-weight)
     track: bool = False  # the encoder reads a prior, where the target was last seen, beside each frame: pods
+    mirror_average: bool = False  # the encoder averages each frame's reading with its mirror image's (symmetric)
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -141,7 +143,7 @@ def _mean(totals: dict[str, float], count: int) -> dict[str, float]:
 
 
 #: Label columns a left-right flip negates: theta and psi (d and, in vertical datasets, the elevation keep theirs).
-MIRRORED_LABELS = [LABEL_NAMES.index("theta"), LABEL_NAMES.index("psi")]
+MIRRORED_LABELS = [LABEL_NAMES.index(name) for name in MIRROR_NEGATED]
 
 
 def mirror_batch(batch: Batch, flip: np.ndarray) -> Batch:
@@ -552,7 +554,10 @@ def run(settings: TrainEncoderSettings) -> int:
     if settings.locate and settings.mask_weight <= 0:
         raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
     mask_head = settings.mask_weight > 0 and not settings.locate  # a locator learns the masks itself
-    model = CMVAE(settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate, settings.track)
+    model = CMVAE(
+        settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate, settings.track,
+        settings.mirror_average,
+    )  # fmt: skip
     model.to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
     if teacher is not None:
@@ -569,7 +574,7 @@ def run(settings: TrainEncoderSettings) -> int:
             raise ValueError(
                 f"{last_path} learns labels {last['config'].get('labels')}, the dataset {list(model.labels)}"
             )
-        for flag in ("locate", "track"):
+        for flag in ("locate", "track", "mirror_average"):
             if last["config"].get(flag, False) != getattr(settings, flag):
                 raise ValueError(f"{last_path} was trained with {flag}={last['config'].get(flag, False)}: resume it so")
         model.load_state_dict(last["state_dict"])

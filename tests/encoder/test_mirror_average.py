@@ -1,0 +1,89 @@
+"""A CMVAE that averages each frame's reading with its mirror image's: exactly symmetric, in torch and ONNX alike,
+carried by its checkpoint, trained and resumed as such. Real torch, real checkpoints, the shipped light model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from encoder_service.inference import LatentEncoder
+from encoder_service.model import CMVAE, images_to_tensor, load_model, make_checkpoint, mirror_signs, with_prior
+from encoder_service.train import run
+from services.geometry import LABEL_NAMES, VERTICAL_LABEL_NAMES
+from tests.encoder.cmvae_testdata import write_dataset
+from tests.encoder.quick_training import quick_settings
+
+LIGHT = Path(__file__).parents[2] / "encoder_service" / "models" / "cmvae_light.pt"
+
+
+def _frames(tmp_path: Path) -> np.ndarray:
+    dataset = write_dataset(tmp_path / "data", count=8, seed=5, shard_size=8)
+    return np.load(dataset / "shard-00000.images.npy")
+
+
+def test_signs_negate_theta_and_psi_and_keep_the_rest() -> None:
+    assert mirror_signs(LABEL_NAMES, 10) == (1.0, -1.0, -1.0) + (1.0,) * 7
+    assert mirror_signs(VERTICAL_LABEL_NAMES, 5) == (1.0, -1.0, -1.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("options", [{"input_norm": "light"}, {"input_norm": "channel", "track": True}])
+def test_a_frame_and_its_mirror_image_read_as_mirrors(tmp_path: Path, options: dict) -> None:
+    """d and every latent no flip negates read the same on a frame and its mirror image; theta and psi read
+    negated. A tracking model's prior stripe flips with its frame."""
+    torch.manual_seed(7)
+    model = CMVAE(mirror_average=True, **options).eval()
+    frames = images_to_tensor(_frames(tmp_path))
+    if model.tracks:
+        frames = with_prior(frames, torch.linspace(-20.0, 30.0, len(frames)))
+    with torch.no_grad():
+        mu, logvar = model.encode(frames)
+        mu_mirror, logvar_mirror = model.encode(frames.flip(-1))
+    signs = torch.tensor(mirror_signs(model.labels, model.n_z))
+    torch.testing.assert_close(mu_mirror, signs * mu, atol=1e-5, rtol=0)
+    torch.testing.assert_close(logvar_mirror, logvar, atol=1e-5, rtol=0)
+    assert mu[:, 1].abs().max() > 1e-3  # not symmetric by being zero
+
+
+def test_the_shipped_light_model_averaged_reads_the_mean_of_its_two_readings(tmp_path: Path) -> None:
+    """The average is the plain model's readings of the frame and of its mirror image, the mirror's theta and psi
+    negated; the flag travels in the checkpoint, and the weights are the plain model's own."""
+    plain, checkpoint = load_model(LIGHT)
+    checkpoint["config"]["mirror_average"] = True
+    path = tmp_path / "light_mirror.pt"
+    torch.save(checkpoint, path)
+    averaged, saved = load_model(path)
+    assert averaged.mirror_averages and not plain.mirror_averages and saved["config"]["mirror_average"]
+    frames = images_to_tensor(_frames(tmp_path)).float()
+    with torch.no_grad():
+        mu_frame, _ = plain.float().encode(frames)
+        mu_mirror, _ = plain.encode(frames.flip(-1))
+        mu, _ = averaged.float().encode(frames)
+    expected = (mu_frame + torch.tensor(mirror_signs(plain.labels, plain.n_z)) * mu_mirror) / 2
+    torch.testing.assert_close(mu, expected, atol=1e-5, rtol=0)
+    assert not torch.allclose(mu, mu_frame, atol=1e-3)
+
+
+def test_onnx_reads_a_mirror_averaging_model_as_torch_does(tmp_path: Path) -> None:
+    torch.manual_seed(3)
+    path = tmp_path / "mirror.pt"
+    model = CMVAE(input_norm="light", mirror_average=True)
+    torch.save(make_checkpoint(model, beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
+    frames = _frames(tmp_path)
+    torch_mu, _ = LatentEncoder(path, threads=1).encode(frames)
+    onnx_mu, _ = LatentEncoder(path, engine="onnx").encode(frames)
+    np.testing.assert_allclose(onnx_mu, torch_mu, atol=1e-4)
+
+
+def test_a_run_trains_a_mirror_averaging_model_and_resumes_only_as_one(tmp_path: Path) -> None:
+    dataset = write_dataset(tmp_path / "data", count=64, seed=3, shard_size=32)
+    out = tmp_path / "run"
+    assert run(quick_settings(dataset, out, mirror_average=True)) == 0
+    model, checkpoint = load_model(out / "best.pt")
+    assert checkpoint["config"]["mirror_average"] and model.mirror_averages
+    with pytest.raises(ValueError, match="mirror_average=True"):
+        run(quick_settings(dataset, out, epochs=2, resume=True))
+    assert run(quick_settings(dataset, out, epochs=2, resume=True, mirror_average=True)) == 0
+    assert torch.load(out / "last.pt", weights_only=True)["epoch"] == 2
