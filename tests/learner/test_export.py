@@ -139,6 +139,31 @@ def test_a_3d_policy_exports_its_three_actions_and_the_pilot_flies_them(tmp_path
     assert policy.history_size == 30 and policy.act(np.zeros((64, 64, 3), np.uint8)).shape == (3,)
 
 
+def test_a_policy_on_a_mirror_averaging_cmvae_exports_reading_each_frame_twice(tmp_path: Path) -> None:
+    """A CMVAE with --mirror-average reads each frame and its mirror image inside its module: the exported graph
+    does too, and its actions match the Python path's within 1e-4 on real frames."""
+    import torch
+
+    from encoder_service.inference import LatentEncoder
+    from encoder_service.model import read_checkpoint
+
+    checkpoint = read_checkpoint("encoder_service/models/cmvae_light.pt")
+    checkpoint["config"]["mirror_average"] = True
+    cmvae = tmp_path / "cmvae_light_mirror.pt"
+    torch.save(checkpoint, cmvae)
+    task = TaskSettings(obs="cmvae", max_steps=20)
+    env = make_vec_env("inprocess", task, n_envs=1, base_seed=1, encoder=LatentEncoder(cmvae))
+    try:
+        model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
+        stamp(model, policy_identity(cmvae, "cmvae", "swimm2", "planar"))
+        model.save(tmp_path / "mirror.zip")
+    finally:
+        env.close()
+    out = tmp_path / "mirror.onnx"
+    assert run(ExportSettings(checkpoint=str(tmp_path / "mirror.zip"), out=str(out), check_frames=20)) == 0
+    assert json.loads(out.with_suffix(".json").read_text())["max_action_difference"] <= 1e-4
+
+
 @pytest.fixture(scope="module")
 def tracking_export(tmp_path_factory) -> Path:
     """An untrained camera-only SAC on a tracking CMVAE whose latent reads the prior (its stripe's weights drawn at
