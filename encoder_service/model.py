@@ -299,7 +299,7 @@ class ImageEncoder(nn.Module):
     With ``mirror_signs`` (one +-1 per latent) the encoder reads each frame and its left-right mirror image and
     averages the two readings, the mirror's latents multiplied by those signs (-1 where a flip negates the
     label). The latents are then exactly as symmetric as the world: a dolphin dead ahead reads theta 0, where a
-    single reading can sit a degree or two to one side, which the tracker and a policy then hold.
+    single reading can sit to one side, and the tracker and a policy hold the dolphin there (docs/encoder.md).
     """
 
     FEATURES = 128 * 2 * 2  # the flattened 2x2 map after the last residual block
