@@ -118,19 +118,25 @@ def test_a_policy_on_a_white_balancing_cmvae_exports_with_its_preprocessing(tmp_
     assert session.get_modelmeta().custom_metadata_map["swimm.encoder_sha256"] == file_sha256(recorded)
 
 
-def test_a_3d_policy_exports_its_three_actions_and_the_pilot_flies_them(tmp_path: Path) -> None:
-    from encoder_service import DEFAULT_CHECKPOINT
+def _untrained_sac(cmvae: Path, task: str, path: Path) -> None:
+    """Save an untrained camera-only SAC of ``task`` on ``cmvae``, stamped with it, at ``path``."""
     from encoder_service.inference import LatentEncoder
-    from pilot_service.policy import OnnxPolicy
 
-    task = TaskSettings(obs="cmvae", task="3d", max_steps=20)
-    env = make_vec_env("inprocess", task, n_envs=1, base_seed=1, encoder=LatentEncoder(DEFAULT_CHECKPOINT))
+    settings = TaskSettings(obs="cmvae", task=task, max_steps=20)
+    env = make_vec_env("inprocess", settings, n_envs=1, base_seed=1, encoder=LatentEncoder(cmvae))
     try:
         model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
-        stamp(model, policy_identity(DEFAULT_CHECKPOINT, "cmvae", "swimm2", "3d"))
-        model.save(tmp_path / "cmvae-3d.zip")
+        stamp(model, policy_identity(cmvae, "cmvae", "swimm2", task))
+        model.save(path)
     finally:
         env.close()
+
+
+def test_a_3d_policy_exports_its_three_actions_and_the_pilot_flies_them(tmp_path: Path) -> None:
+    from encoder_service import DEFAULT_CHECKPOINT
+    from pilot_service.policy import OnnxPolicy
+
+    _untrained_sac(DEFAULT_CHECKPOINT, "3d", tmp_path / "cmvae-3d.zip")
     out = tmp_path / "3d.onnx"
     assert run(ExportSettings(checkpoint=str(tmp_path / "cmvae-3d.zip"), out=str(out), check_frames=20)) == 0
     assert json.loads(out.with_suffix(".json").read_text())["max_action_difference"] <= 1e-4
@@ -144,21 +150,13 @@ def test_a_policy_on_a_mirror_averaging_cmvae_exports_reading_each_frame_twice(t
     does too, and its actions match the Python path's within 1e-4 on real frames."""
     import torch
 
-    from encoder_service.inference import LatentEncoder
     from encoder_service.model import read_checkpoint
 
     checkpoint = read_checkpoint("encoder_service/models/cmvae_light.pt")
     checkpoint["config"]["mirror_average"] = True
     cmvae = tmp_path / "cmvae_light_mirror.pt"
     torch.save(checkpoint, cmvae)
-    task = TaskSettings(obs="cmvae", max_steps=20)
-    env = make_vec_env("inprocess", task, n_envs=1, base_seed=1, encoder=LatentEncoder(cmvae))
-    try:
-        model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
-        stamp(model, policy_identity(cmvae, "cmvae", "swimm2", "planar"))
-        model.save(tmp_path / "mirror.zip")
-    finally:
-        env.close()
+    _untrained_sac(cmvae, "planar", tmp_path / "mirror.zip")
     out = tmp_path / "mirror.onnx"
     assert run(ExportSettings(checkpoint=str(tmp_path / "mirror.zip"), out=str(out), check_frames=20)) == 0
     assert json.loads(out.with_suffix(".json").read_text())["max_action_difference"] <= 1e-4
