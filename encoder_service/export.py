@@ -25,14 +25,19 @@ log = logging.getLogger(__name__)
 class ExportEncoderSettings:
     checkpoint: str = "runs/cmvae/best.pt"  # written by `swimm train-encoder`
     out: str = str(DEFAULT_CHECKPOINT)
+    # read each frame averaged with its mirror image (encoder_service.model.mirror_signs); unset keeps the source's
+    mirror_average: bool | None = None
 
 
-def export_checkpoint(source: str | Path, destination: str | Path) -> Path:
+def export_checkpoint(source: str | Path, destination: str | Path, mirror_average: bool | None = None) -> Path:
     """Write ``source``'s weights as float16, with its config and metrics, and nothing needed only to resume or train
-    (a mask head is dropped)."""
+    (a mask head is dropped). ``mirror_average`` sets how the exported model reads a frame (None keeps the source's):
+    the flag adds no weight, so any model can be shipped mirror-averaged."""
     checkpoint = read_checkpoint(source)
     kept = {key: checkpoint[key] for key in ("format", "version", "config", "epoch", "val_loss", "metrics")}
     kept["config"] = {**checkpoint["config"], "mask_head": False}  # a training aid: nothing downstream reads it
+    if mirror_average is not None:
+        kept["config"]["mirror_average"] = mirror_average
     kept["state_dict"] = {
         name: tensor.half() if tensor.is_floating_point() else tensor
         for name, tensor in checkpoint["state_dict"].items()
@@ -45,5 +50,6 @@ def export_checkpoint(source: str | Path, destination: str | Path) -> Path:
 
 
 def run(settings: ExportEncoderSettings) -> None:
-    out = export_checkpoint(settings.checkpoint, settings.out)
-    log.info("wrote %s (%.1f MB) from %s", out, out.stat().st_size / 1e6, settings.checkpoint)
+    out = export_checkpoint(settings.checkpoint, settings.out, settings.mirror_average)
+    reading = "mirror-averaged" if read_checkpoint(out)["config"].get("mirror_average") else "plain"
+    log.info("wrote %s (%.1f MB, %s reading) from %s", out, out.stat().st_size / 1e6, reading, settings.checkpoint)

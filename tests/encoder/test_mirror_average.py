@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from encoder_service.export import export_checkpoint
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, images_to_tensor, load_model, make_checkpoint, mirror_signs, with_prior
 from encoder_service.train import run
 from services.geometry import LABEL_NAMES, VERTICAL_LABEL_NAMES
+from swimm.cli import main as swimm
 from tests.encoder.cmvae_testdata import write_dataset
 from tests.encoder.quick_training import quick_settings
 
@@ -49,13 +51,15 @@ def test_a_frame_and_its_mirror_image_read_as_mirrors(tmp_path: Path, options: d
 
 def test_the_shipped_light_model_averaged_reads_the_mean_of_its_two_readings(tmp_path: Path) -> None:
     """The average is the plain model's readings of the frame and of its mirror image, the mirror's theta and psi
-    negated; the flag travels in the checkpoint, and the weights are the plain model's own."""
-    plain, checkpoint = load_model(LIGHT)
-    checkpoint["config"]["mirror_average"] = True
+    negated; `swimm export-encoder --mirror-average` sets the flag in the checkpoint on the plain model's weights,
+    and exporting again without the flag keeps it."""
+    plain, _ = load_model(LIGHT)
     path = tmp_path / "light_mirror.pt"
-    torch.save(checkpoint, path)
-    averaged, saved = load_model(path)
+    assert swimm(["export-encoder", "--checkpoint", str(LIGHT), "--out", str(path), "--mirror-average"]) == 0
+    kept = export_checkpoint(path, tmp_path / "again.pt")
+    averaged, saved = load_model(kept)
     assert averaged.mirror_averages and not plain.mirror_averages and saved["config"]["mirror_average"]
+    assert not load_model(export_checkpoint(path, tmp_path / "plain.pt", mirror_average=False))[0].mirror_averages
     frames = images_to_tensor(_frames(tmp_path)).float()
     with torch.no_grad():
         mu_frame, _ = plain.float().encode(frames)
