@@ -42,7 +42,7 @@ from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
 
-SHIPPED_POLICY = Path(__file__).parent / "models" / "sac_cmvae_general.zip"  # the policy to fly (docs/learner.md)
+SHIPPED_POLICY = Path(__file__).parent / "models" / "sac_cmvae_wide.zip"  # the policy to fly (docs/learner.md)
 INPUTS = ("frame", "action_history")
 OUTPUTS = ("action", "next_history")
 #: What a tracking CMVAE's file carries besides: where its target was last seen, fed back as ActPrev is.

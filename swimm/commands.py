@@ -141,7 +141,7 @@ COMMANDS: dict[str, Command] = {
     "up": Command(
         _up,
         "launch router, sim, encoder, learner (shipped recipe)",
-        default_config="learner_service/models/sac_cmvae_general.yaml",
+        default_config="learner_service/models/sac_cmvae_wide.yaml",
     ),
     "status": Command(_status, "who is live in a namespace, and doing what", answers=True),
     "pilot": Command(_pilot, "fly ArduSub from a video stream (ONNX policy)"),
