@@ -137,7 +137,7 @@ def test_up_runs_the_shipped_recipe_unless_given_a_settings_file(tmp_path) -> No
         return settings_mod.load(UpSettings, args, config_file("up", args.config), environ={})
 
     recipe = up_settings()
-    assert recipe.learn.demo.steps == 24000 and recipe.learn.steps == 20000  # sac_cmvae_general.yaml
+    assert recipe.learn.demo.steps == 24000 and recipe.learn.steps == 20000  # sac_cmvae_wide.yaml
     assert up_settings("--seed", "101").learn.seed == 101  # flags still override the recipe
     spec = up_settings("--config", "learner_service/configs/sac_spec.yaml")
     assert spec.learn.demo.steps == 0 and spec.learn.steps == 1_000_000 and spec.learn.hyperparams == ""
@@ -147,10 +147,10 @@ def test_up_runs_the_shipped_recipe_unless_given_a_settings_file(tmp_path) -> No
 def test_up_help_shows_the_values_a_plain_run_uses() -> None:
     """The recipe a plain `swimm up` reads replaces some defaults; --help shows its values and names it."""
     shown = " ".join(swimm("up", "--help").stdout.split())
-    assert "A plain run reads the recipe learner_service/models/sac_cmvae_general.yaml" in shown
-    assert "(default: 20000 from sac_cmvae_general.yaml; env SWIMM_STEPS)" in shown
-    assert "(default: 24000 from sac_cmvae_general.yaml; env SWIMM_DEMO_STEPS)" in shown
-    assert "(default: 1 from sac_cmvae_general.yaml; env SWIMM_EVAL_MIN_STEPS)" in shown
+    assert "A plain run reads the recipe learner_service/models/sac_cmvae_wide.yaml" in shown
+    assert "(default: 20000 from sac_cmvae_wide.yaml; env SWIMM_STEPS)" in shown
+    assert "(default: 24000 from sac_cmvae_wide.yaml; env SWIMM_DEMO_STEPS)" in shown
+    assert "(default: 1 from sac_cmvae_wide.yaml; env SWIMM_EVAL_MIN_STEPS)" in shown
     assert "(default: 7447; env SWIMM_PORT)" in shown  # not in the recipe: the field's own
 
 
