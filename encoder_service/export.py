@@ -46,10 +46,10 @@ def export_checkpoint(source: str | Path, destination: str | Path, mirror_averag
     destination = Path(destination)
     destination.parent.mkdir(parents=True, exist_ok=True)
     torch.save(kept, destination)
+    reading = "mirror-averaged" if kept["config"].get("mirror_average") else "plain"
+    log.info("wrote %s (%.1f MB, %s reading) from %s", destination, destination.stat().st_size / 1e6, reading, source)
     return destination
 
 
 def run(settings: ExportEncoderSettings) -> None:
-    out = export_checkpoint(settings.checkpoint, settings.out, settings.mirror_average)
-    reading = "mirror-averaged" if read_checkpoint(out)["config"].get("mirror_average") else "plain"
-    log.info("wrote %s (%.1f MB, %s reading) from %s", out, out.stat().st_size / 1e6, reading, settings.checkpoint)
+    export_checkpoint(settings.checkpoint, settings.out, settings.mirror_average)
