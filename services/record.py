@@ -45,6 +45,8 @@ log = logging.getLogger(__name__)
 RAW_ENCODING = "msgpack"  # a channel whose messages are the wire's bytes: what replay publishes
 IMAGE_TOPIC_SUFFIX = "/image"
 METADATA_NAME = "swimm"
+LISTENER_WAIT_S = 3.0  # how long replay waits for every key's listeners to be known before it publishes
+LISTENER_POLL_S = 0.01
 #: Foxglove's CompressedImage as a JSON schema (bytes as base64 in JSON encoding).
 COMPRESSED_IMAGE_SCHEMA = {
     "title": "foxglove.CompressedImage",
@@ -210,6 +212,15 @@ def recorded_samples(path: str | Path) -> list[tuple[str, bytes, int]]:
                 if channel.message_encoding == RAW_ENCODING]  # fmt: skip
 
 
+def _wait_for_listeners(publishers, stop: threading.Event) -> None:
+    """Wait (bounded) until the router has told this new session who listens on each key: a sample put before
+    then is dropped at the source, so a replay's first samples would reach nobody."""
+    deadline = time.monotonic() + LISTENER_WAIT_S
+    while not all(p.matching_status.matching for p in publishers) and time.monotonic() < deadline:
+        if stop.wait(LISTENER_POLL_S):
+            return
+
+
 def replay(settings: ReplaySettings, stop: threading.Event) -> int:
     """Publish a recording's samples back; returns how many were published."""
     settings.check()
@@ -219,13 +230,17 @@ def replay(settings: ReplaySettings, stop: threading.Event) -> int:
     samples = [sample for sample in recorded_samples(settings.file) if wanted.intersects(zenoh.KeyExpr(sample[0]))]
     published = 0
     with open_session(settings.zenoh, role="replay") as session:
+        publishers = {key: session.declare_publisher(target + key[len(source) :],
+                                                     congestion_control=zenoh.CongestionControl.BLOCK)
+                      for key in dict.fromkeys(sample[0] for sample in samples)}  # fmt: skip
+        _wait_for_listeners(publishers.values(), stop)
         first_ns, started = (samples[0][2] if samples else 0), time.monotonic()
         for key, payload, log_ns in samples:
             if stop.is_set():
                 break
             if settings.speed == "recorded":
                 stop.wait(max(0.0, (log_ns - first_ns) / 1e9 - (time.monotonic() - started)))
-            session.put(target + key[len(source) :], payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            publishers[key].put(payload)
             published += 1
     log.info("replayed %d of %d samples from %s into %s", published, len(samples), settings.file, target)
     return published
