@@ -23,6 +23,10 @@ BANDS_MAX = 4  # translucent bands per banded frame, 1 to max
 BAND_WIDTH = (0.03, 0.5)  # band width where it crosses its centre, a share of the frame's width U[lo, hi]
 BAND_SPREAD_MAX = 3.0  # a band widens by up to this many times its width per frame width along it: a wedge
 BAND_ALPHA_MAX = 0.5  # a band's peak opacity U[0.1, max]: the dolphin still shows through
+SHAFTS = (2, 6)  # light shafts per frame with shafts, U{lo..hi}
+SHAFT_SPREAD_DEG = 6.0  # a shaft's direction within this many degrees of the set's
+SHAFT_LIGHT = (150.0, 255.0)  # the shafts' grey level U[lo, hi], 0-255 units: sunlight is pale
+SHAFT_TINT = 20.0  # per-channel tint U[-t, t] on that grey
 
 
 def jitter(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
@@ -61,19 +65,55 @@ def bands(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndar
 
 
 def _bands_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    height, width = image.shape[:2]
-    rows, cols = np.mgrid[0:height, 0:width].astype(np.float32)
+    rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float32)
     pixels = image.astype(np.float32)
     for _ in range(rng.integers(1, BANDS_MAX + 1)):
-        angle = rng.uniform(0.0, np.pi)
-        centre_x, centre_y = rng.uniform(0, width), rng.uniform(0, height)
-        across = (cols - centre_x) * np.sin(angle) - (rows - centre_y) * np.cos(angle)
-        along = ((cols - centre_x) * np.cos(angle) + (rows - centre_y) * np.sin(angle)) / width
-        half_width = (
-            rng.uniform(*BAND_WIDTH) * width / 2 * np.clip(1.0 + rng.uniform(0, BAND_SPREAD_MAX) * along, 0, None)
-        )
-        inside = np.clip(half_width - np.abs(across) + 0.5, 0.0, 1.0)  # a one-pixel soft edge
-        fade = np.clip(0.5 + rng.uniform(-1.5, 1.5) * along, 0.0, 1.0)
-        alpha = (rng.uniform(0.1, BAND_ALPHA_MAX) * inside * fade)[..., None]
-        pixels = pixels * (1.0 - alpha) + rng.uniform(0.0, 255.0, 3).astype(np.float32) * alpha
+        pixels = _band(pixels, rows, cols, rng, rng.uniform(0.0, np.pi))
     return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)
+
+
+def shafts(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
+    """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them carry a sun's light shafts.
+
+    Sunlight through a wavy surface falls in pale bands that run nearly parallel, many at once, the lower the sun
+    the more slanted: :func:`bands` drawn as one such set (one pale colour, one direction give or take a few
+    degrees), a structure in the frame that is light, not the dolphin.
+    """
+    out = images.copy()
+    for index in np.flatnonzero(rng.random(len(images)) < share):
+        out[index] = _shafts_one(images[index], rng)
+    return out
+
+
+def _shafts_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float32)
+    pixels = image.astype(np.float32)
+    direction = rng.uniform(0.0, np.pi)
+    colour = np.clip(rng.uniform(*SHAFT_LIGHT) + rng.uniform(-SHAFT_TINT, SHAFT_TINT, 3), 0.0, 255.0)
+    for _ in range(rng.integers(SHAFTS[0], SHAFTS[1] + 1)):
+        angle = direction + np.deg2rad(rng.uniform(-SHAFT_SPREAD_DEG, SHAFT_SPREAD_DEG))
+        pixels = _band(pixels, rows, cols, rng, angle, colour.astype(np.float32))
+    return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)
+
+
+def _band(
+    pixels: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    rng: np.random.Generator,
+    angle: float,
+    colour: np.ndarray | None = None,
+) -> np.ndarray:
+    """``pixels`` (float, H x W x 3) with one translucent band across them at ``angle``, in ``colour`` (a random
+    one if None)."""
+    width = pixels.shape[1]
+    centre_x, centre_y = rng.uniform(0, width), rng.uniform(0, pixels.shape[0])
+    across = (cols - centre_x) * np.sin(angle) - (rows - centre_y) * np.cos(angle)
+    along = ((cols - centre_x) * np.cos(angle) + (rows - centre_y) * np.sin(angle)) / width
+    half_width = rng.uniform(*BAND_WIDTH) * width / 2 * np.clip(1.0 + rng.uniform(0, BAND_SPREAD_MAX) * along, 0, None)
+    inside = np.clip(half_width - np.abs(across) + 0.5, 0.0, 1.0)  # a one-pixel soft edge
+    fade = np.clip(0.5 + rng.uniform(-1.5, 1.5) * along, 0.0, 1.0)
+    alpha = (rng.uniform(0.1, BAND_ALPHA_MAX) * inside * fade)[..., None]
+    if colour is None:
+        colour = rng.uniform(0.0, 255.0, 3).astype(np.float32)
+    return pixels * (1.0 - alpha) + colour * alpha

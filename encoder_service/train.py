@@ -23,7 +23,7 @@ import torch
 from tqdm import tqdm
 
 from encoder_service import figures
-from encoder_service.augment import bands, jitter
+from encoder_service.augment import bands, jitter, shafts
 from encoder_service.data import (
     AnyDataset,
     Batch,
@@ -88,6 +88,7 @@ class TrainEncoderSettings:
     input_norm: str = "none"  # none | channel: white-balance | local: and even out the light | light: local + light
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
+    augment_shafts: float = 0.0  # share of training frames crossed by a sun's pale, near-parallel light shafts
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
     locate: bool = False  # the encoder reads where the dolphin is off a locator the masks train (needs --mask-weight)
     track: bool = False  # the encoder reads a prior, where the target was last seen, beside each frame: pods
@@ -221,6 +222,8 @@ def _loss(
         inputs = jitter(inputs, jitter_rng, settings.augment)
     if jitter_rng is not None and settings.augment_bands > 0:
         inputs = bands(inputs, jitter_rng, settings.augment_bands)
+    if jitter_rng is not None and settings.augment_shafts > 0:
+        inputs = shafts(inputs, jitter_rng, settings.augment_shafts)
     labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
     images = encoder_input(model, inputs, batch.labels, device, priors, batch.centred)
     masks = _masks_tensor(batch, settings.mask_weight, device)
@@ -523,7 +526,9 @@ def run(settings: TrainEncoderSettings) -> int:
     settings.state_loss()  # checked before the dataset is read, not at the first batch
     if settings.input_norm not in INPUT_NORMS:
         raise ValueError(f"--input-norm must be one of {', '.join(INPUT_NORMS)}, got {settings.input_norm!r}")
-    for flag, share in (("--augment", settings.augment), ("--augment-bands", settings.augment_bands)):
+    shares = {"--augment": settings.augment, "--augment-bands": settings.augment_bands,
+              "--augment-shafts": settings.augment_shafts}  # fmt: skip
+    for flag, share in shares.items():
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
     if not (math.isfinite(settings.mask_weight) and settings.mask_weight >= 0):

@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
-from encoder_service.augment import BANDS_MAX, bands, jitter
+from encoder_service.augment import BANDS_MAX, SHAFT_TINT, bands, jitter, shafts
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import (
     CMVAE,
@@ -136,18 +137,42 @@ def test_bands_are_seeded_translucent_and_touch_only_their_share() -> None:
     np.testing.assert_array_equal(bands(frames, np.random.default_rng(5), 0.0), frames)
 
 
+def test_shafts_are_seeded_pale_near_parallel_and_touch_only_their_share() -> None:
+    frames = np.full((200, 64, 64, 3), 40, dtype=np.uint8)
+    first = shafts(frames, np.random.default_rng(5), 0.5)
+    np.testing.assert_array_equal(first, shafts(frames, np.random.default_rng(5), 0.5))
+    assert first.dtype == np.uint8 and first.shape == frames.shape
+    lit = [image for image in first if not np.array_equal(image, frames[0])]
+    assert 0.35 < len(lit) / len(frames) < 0.65
+    for image in lit:
+        brightness = image.astype(int).mean(axis=-1)
+        assert 0.0 < np.mean(brightness > 40) < 1.0 and brightness.min() >= 40 - SHAFT_TINT  # light falls on part
+    np.testing.assert_array_equal(shafts(frames, np.random.default_rng(5), 0.0), frames)
+    # one direction per frame: their edges line up far more than those of bands at random angles
+    banded = bands(frames, np.random.default_rng(5), 1.0)
+    assert np.mean([_edge_coherence(image) for image in lit]) > np.mean([_edge_coherence(i) for i in banded]) + 0.1
+
+
+def _edge_coherence(image: np.ndarray) -> float:
+    """1 when every edge in the frame runs one way, near 0 when they run every way (the structure tensor's)."""
+    brightness = image.astype(np.float32).mean(axis=-1)
+    gradients = cv2.Sobel(brightness, cv2.CV_32F, 1, 0) + 1j * cv2.Sobel(brightness, cv2.CV_32F, 0, 1)
+    return float(abs(np.sum(gradients**2)) / (np.sum(np.abs(gradients) ** 2) + 1e-9))
+
+
 def test_a_run_with_norm_and_jitter_trains_and_refuses_bad_values(tmp_path: Path) -> None:
     dataset = write_dataset(tmp_path / "data", count=64, seed=3, shard_size=32)
     out = tmp_path / "run"
     settings = TrainEncoderSettings(dataset=[str(dataset)], out=str(out), epochs=1, val_fraction=0.25, device="cpu",
                                     tensorboard=False, input_norm="channel", augment=0.5,
-                                    augment_bands=0.5)  # fmt: skip
+                                    augment_bands=0.5, augment_shafts=0.5)  # fmt: skip
     assert run(settings) == 0
     best = torch.load(out / "best.pt", weights_only=True)
     assert best["config"]["input_norm"] == "channel" and math.isfinite(best["val_loss"])
     refusals = (
         ({"augment": 1.5}, "--augment is a share"),
         ({"augment_bands": -0.1}, "--augment-bands is a share"),
+        ({"augment_shafts": 2.0}, "--augment-shafts is a share"),
         ({"input_norm": "x"}, "--input-norm"),
     )
     for change, message in refusals:
