@@ -10,6 +10,8 @@ training settings (sim_service/splits.py), which this jitter does not set.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
@@ -31,9 +33,19 @@ SHAFT_TINT = 20.0  # per-channel tint U[-t, t] on that grey
 
 def jitter(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
     """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them carry a random photometric jitter."""
+    return _on_share(images, rng, share, _jitter_one)
+
+
+def _on_share(
+    images: np.ndarray,
+    rng: np.random.Generator,
+    share: float,
+    change: Callable[[np.ndarray, np.random.Generator], np.ndarray],
+) -> np.ndarray:
+    """A copy of ``images`` in which a random ``share`` of them went through ``change``."""
     out = images.copy()
     for index in np.flatnonzero(rng.random(len(images)) < share):
-        out[index] = _jitter_one(images[index], rng)
+        out[index] = change(images[index], rng)
     return out
 
 
@@ -58,10 +70,7 @@ def bands(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndar
     into a wedge, as light shafts under a low sun, kelp or a passing shadow would: structure that is not the
     dolphin and that the sim's training scenery draws only in a narrow range of angles, widths and strengths.
     """
-    out = images.copy()
-    for index in np.flatnonzero(rng.random(len(images)) < share):
-        out[index] = _bands_one(images[index], rng)
-    return out
+    return _on_share(images, rng, share, _bands_one)
 
 
 def _bands_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -79,10 +88,7 @@ def shafts(images: np.ndarray, rng: np.random.Generator, share: float) -> np.nda
     the more slanted: :func:`bands` drawn as one such set (one pale colour, one direction give or take a few
     degrees), a structure in the frame that is light, not the dolphin.
     """
-    out = images.copy()
-    for index in np.flatnonzero(rng.random(len(images)) < share):
-        out[index] = _shafts_one(images[index], rng)
-    return out
+    return _on_share(images, rng, share, _shafts_one)
 
 
 def _shafts_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:

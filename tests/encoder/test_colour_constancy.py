@@ -111,43 +111,36 @@ def test_the_input_norm_travels_in_the_checkpoint(tmp_path: Path) -> None:
         CMVAE(input_norm="retinex")
 
 
-def test_jitter_is_seeded_touches_only_its_share_and_keeps_uint8() -> None:
-    frames = np.random.default_rng(2).integers(0, 256, (200, 64, 64, 3), dtype=np.uint8)
-    first = jitter(frames, np.random.default_rng(5), 0.5)
-    again = jitter(frames, np.random.default_rng(5), 0.5)
-    np.testing.assert_array_equal(first, again)
+def _changed_share(augment, frames: np.ndarray) -> list[np.ndarray]:
+    """The frames ``augment`` changed at share 0.5, after checking it is seeded, keeps uint8 and changes about
+    half of them (and none at share 0)."""
+    first = augment(frames, np.random.default_rng(5), 0.5)
+    np.testing.assert_array_equal(first, augment(frames, np.random.default_rng(5), 0.5))
     assert first.dtype == np.uint8 and first.shape == frames.shape
-    changed = np.mean([not np.array_equal(a, b) for a, b in zip(first, frames, strict=True)])
-    assert 0.35 < changed < 0.65
-    np.testing.assert_array_equal(jitter(frames, np.random.default_rng(5), 0.0), frames)
+    changed = [image for image, before in zip(first, frames, strict=True) if not np.array_equal(image, before)]
+    assert 0.35 < len(changed) / len(frames) < 0.65
+    np.testing.assert_array_equal(augment(frames, np.random.default_rng(5), 0.0), frames)
+    return changed
+
+
+def test_jitter_is_seeded_touches_only_its_share_and_keeps_uint8() -> None:
+    _changed_share(jitter, np.random.default_rng(2).integers(0, 256, (200, 64, 64, 3), dtype=np.uint8))
 
 
 def test_bands_are_seeded_translucent_and_touch_only_their_share() -> None:
-    frames = np.full((200, 64, 64, 3), 40, dtype=np.uint8)
-    first = bands(frames, np.random.default_rng(5), 0.5)
-    np.testing.assert_array_equal(first, bands(frames, np.random.default_rng(5), 0.5))
-    assert first.dtype == np.uint8 and first.shape == frames.shape
-    banded = [image for image in first if not np.array_equal(image, frames[0])]
-    assert 0.35 < len(banded) / len(frames) < 0.65
-    for image in banded:
+    for image in _changed_share(bands, np.full((200, 64, 64, 3), 40, dtype=np.uint8)):
         untouched = np.mean(np.all(image == 40, axis=-1))
         assert 0.0 < untouched < 1.0  # a band crosses part of the frame, never all of it
         # each band is at most half opaque, so where they overlap the frame still shows through
         assert np.abs(image.astype(int) - 40).max() <= (1 - 0.5**BANDS_MAX) * 255 + 1
-    np.testing.assert_array_equal(bands(frames, np.random.default_rng(5), 0.0), frames)
 
 
 def test_shafts_are_seeded_pale_near_parallel_and_touch_only_their_share() -> None:
     frames = np.full((200, 64, 64, 3), 40, dtype=np.uint8)
-    first = shafts(frames, np.random.default_rng(5), 0.5)
-    np.testing.assert_array_equal(first, shafts(frames, np.random.default_rng(5), 0.5))
-    assert first.dtype == np.uint8 and first.shape == frames.shape
-    lit = [image for image in first if not np.array_equal(image, frames[0])]
-    assert 0.35 < len(lit) / len(frames) < 0.65
+    lit = _changed_share(shafts, frames)
     for image in lit:
         brightness = image.astype(int).mean(axis=-1)
         assert 0.0 < np.mean(brightness > 40) < 1.0 and brightness.min() >= 40 - SHAFT_TINT  # light falls on part
-    np.testing.assert_array_equal(shafts(frames, np.random.default_rng(5), 0.0), frames)
     # one direction per frame: their edges line up far more than those of bands at random angles
     banded = bands(frames, np.random.default_rng(5), 1.0)
     assert np.mean([_edge_coherence(image) for image in lit]) > np.mean([_edge_coherence(i) for i in banded]) + 0.1
