@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from bench.learn_merge import merge
 from bench.learn_settings import SUMMARY, LearnBenchSettings
-from bench.scores import bootstrap_ci, curve_band, first_reaching, iqm
+from bench.scores import curve_band, final_aggregates, first_reaching
 from encoder_service import DEFAULT_CHECKPOINT
 from eval_service.engine import EvaluationSettings, evaluate
 from learner_service import up
@@ -194,15 +194,12 @@ def summarise(
         seeds = [seed for seed in settings.seeds if (algo, seed) in finals]
         finals_of = [finals[(algo, seed)]["mean_return"] for seed in seeds]
         runs = [evaluations[(evaluations["algo"] == algo) & (evaluations["seed"] == seed)] for seed in seeds]
-        interval = bootstrap_ci(finals_of)
         algos[algo] = {
             "seeds": seeds,
             "final_returns": [round(value, 1) for value in finals_of],
-            "final_iqm": round(float(iqm(finals_of)), 1) if seeds else None,
-            "final_iqm_ci95": [round(value, 1) for value in interval] if interval else None,
+            **final_aggregates(finals_of, settings.thresholds),
             "final_metrics": [finals[(algo, seed)]["metrics"] for seed in seeds],
             "final_episode_returns": [finals[(algo, seed)].get("returns") for seed in seeds],
-            "seeds_reaching": {f"{t:g}": sum(value >= t for value in finals_of) for t in settings.thresholds},
             "best_eval_returns": [round(float(run["mean_return"].max()), 1) for run in runs],
             "best_model_returns": [round(bests[(algo, seed)]["mean_return"], 1) if (algo, seed) in (bests or {})
                                    else None for seed in seeds],

@@ -1,9 +1,10 @@
 """`swimm bench learn --merge A B ...`: one results folder from the summaries of several `swimm bench learn` runs.
 
 Each algorithm learns best with its own recipe (its own hyperparameters, smoothing and averaging), and a
-benchmark of three algorithms x three seeds takes longer than one working session, so the runs behind one report
-are made by several invocations. Merging takes each algorithm of ``--algos`` from the one summary that has it,
-keeps that summary's settings beside it (``settings``, ``source``) and writes ``summary.json``,
+benchmark of three algorithms x five seeds takes longer than one working session, so the runs behind one report
+are made by several invocations. Merging takes each algorithm of ``--algos`` from the summaries that have it (one
+recipe's seeds may come from several runs: they are pooled, and the aggregates computed again over them all),
+keeps the recipe's settings beside it (``settings``, ``sources``) and writes ``summary.json``,
 ``evaluations.csv`` and ``learn.png`` to ``--out`` as a training run would.
 
 A summary is a results folder's ``summary.json`` (its ``evaluations.csv`` beside it) or a committed copy
@@ -19,6 +20,7 @@ from typing import Any
 import pandas as pd
 
 from bench.learn_settings import SUMMARY, LearnBenchSettings
+from bench.scores import final_aggregates
 from learner_service.progress import EVALUATIONS_CSV
 
 
@@ -45,18 +47,58 @@ def read_source(path: Path) -> tuple[dict[str, Any], pd.DataFrame]:
 
 
 def merge(settings: LearnBenchSettings) -> tuple[dict[str, Any], pd.DataFrame]:
-    """The merged summary and evaluations: each of ``settings.algos`` from the one source that has it."""
+    """The merged summary and evaluations: each of ``settings.algos`` from the summaries that have it, its seeds
+    pooled where several ran one recipe on other seeds."""
     sources = [(Path(path), *read_source(Path(path))) for path in settings.merge]
     algos: dict[str, Any] = {}
     tables = []
     for algo in settings.algos:
         having = [(path, summary, table) for path, summary, table in sources if algo in summary["algos"]]
-        if len(having) != 1:
-            found = ", ".join(str(path) for path, _, _ in having) or "none of them"
-            raise ValueError(f"--merge: {algo} must be in exactly one summary, found in {found}; "
-                             "pick the algorithms with --algos")  # fmt: skip
-        ((path, summary, table),) = having
-        algos[algo] = summary["algos"][algo] | {"settings": summary.get("settings"), "source": str(path)}
-        tables.append(table[table["algo"] == algo])
+        if not having:
+            raise ValueError(f"--merge: {algo} is in none of the summaries; pick the algorithms with --algos")
+        algos[algo] = pooled(algo, having, settings.thresholds)
+        tables += [table[table["algo"] == algo] for _, _, table in having]
     merged = {"algos": algos, "how": sources[0][1].get("how", ""), "merged_from": [str(p) for p, _, _ in sources]}
     return merged, pd.concat(tables, ignore_index=True)
+
+
+#: Settings that name a run, not its recipe: summaries of one recipe on other seeds differ in these alone.
+RUN_ONLY = ("seeds", "out", "resume", "merge")
+#: Per-seed fields of a summary's algorithm entry, and those holding per-seed lists under each threshold.
+PER_SEED = ("final_returns", "final_metrics", "final_episode_returns", "best_eval_returns", "best_model_returns",
+            "steps", "wall_min")  # fmt: skip
+PER_SEED_BY_THRESHOLD = ("minutes_to", "steps_to")
+
+
+def pooled(algo: str, having: list[tuple[Path, dict, pd.DataFrame]], thresholds: list[float]) -> dict[str, Any]:
+    """``algo``'s entry from one summary, or its seeds pooled from several that ran the same recipe (aggregates
+    computed again over every seed); a different recipe or a seed run twice is refused by name."""
+    (first_path, first, _), *others = having
+    recipe = _recipe(first)
+    for path, summary, _ in others:
+        differ = sorted(key for key in recipe.keys() | _recipe(summary).keys()
+                        if recipe.get(key) != _recipe(summary).get(key))  # fmt: skip
+        if differ:
+            raise ValueError(f"--merge: {algo} is in {first_path} and {path}, which ran different recipes "
+                             f"({', '.join(differ)} differ); merge the seeds of one recipe only")  # fmt: skip
+    entries = [summary["algos"][algo] for _, summary, _ in having]
+    seeds = [seed for entry in entries for seed in entry["seeds"]]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"--merge: {algo} has a seed in two summaries (seeds {seeds}); each seed counts once")
+    entry = dict(entries[0])
+    if others:
+        for field in PER_SEED:
+            entry[field] = [value for e in entries for value in e.get(field) or [None] * len(e["seeds"])]
+        for field in PER_SEED_BY_THRESHOLD:
+            keys = dict.fromkeys(key for e in entries for key in e.get(field, {}))
+            entry[field] = {key: [value for e in entries
+                                  for value in e.get(field, {}).get(key) or [None] * len(e["seeds"])]
+                            for key in keys}  # fmt: skip
+        entry |= {"seeds": seeds, **final_aggregates(entry["final_returns"], thresholds)}
+    settings = first.get("settings") or {}
+    return entry | {"settings": settings | {"seeds": seeds} if settings else settings,
+                    "sources": [str(path) for path, _, _ in having]}  # fmt: skip
+
+
+def _recipe(summary: dict[str, Any]) -> dict[str, Any]:
+    return {key: value for key, value in (summary.get("settings") or {}).items() if key not in RUN_ONLY}

@@ -46,6 +46,17 @@ def bootstrap_ci(scores: Sequence[float], statistic=iqm) -> tuple[float, float] 
     return float(result.confidence_interval.low), float(result.confidence_interval.high)
 
 
+def final_aggregates(finals: Sequence[float], thresholds: Sequence[float]) -> dict:
+    """An algorithm's aggregates over its seeds' final returns: IQM, its 95% interval, and how many seeds reach
+    each threshold (the fields of a `swimm bench learn` summary)."""
+    interval = bootstrap_ci(finals)
+    return {
+        "final_iqm": round(float(iqm(finals)), 1) if len(finals) else None,
+        "final_iqm_ci95": [round(value, 1) for value in interval] if interval else None,
+        "seeds_reaching": {f"{t:g}": sum(value >= t for value in finals) for t in thresholds},
+    }
+
+
 def first_reaching(evaluations: pd.DataFrame, threshold: float, column: str) -> float | None:
     """``column`` (e.g. wall minutes or steps) at the first evaluation whose mean return is at least ``threshold``."""
     reached = evaluations[evaluations["mean_return"] >= threshold]

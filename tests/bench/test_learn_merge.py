@@ -9,17 +9,20 @@ import pytest
 
 from bench.command import BenchSettings, run
 from bench.learn_settings import LearnBenchSettings
+from bench.scores import iqm
 
 
-def write_source(folder, name, algos: dict[str, list[float]], actor_average: int) -> str:
+def write_source(folder, name, algos: dict[str, list[float]], actor_average: int, seeds=(97, 101)) -> str:
     """A summary with ``algos``' final returns and an evaluations table of two evaluations per seed."""
     folder.mkdir(parents=True, exist_ok=True)
-    summary = {"algos": {algo: {"seeds": [97, 101][: len(finals)], "final_returns": finals}
+    summary = {"algos": {algo: {"seeds": list(seeds[: len(finals)]), "final_returns": finals,
+                                "minutes_to": {"2000": [1.0] * len(finals)}}
                          for algo, finals in algos.items()},
-               "settings": {"actor_average": actor_average}, "how": "final_returns: 20 episodes"}  # fmt: skip
+               "settings": {"actor_average": actor_average, "seeds": list(seeds), "out": f"runs/{name}"},
+               "how": "final_returns: 20 episodes"}  # fmt: skip
     (folder / f"{name}.json").write_text(json.dumps(summary))
     rows = [{"algo": algo, "seed": seed, "num_timesteps": steps, "wall_min": steps / 1000, "mean_return": final}
-            for algo, finals in algos.items() for seed, final in zip([97, 101], finals, strict=False)
+            for algo, finals in algos.items() for seed, final in zip(seeds, finals, strict=False)
             for steps in (1000, 2000)]  # fmt: skip
     pd.DataFrame(rows).to_csv(folder / f"{name}-evaluations.csv", index=False)
     return str(folder / f"{name}.json")
@@ -36,20 +39,45 @@ def test_each_algorithm_comes_from_its_own_summary_with_its_settings(tmp_path) -
     assert list(summary["algos"]) == ["sac", "ppo", "td3"]
     assert summary["algos"]["sac"]["final_returns"] == [2540.0, 2305.3]
     assert summary["algos"]["sac"]["settings"]["actor_average"] == 500
-    assert summary["algos"]["td3"]["settings"]["actor_average"] == 0 and summary["algos"]["td3"]["source"] == others
+    assert summary["algos"]["td3"]["settings"]["actor_average"] == 0 and summary["algos"]["td3"]["sources"] == [others]
     evaluations = pd.read_csv(out / "evaluations.csv")
     assert sorted(evaluations.groupby("algo").size().items()) == [("ppo", 2), ("sac", 4), ("td3", 2)]
     assert (out / "learn.png").read_bytes()[:4] == b"\x89PNG"
 
 
-def test_an_algorithm_in_two_summaries_or_in_none_is_refused_by_name(tmp_path) -> None:
-    first = write_source(tmp_path, "first", {"sac": [2000.0]}, actor_average=0)
-    second = write_source(tmp_path, "second", {"sac": [2100.0]}, actor_average=0)
+def test_one_recipes_seeds_from_two_summaries_are_pooled_and_aggregated_again(tmp_path) -> None:
+    first = write_source(tmp_path, "first", {"sac": [2540.0, 2305.3, 2070.8]}, 500, seeds=(97, 101, 103))
+    more = write_source(tmp_path, "more", {"sac": [2400.0, 1000.0]}, 500, seeds=(107, 109))
     out = tmp_path / "merged"
-    with pytest.raises(ValueError, match="sac must be in exactly one summary, found in .*first.json, .*second.json"):
-        run(BenchSettings(target="learn", learn=LearnBenchSettings(algos=["sac"], merge=[first, second], out=str(out))))
-    with pytest.raises(ValueError, match="td3 must be in exactly one summary, found in none"):
-        run(BenchSettings(target="learn", learn=LearnBenchSettings(algos=["sac", "td3"], merge=[first], out=str(out))))
+    assert run(BenchSettings(target="learn", learn=LearnBenchSettings(algos=["sac"], merge=[first, more],
+                                                                      out=str(out)))) == 0  # fmt: skip
+    sac = json.loads((out / "summary.json").read_text())["algos"]["sac"]
+    assert sac["seeds"] == [97, 101, 103, 107, 109] and sac["sources"] == [first, more]
+    assert sac["final_returns"] == [2540.0, 2305.3, 2070.8, 2400.0, 1000.0]
+    assert (
+        sac["final_iqm"] == round(float(iqm(sac["final_returns"])), 1) != round(float(iqm([2540.0, 2305.3, 2070.8])), 1)
+    )
+    assert sac["seeds_reaching"] == {"2000": 4, "2400": 2} and sac["minutes_to"] == {"2000": [1.0] * 5}
+    assert sac["final_episode_returns"] == [None] * 5  # the sources kept no episode returns: none invented
+    assert sac["settings"]["seeds"] == [97, 101, 103, 107, 109]
+    evaluations = pd.read_csv(out / "evaluations.csv")
+    assert sorted(evaluations["seed"].unique()) == [97, 101, 103, 107, 109]
+
+
+def test_a_different_recipe_a_seed_twice_or_an_algorithm_in_none_is_refused_by_name(tmp_path) -> None:
+    first = write_source(tmp_path, "first", {"sac": [2000.0]}, actor_average=0)
+    other = write_source(tmp_path, "other", {"sac": [2100.0]}, actor_average=500, seeds=(107,))
+    again = write_source(tmp_path, "again", {"sac": [2100.0]}, actor_average=0)
+    out = tmp_path / "merged"
+    refusals = (
+        (["sac"], [first, other], r"sac is in .*first.json and .*other.json, which ran different recipes "
+                                  r"\(actor_average differ\)"),
+        (["sac"], [first, again], r"sac has a seed in two summaries \(seeds \[97, 97\]\)"),
+        (["sac", "td3"], [first], "td3 is in none of the summaries"),
+    )  # fmt: skip
+    for algos, merge, message in refusals:
+        with pytest.raises(ValueError, match=message):
+            run(BenchSettings(target="learn", learn=LearnBenchSettings(algos=algos, merge=merge, out=str(out))))
     assert not out.exists()
 
 
