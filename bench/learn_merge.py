@@ -13,6 +13,7 @@ A summary is a results folder's ``summary.json`` (its ``evaluations.csv`` beside
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -101,4 +102,12 @@ def pooled(algo: str, having: list[tuple[Path, dict, pd.DataFrame]], thresholds:
 
 
 def _recipe(summary: dict[str, Any]) -> dict[str, Any]:
-    return {key: value for key, value in (summary.get("settings") or {}).items() if key not in RUN_ONLY}
+    """A summary's settings less those that name the run, a setting added since it ran read at its default."""
+    settings = _with_defaults(summary.get("settings") or {}, dataclasses.asdict(LearnBenchSettings()))
+    return {key: value for key, value in settings.items() if key not in RUN_ONLY}
+
+
+def _with_defaults(values: dict[str, Any], defaults: dict[str, Any]) -> dict[str, Any]:
+    filled = defaults | values
+    return {key: _with_defaults(value, defaults[key]) if isinstance(value, dict) and isinstance(defaults.get(key), dict)
+            else value for key, value in filled.items()}  # fmt: skip

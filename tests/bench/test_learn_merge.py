@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -48,6 +50,9 @@ def test_each_algorithm_comes_from_its_own_summary_with_its_settings(tmp_path) -
 def test_one_recipes_seeds_from_two_summaries_are_pooled_and_aggregated_again(tmp_path) -> None:
     first = write_source(tmp_path, "first", {"sac": [2540.0, 2305.3, 2070.8]}, 500, seeds=(97, 101, 103))
     more = write_source(tmp_path, "more", {"sac": [2400.0, 1000.0]}, 500, seeds=(107, 109))
+    later = json.loads(Path(more).read_text())  # ran after a setting was added: it records its default value
+    later["settings"]["smooth"] = dataclasses.asdict(LearnBenchSettings().smooth)
+    Path(more).write_text(json.dumps(later))
     out = tmp_path / "merged"
     assert run(BenchSettings(target="learn", learn=LearnBenchSettings(algos=["sac"], merge=[first, more],
                                                                       out=str(out)))) == 0  # fmt: skip
