@@ -86,16 +86,14 @@ def pooled(algo: str, having: list[tuple[Path, dict, pd.DataFrame]], thresholds:
     seeds = [seed for entry in entries for seed in entry["seeds"]]
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"--merge: {algo} has a seed in two summaries (seeds {seeds}); each seed counts once")
-    entry = dict(entries[0])
-    if others:
-        for field in PER_SEED:
-            entry[field] = [value for e in entries for value in e.get(field) or [None] * len(e["seeds"])]
-        for field in PER_SEED_BY_THRESHOLD:
-            keys = dict.fromkeys(key for e in entries for key in e.get(field, {}))
-            entry[field] = {key: [value for e in entries
-                                  for value in e.get(field, {}).get(key) or [None] * len(e["seeds"])]
-                            for key in keys}  # fmt: skip
-        entry |= {"seeds": seeds, **final_aggregates(entry["final_returns"], thresholds)}
+    entry = dict(entries[0])  # a field older summaries lack reads None for their seeds; aggregates are made anew
+    for field in PER_SEED:
+        entry[field] = [value for e in entries for value in e.get(field) or [None] * len(e["seeds"])]
+    for field in PER_SEED_BY_THRESHOLD:
+        keys = dict.fromkeys(key for e in entries for key in e.get(field, {}))
+        entry[field] = {key: [value for e in entries for value in e.get(field, {}).get(key) or [None] * len(e["seeds"])]
+                        for key in keys}  # fmt: skip
+    entry |= {"seeds": seeds, **final_aggregates(entry["final_returns"], thresholds)}
     settings = first.get("settings") or {}
     return entry | {"settings": settings | {"seeds": seeds} if settings else settings,
                     "sources": [str(path) for path, _, _ in having]}  # fmt: skip
