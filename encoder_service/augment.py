@@ -74,11 +74,7 @@ def bands(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndar
 
 
 def _bands_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float32)
-    pixels = image.astype(np.float32)
-    for _ in range(rng.integers(1, BANDS_MAX + 1)):
-        pixels = _band(pixels, rows, cols, rng, rng.uniform(0.0, np.pi))
-    return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)
+    return _banded(image, rng, rng.integers(1, BANDS_MAX + 1), lambda: rng.uniform(0.0, np.pi))
 
 
 def shafts(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
@@ -92,13 +88,29 @@ def shafts(images: np.ndarray, rng: np.random.Generator, share: float) -> np.nda
 
 
 def _shafts_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float32)
-    pixels = image.astype(np.float32)
     direction = rng.uniform(0.0, np.pi)
     colour = np.clip(rng.uniform(*SHAFT_LIGHT) + rng.uniform(-SHAFT_TINT, SHAFT_TINT, 3), 0.0, 255.0)
-    for _ in range(rng.integers(SHAFTS[0], SHAFTS[1] + 1)):
-        angle = direction + np.deg2rad(rng.uniform(-SHAFT_SPREAD_DEG, SHAFT_SPREAD_DEG))
-        pixels = _band(pixels, rows, cols, rng, angle, colour.astype(np.float32))
+    count = rng.integers(SHAFTS[0], SHAFTS[1] + 1)
+
+    def near_direction() -> float:
+        return direction + np.deg2rad(rng.uniform(-SHAFT_SPREAD_DEG, SHAFT_SPREAD_DEG))
+
+    return _banded(image, rng, count, near_direction, colour.astype(np.float32))
+
+
+def _banded(
+    image: np.ndarray,
+    rng: np.random.Generator,
+    count: int,
+    angle: Callable[[], float],
+    colour: np.ndarray | None = None,
+) -> np.ndarray:
+    """``image`` crossed by ``count`` bands, each at an ``angle()`` drawn just before it, in ``colour`` (a random
+    one per band if None)."""
+    rows, cols = np.mgrid[0 : image.shape[0], 0 : image.shape[1]].astype(np.float32)
+    pixels = image.astype(np.float32)
+    for _ in range(count):
+        pixels = _band(pixels, rows, cols, rng, angle(), colour)
     return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)
 
 

@@ -8,7 +8,6 @@ control messages of services/messages.py.
 from __future__ import annotations
 
 import logging
-import time
 
 import zenoh
 
@@ -21,9 +20,9 @@ from services.messages import (
     Refused,
     decode_reply,
 )
+from services.session import wait_for_matching
 
 log = logging.getLogger(__name__)
-MATCH_POLL_S = 0.005  # how often request() checks whether a responder is reachable yet
 CLAIMANT_ROLES = ("learner", "eval")  # the roles whose liveliness the sim watches to lapse claims
 
 
@@ -45,12 +44,9 @@ def request(session: zenoh.Session, key: str, message: ControlRequest, timeout_s
     naming the key when nobody answered within ``timeout_s``.
     """
     op = message.OP
-    deadline = time.monotonic() + timeout_s
     querier = session.declare_querier(key, timeout=timeout_s)
     try:
-        # A query sent before the responder's route reached this session gets no reply at all; wait (bounded) for it.
-        while not querier.matching_status.matching and time.monotonic() < deadline:
-            time.sleep(MATCH_POLL_S)
+        wait_for_matching([querier], timeout_s)  # a query sent before the responder's route arrived gets no reply
         replies = list(querier.get(payload=message.encode()))
     finally:
         querier.undeclare()

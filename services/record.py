@@ -37,7 +37,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from services.messages import BadMessage, ObservationMsg, batch_messages
-from services.session import open_session
+from services.session import open_session, wait_for_matching
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -46,7 +46,6 @@ RAW_ENCODING = "msgpack"  # a channel whose messages are the wire's bytes: what 
 IMAGE_TOPIC_SUFFIX = "/image"
 METADATA_NAME = "swimm"
 LISTENER_WAIT_S = 3.0  # how long replay waits for every key's listeners to be known before it publishes
-LISTENER_POLL_S = 0.01
 #: Foxglove's CompressedImage as a JSON schema (bytes as base64 in JSON encoding).
 COMPRESSED_IMAGE_SCHEMA = {
     "title": "foxglove.CompressedImage",
@@ -212,15 +211,6 @@ def recorded_samples(path: str | Path) -> list[tuple[str, bytes, int]]:
                 if channel.message_encoding == RAW_ENCODING]  # fmt: skip
 
 
-def _wait_for_listeners(publishers, stop: threading.Event) -> None:
-    """Wait (bounded) until the router has told this new session who listens on each key: a sample put before
-    then is dropped at the source, so a replay's first samples would reach nobody."""
-    deadline = time.monotonic() + LISTENER_WAIT_S
-    while not all(p.matching_status.matching for p in publishers) and time.monotonic() < deadline:
-        if stop.wait(LISTENER_POLL_S):
-            return
-
-
 def replay(settings: ReplaySettings, stop: threading.Event) -> int:
     """Publish a recording's samples back; returns how many were published."""
     settings.check()
@@ -233,7 +223,7 @@ def replay(settings: ReplaySettings, stop: threading.Event) -> int:
         publishers = {key: session.declare_publisher(target + key[len(source) :],
                                                      congestion_control=zenoh.CongestionControl.BLOCK)
                       for key in dict.fromkeys(sample[0] for sample in samples)}  # fmt: skip
-        _wait_for_listeners(publishers.values(), stop)
+        wait_for_matching(publishers.values(), LISTENER_WAIT_S)  # or the first samples reach nobody
         first_ns, started = (samples[0][2] if samples else 0), time.monotonic()
         for key, payload, log_ns in samples:
             if stop.is_set():

@@ -145,3 +145,21 @@ def open_session(settings: ZenohSettings, role: str = "service") -> zenoh.Sessio
                     settings.startup_timeout_s, describe_endpoints(config), attempt, zenoh_reason(exc))  # fmt: skip
             time.sleep(delay)
             delay = min(delay * 2, 2.0)
+
+
+MATCH_POLL_S = 0.005  # how often wait_for_matching checks whether the routes have arrived
+
+
+def wait_for_matching(entities, timeout_s: float) -> bool:
+    """Wait up to ``timeout_s`` until every publisher or querier in ``entities`` has a match; True if all do.
+
+    A new session learns from the router who listens only a moment after it opens: a sample put or a query sent
+    before then reaches nobody.
+    """
+    entities = list(entities)
+    deadline = time.monotonic() + timeout_s
+    while not all(entity.matching_status.matching for entity in entities):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(MATCH_POLL_S)
+    return True
