@@ -221,15 +221,6 @@ def warm_world(stack: ExitStack) -> World:
     return world
 
 
-def host_world_steps_per_s(steps: int = 1500) -> float:
-    """In-process World steps/s of this host now: the yardstick every committed speed figure carries, since hosts
-    here differ by up to 2x."""
-    with ExitStack() as stack:
-        tally = Tally()
-        step_inprocess(warm_world(stack), random_actions(steps, seed=2), tally)
-    return round(tally.rate, 1)
-
-
 def alternate(
     world: World, served_step: Callable[[list, Tally], None], actions: list, rounds: int,
     inprocess_actions: Callable[[list], list] = lambda block: block,

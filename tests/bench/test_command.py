@@ -69,3 +69,17 @@ def test_a_json_report_says_what_made_it(capsys) -> None:
     assert printed["ratio"] == 0.5
     assert printed[PROVENANCE_KEY]["host"]["cores"] >= 1 and len(printed[PROVENANCE_KEY]["git"]["commit"]) == 40
     assert 50 < printed[PROVENANCE_KEY]["host_world_steps_per_s"] < 50_000  # a real World stepped, 64x64 frames
+
+
+def test_the_hosts_yardstick_is_measured_in_a_process_configured_as_swimms(monkeypatch) -> None:
+    """A caller started with Mesa's threads set otherwise still gets a World stepped the way swimm's processes step
+    it; a step count below one is refused by name."""
+    import subprocess
+    import sys
+
+    from bench.command import host_world_steps_per_s
+
+    monkeypatch.setenv("LP_NUM_THREADS", "2")
+    assert 50 < host_world_steps_per_s(300) < 50_000
+    done = subprocess.run([sys.executable, "-m", "bench.host", "0"], capture_output=True, text=True)
+    assert done.returncode != 0 and "steps must be at least 1" in done.stderr
