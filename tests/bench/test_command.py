@@ -83,3 +83,15 @@ def test_the_hosts_yardstick_is_measured_in_a_process_configured_as_swimms(monke
     assert 50 < host_world_steps_per_s(300) < 50_000
     done = subprocess.run([sys.executable, "-m", "bench.host", "0"], capture_output=True, text=True)
     assert done.returncode != 0 and "steps must be at least 1" in done.stderr
+
+
+def test_a_yardstick_that_cannot_be_measured_loses_no_result(monkeypatch, capsys) -> None:
+    """A World that cannot render in the yardstick's process (no such GL backend) leaves the figure out, not the
+    benchmark's result."""
+    from bench.command import report
+    from services.results import PROVENANCE_KEY
+
+    monkeypatch.setenv("MUJOCO_GL", "no-such-backend")
+    assert report({"ratio": 0.5}, as_json=True) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["ratio"] == 0.5 and printed[PROVENANCE_KEY]["host_world_steps_per_s"] is None
