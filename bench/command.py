@@ -103,7 +103,7 @@ def run(settings: BenchSettings) -> int:
 def report(result: dict, as_json: bool) -> int:
     """One JSON object, or a two-column table of the top-level keys (nested tables: ``--json``)."""
     if as_json:  # a benchmark's JSON is what gets committed: it says what made it and on how fast a host
-        about = provenance(host_world_steps_per_s=host_world_steps_per_s_or_none())
+        about = provenance(host_world_steps_per_s=host_world_steps_per_s())
         sys.stdout.write(json.dumps({PROVENANCE_KEY: about, **result}) + "\n")
         return 0
     table = {key: value for key, value in result.items() if key not in ("runs", "settings", "how")}
@@ -113,24 +113,20 @@ def report(result: dict, as_json: bool) -> int:
     return 0
 
 
-def host_world_steps_per_s(steps: int = 1500) -> float:
+def host_world_steps_per_s(steps: int = 1500) -> float | None:
     """One in-process World's steps/s on this host now, from ``python -m bench.host``: a process configured as every
-    swimm process is, so the yardstick does not depend on this one's environment (bench/host.py)."""
+    swimm process is, so the yardstick does not depend on this one's environment (bench/host.py). None, said in a
+    warning, if it cannot be measured: the benchmark's result, minutes of work, is printed either way."""
     command = [sys.executable, "-m", "bench.host", str(steps)]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=HOST_TIMEOUT_S, env=child_environment())
-    if done.returncode != 0:
-        raise RuntimeError(f"measuring the host's World steps/s failed:\n{done.stderr[-3000:]}")
-    return float(done.stdout.split()[-1])
-
-
-def host_world_steps_per_s_or_none() -> float | None:
-    """The yardstick, or None (said in a warning) if it cannot be measured: the benchmark's result, minutes of work,
-    is printed either way."""
     try:
-        return host_world_steps_per_s()
-    except (RuntimeError, ValueError, IndexError, subprocess.TimeoutExpired) as exc:
-        log.warning("the result carries no host_world_steps_per_s: %s", exc)
-        return None
+        done = subprocess.run(command, capture_output=True, text=True, timeout=HOST_TIMEOUT_S, env=child_environment())
+        if done.returncode == 0:
+            return float(done.stdout.split()[-1])
+        problem = done.stderr[-3000:]
+    except (ValueError, IndexError, subprocess.TimeoutExpired) as exc:
+        problem = str(exc)
+    log.warning("the result carries no host_world_steps_per_s, the measurement failed:\n%s", problem)
+    return None
 
 
 def medians(runs: list[dict]) -> dict:
