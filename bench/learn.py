@@ -11,7 +11,8 @@ episodes in-process on seeds the training never evaluated on (``final_seed``). T
 - ``evaluations.csv``: every run's evaluations in one table (algo, seed, steps, wall minutes, return);
 - ``summary.json``: per algorithm the seeds, final returns and each final episode's, IQM with its 95% bootstrap
   interval (:mod:`bench.scores`), how many seeds reach each return threshold, best evaluation, the best model's
-  return, and wall minutes and steps to each threshold; with the provenance of every result file
+  return, wall minutes and steps to each threshold, and the steps each seed trained (fewer than the step budget
+  where the wall-time budget ended it); with the provenance of every result file
   (services.results: command, commit, encoder hash, seeds, host);
 - ``learn.png``: mean return across seeds against env steps and against wall minutes, with 95% bootstrap bands.
 
@@ -128,6 +129,15 @@ def trained(folder: Path) -> bool:
         return False  # a result cut short or from elsewhere: train again
 
 
+def trained_steps(folder: Path) -> int | None:
+    """The env steps a run's training ran (its result.json), None without one; below the step budget when the
+    wall-time budget ended it."""
+    try:
+        return int(json.loads((folder / RESULT_FILE).read_text())["num_timesteps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def final_evaluation(
     settings: LearnBenchSettings, algo: str, seed: int, model: str = FINAL_MODEL, folder: str = FINAL_EVAL
 ) -> dict[str, Any]:
@@ -204,6 +214,7 @@ def summarise(
             "best_model_returns": [round(bests[(algo, seed)]["mean_return"], 1) if (algo, seed) in (bests or {})
                                    else None for seed in seeds],
             "steps": [int(run["num_timesteps"].max()) for run in runs],
+            "trained_steps": [trained_steps(run_dir(settings, algo, seed)) for seed in seeds],
             "wall_min": [round(float(run["wall_min"].max()), 1) for run in runs],
             "minutes_to": {f"{t:g}": _rounded([first_reaching(run, t, "wall_min") for run in runs])
                            for t in settings.thresholds},
@@ -217,7 +228,9 @@ def summarise(
         "final_seed); IQM and its 95% percentile bootstrap over seeds; minutes_to / steps_to: the first "
         "training evaluation (eval_episodes episodes, seed 113) at or above the return, null if never; "
         "best_model_returns: the best model of those evaluations on the final episodes; seeds_reaching: how "
-        "many seeds' final returns are at or above each threshold; final_episode_returns: each seed's episodes",
+        "many seeds' final returns are at or above each threshold; final_episode_returns: each seed's episodes; "
+        "steps: the last training evaluation's; trained_steps: the steps training ran, below budget_steps where "
+        "the wall-time budget ended it",
     }
 
 
@@ -272,6 +285,10 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
             log.info("%s seed %d: training from scratch (%d steps or %g min at most)", algo, seed,
                      settings.budget_steps, settings.budget_min)  # fmt: skip
             train(settings, algo, seed, layout)
+            steps = trained_steps(run_dir(settings, algo, seed))
+            if steps is not None and steps < settings.budget_steps:
+                log.warning("%s seed %d: the %g-min wall-time budget ended training at %d of its %d steps",
+                            algo, seed, settings.budget_min, steps, settings.budget_steps)  # fmt: skip
         finals[(algo, seed)] = final_evaluation(settings, algo, seed)
         bests[(algo, seed)] = best_evaluation(settings, algo, seed)
         log.info("%s seed %d: final return %.1f, best model %.1f", algo, seed, finals[(algo, seed)]["mean_return"],

@@ -67,7 +67,7 @@ def merge(settings: LearnBenchSettings) -> tuple[dict[str, Any], pd.DataFrame]:
 RUN_ONLY = ("seeds", "out", "resume", "merge")
 #: Per-seed fields of a summary's algorithm entry, and those holding per-seed lists under each threshold.
 PER_SEED = ("final_returns", "final_metrics", "final_episode_returns", "best_eval_returns", "best_model_returns",
-            "steps", "wall_min")  # fmt: skip
+            "steps", "trained_steps", "wall_min")  # fmt: skip
 PER_SEED_BY_THRESHOLD = ("minutes_to", "steps_to")
 
 

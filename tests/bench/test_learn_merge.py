@@ -52,6 +52,7 @@ def test_one_recipes_seeds_from_two_summaries_are_pooled_and_aggregated_again(tm
     more = write_source(tmp_path, "more", {"sac": [2400.0, 1000.0]}, 500, seeds=(107, 109))
     later = json.loads(Path(more).read_text())  # ran after a setting was added: it records its default value
     later["settings"]["smooth"] = dataclasses.asdict(LearnBenchSettings().smooth)
+    later["algos"]["sac"]["trained_steps"] = [150000, 120000]  # seed 109 ended by the wall-time budget
     Path(more).write_text(json.dumps(later))
     out = tmp_path / "merged"
     assert run(BenchSettings(target="learn", learn=LearnBenchSettings(algos=["sac"], merge=[first, more],
@@ -64,6 +65,7 @@ def test_one_recipes_seeds_from_two_summaries_are_pooled_and_aggregated_again(tm
     )
     assert sac["seeds_reaching"] == {"2000": 4, "2400": 2} and sac["minutes_to"] == {"2000": [1.0] * 5}
     assert sac["final_episode_returns"] == [None] * 5  # the sources kept no episode returns: none invented
+    assert sac["trained_steps"] == [None, None, None, 150000, 120000]
     assert sac["settings"]["seeds"] == [97, 101, 103, 107, 109]
     evaluations = pd.read_csv(out / "evaluations.csv")
     assert sorted(evaluations["seed"].unique()) == [97, 101, 103, 107, 109]

@@ -54,8 +54,11 @@ def test_curve_band_holds_each_runs_latest_evaluation() -> None:
     assert by_x.loc[22.0, "low"] >= 1000.0 and by_x.loc[22.0, "high"] <= 2100.0
 
 
-def test_summary_has_the_documented_shape() -> None:
-    settings = LearnBenchSettings(algos=["sac"], seeds=[97, 101])
+def test_summary_has_the_documented_shape(tmp_path) -> None:
+    settings = LearnBenchSettings(algos=["sac"], seeds=[97, 101], out=str(tmp_path))
+    # seed 97's training ran 32 steps (its result.json); seed 101's left no result to read
+    (tmp_path / "runs" / "sac-97").mkdir(parents=True)
+    (tmp_path / "runs" / "sac-97" / "result.json").write_text('{"num_timesteps": 32, "stopped_early": false}')
     first, second = runs()
     evaluations = pd.concat(
         [
@@ -75,6 +78,7 @@ def test_summary_has_the_documented_shape() -> None:
     assert sac["minutes_to"] == {"2000": [2.0, None], "2400": [3.0, None]}
     assert sac["steps_to"]["2000"] == [20.0, None]
     assert sac["best_eval_returns"] == [2500.0, 1500.0] and sac["steps"] == [30, 25]
+    assert sac["trained_steps"] == [32, None]
     assert learning_figure(evaluations).axes[1].get_xlabel() == "wall minutes"
 
 

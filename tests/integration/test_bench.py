@@ -122,6 +122,7 @@ def test_bench_learn_trains_seeds_over_real_processes_and_resumes(tmp_path) -> N
         assert len(episodes) == 2 and (episodes["steps"] == 40).all()
         assert final == pytest.approx(episodes["return"].mean(), abs=0.05)
     assert [len(returns) for returns in sac["final_episode_returns"]] == [2, 2]  # an interval over episodes later
+    assert all(steps >= 200 for steps in sac["trained_steps"])  # the step budget, not the wall time, ended both
     for seed, best in zip(sac["seeds"], sac["best_model_returns"], strict=True):  # the best model, same episodes
         episodes = pd.read_csv(out / "runs" / f"sac-{seed}" / "best-eval" / "episodes.csv")
         assert len(episodes) == 2 and best == pytest.approx(episodes["return"].mean(), abs=0.05)
