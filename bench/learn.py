@@ -118,24 +118,25 @@ def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = L
         raise RuntimeError(f"{algo} seed {seed}: swimm up exited with {code}; see {folder / 'logs'}")
 
 
+def run_result(folder: Path) -> dict[str, Any]:
+    """A run's result.json (`swimm learn`'s RunResult), empty when there is none or it cannot be read."""
+    try:
+        result = json.loads((folder / RESULT_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return result if isinstance(result, dict) else {}
+
+
 def trained(folder: Path) -> bool:
     """Whether a run's training ended by its budget (not stopped by a signal), so only its evaluation is missing."""
-    result = folder / RESULT_FILE
-    if not (result.is_file() and (folder / FINAL_MODEL).is_file()):
-        return False
-    try:
-        return json.loads(result.read_text())["stopped_early"] is False
-    except (ValueError, KeyError, TypeError):
-        return False  # a result cut short or from elsewhere: train again
+    return (folder / FINAL_MODEL).is_file() and run_result(folder).get("stopped_early") is False
 
 
 def trained_steps(folder: Path) -> int | None:
-    """The env steps a run's training ran (its result.json), None without one; below the step budget when the
-    wall-time budget ended it."""
-    try:
-        return int(json.loads((folder / RESULT_FILE).read_text())["num_timesteps"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
+    """The env steps a run's training ran, None without a result; below the step budget when the wall-time budget
+    ended it."""
+    steps = run_result(folder).get("num_timesteps")
+    return steps if isinstance(steps, int) else None
 
 
 def final_evaluation(
