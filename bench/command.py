@@ -14,20 +14,16 @@ import importlib
 import json
 import logging
 import statistics
-import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from bench.host import host_world_steps_per_s
 from bench.learn_settings import LearnBenchSettings
 from encoder_service import check_engine
-from services.process import child_environment
 from services.results import PROVENANCE_KEY, provenance
 
 log = logging.getLogger(__name__)
-
-#: How long measuring the host's yardstick may take (a fresh process loading MuJoCo, then 1500 steps).
-HOST_TIMEOUT_S = 300
 
 BENCHMARKS = {"sim": "bench.sim", "encoder": "bench.encoder", "train": "bench.train", "learn": "bench.learn"}
 
@@ -103,30 +99,23 @@ def run(settings: BenchSettings) -> int:
 def report(result: dict, as_json: bool) -> int:
     """One JSON object, or a two-column table of the top-level keys (nested tables: ``--json``)."""
     if as_json:  # a benchmark's JSON is what gets committed: it says what made it and on how fast a host
-        about = provenance(host_world_steps_per_s=host_world_steps_per_s())
-        sys.stdout.write(json.dumps({PROVENANCE_KEY: about, **result}) + "\n")
+        sys.stdout.write(json.dumps(with_provenance(result)) + "\n")
         return 0
-    table = {key: value for key, value in result.items() if key not in ("runs", "settings", "how")}
+    table = {key: value for key, value in result.items() if key not in ("runs", "settings", "how", PROVENANCE_KEY)}
     width = max(len(k) for k in table)
     for key, value in table.items():
         sys.stdout.write(f"{key:<{width}}  {value}\n")
     return 0
 
 
-def host_world_steps_per_s(steps: int = 1500) -> float | None:
-    """One in-process World's steps/s on this host now, from ``python -m bench.host``: a process configured as every
-    swimm process is, so the yardstick does not depend on this one's environment (bench/host.py). None, said in a
-    warning, if it cannot be measured: the benchmark's result, minutes of work, is printed either way."""
-    command = [sys.executable, "-m", "bench.host", str(steps)]
-    try:
-        done = subprocess.run(command, capture_output=True, text=True, timeout=HOST_TIMEOUT_S, env=child_environment())
-        if done.returncode == 0:
-            return float(done.stdout.split()[-1])
-        problem = done.stderr[-3000:]
-    except (ValueError, IndexError, subprocess.TimeoutExpired) as exc:
-        problem = str(exc)
-    log.warning("the result carries no host_world_steps_per_s, the measurement failed:\n%s", problem)
-    return None
+def with_provenance(result: dict) -> dict:
+    """``result`` with its own provenance (bench learn's: the one its summary file has), one made now where it has
+    none, and the host's World steps/s measured only where that lacks it: one result, one provenance."""
+    about = dict(result.get(PROVENANCE_KEY) or provenance())
+    if "host_world_steps_per_s" not in about:
+        about["host_world_steps_per_s"] = host_world_steps_per_s()
+    rest = {key: value for key, value in result.items() if key != PROVENANCE_KEY}
+    return {PROVENANCE_KEY: about, **rest}
 
 
 def medians(runs: list[dict]) -> dict:

@@ -3,18 +3,42 @@
 Every committed speed figure carries it, since hosts here differ by up to 2x. Mesa fixes its rasteriser threads
 (``LP_NUM_THREADS``) at a process's first frame, and at 64x64 its default of one thread per core renders about half
 as fast as drawing on the stepping thread, which every swimm process does: measured in the caller's process the
-yardstick would depend on how the caller happened to start. ``python -m bench.host [STEPS]`` prints it, and every
-benchmark's ``--json`` runs it for its provenance (bench/command.py).
+yardstick would depend on how the caller happened to start. ``python -m bench.host [STEPS]`` prints it, and
+:func:`host_world_steps_per_s` runs it for every benchmark's ``--json`` provenance (bench/command.py) and for the
+provenance of `swimm bench learn`'s summary (bench/learn.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import subprocess
 import sys
 from contextlib import ExitStack
 
 from bench.sim import Tally, random_actions, step_inprocess, warm_world
-from services.process import DEFAULT_RENDER_THREADS, ProcessSettings, configure_process
+from services.process import DEFAULT_RENDER_THREADS, ProcessSettings, child_environment, configure_process
+
+log = logging.getLogger(__name__)
+
+#: How long measuring the host's yardstick may take (a fresh process loading MuJoCo, then 1500 steps).
+HOST_TIMEOUT_S = 300
+
+
+def host_world_steps_per_s(steps: int = 1500) -> float | None:
+    """One in-process World's steps/s on this host now, from ``python -m bench.host``: a process configured as every
+    swimm process is, so the yardstick does not depend on this one's environment. None, said in a warning, if it
+    cannot be measured: the benchmark's result, minutes of work, is kept either way."""
+    command = [sys.executable, "-m", "bench.host", str(steps)]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=HOST_TIMEOUT_S, env=child_environment())
+        if done.returncode == 0:
+            return float(done.stdout.split()[-1])
+        problem = done.stderr[-3000:]
+    except (ValueError, IndexError, subprocess.TimeoutExpired) as exc:
+        problem = str(exc)
+    log.warning("the result carries no host_world_steps_per_s, the measurement failed:\n%s", problem)
+    return None
 
 
 def measure(steps: int) -> float:

@@ -13,7 +13,8 @@ episodes in-process on seeds the training never evaluated on (``final_seed``). T
   interval (:mod:`bench.scores`), how many seeds reach each return threshold, best evaluation, the best model's
   return, wall minutes and steps to each threshold, and the steps each seed trained (fewer than the step budget
   where the wall-time budget ended it); with the provenance of every result file
-  (services.results: command, commit, encoder hash, seeds, host);
+  (services.results: command, commit, encoder hash, seeds, host, and the host's World steps/s at the end of the
+  run, bench.host), which the returned summary carries too, so ``--json`` prints the same one;
 - ``learn.png``: mean return across seeds against env steps and against wall minutes, with 95% bootstrap bands.
 
 A run whose ``final-eval/summary.json`` exists is not trained again, and one whose training ran to its budget
@@ -37,6 +38,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
+from bench.host import host_world_steps_per_s
 from bench.learn_merge import merge
 from bench.learn_settings import SUMMARY, LearnBenchSettings
 from bench.scores import curve_band, final_aggregates, first_reaching
@@ -47,7 +49,7 @@ from learner_service.command import RESULT_FILE
 from learner_service.command import check as check_learner
 from learner_service.learn_settings import EvalSettings, LearnCommandSettings
 from learner_service.progress import BEST_MODEL, EVALUATIONS_CSV, FINAL_MODEL
-from services.results import provenance, write_result
+from services.results import PROVENANCE_KEY, provenance, write_result
 from services.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -261,10 +263,10 @@ def learning_figure(evaluations: pd.DataFrame) -> Figure:
 
 
 def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, Any]:
-    """Train what is missing, evaluate it, write the results folder; returns the summary."""
+    """Train what is missing, evaluate it, write the results folder; returns the summary with its provenance."""
     settings.check()
     if settings.merge:
-        return write_results(Path(settings.out), *merge(settings), provenance(seeds=settings.seeds))
+        return write_results(Path(settings.out), *merge(settings))
     layout.check()
     for algo in settings.algos:  # a learner's mistake (hyperparams, smoothing) refused before the first run
         check_learner(learn_settings(settings, algo, settings.seeds[0], layout))
@@ -302,12 +304,13 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
 def write_results(
     out: Path, summary: dict[str, Any], evaluations: pd.DataFrame, about: dict[str, Any]
 ) -> dict[str, Any]:
-    """The results folder: the summary (with its provenance ``about``), every evaluation in one table and the
-    learning curves; returns the summary."""
+    """The results folder: the summary (with its provenance ``about`` and the host's World steps/s measured now,
+    after the work), every evaluation in one table and the learning curves; returns the summary as written."""
+    about = {**about, "host_world_steps_per_s": host_world_steps_per_s()}
     out.mkdir(parents=True, exist_ok=True)
     evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
     write_result(out / SUMMARY, summary, about)
     if not evaluations.empty:
         learning_figure(evaluations).savefig(out / FIGURE, dpi=110)
     log.info("results in %s (%s, %s, %s)", out, SUMMARY, EVALUATIONS_CSV, FIGURE)
-    return summary
+    return {PROVENANCE_KEY: about, **summary}

@@ -5,7 +5,8 @@ benchmark of three algorithms x five seeds takes longer than one working session
 are made by several invocations. Merging takes each algorithm of ``--algos`` from the summaries that have it (one
 recipe's seeds may come from several runs: they are pooled, and the aggregates computed again over them all),
 keeps the recipe's settings beside it (``settings``, ``sources``) and writes ``summary.json``,
-``evaluations.csv`` and ``learn.png`` to ``--out`` as a training run would.
+``evaluations.csv`` and ``learn.png`` to ``--out`` as a training run would. Its provenance names the seeds pooled
+and the encoder the sources' provenance names, where they all name the same one.
 
 A summary is a results folder's ``summary.json`` (its ``evaluations.csv`` beside it) or a committed copy
 ``<name>.json`` with ``<name>-evaluations.csv`` beside it (as in docs/bench/).
@@ -23,6 +24,7 @@ import pandas as pd
 from bench.learn_settings import SUMMARY, LearnBenchSettings
 from bench.scores import final_aggregates
 from learner_service.progress import EVALUATIONS_CSV
+from services.results import PROVENANCE_KEY, provenance
 
 
 def evaluations_of(summary: Path) -> Path:
@@ -47,9 +49,9 @@ def read_source(path: Path) -> tuple[dict[str, Any], pd.DataFrame]:
     return summary, pd.read_csv(table)
 
 
-def merge(settings: LearnBenchSettings) -> tuple[dict[str, Any], pd.DataFrame]:
-    """The merged summary and evaluations: each of ``settings.algos`` from the summaries that have it, its seeds
-    pooled where several ran one recipe on other seeds."""
+def merge(settings: LearnBenchSettings) -> tuple[dict[str, Any], pd.DataFrame, dict[str, Any]]:
+    """The merged summary, evaluations and provenance: each of ``settings.algos`` from the summaries that have it,
+    its seeds pooled where several ran one recipe on other seeds."""
     sources = [(Path(path), *read_source(Path(path))) for path in settings.merge]
     algos: dict[str, Any] = {}
     tables = []
@@ -60,7 +62,23 @@ def merge(settings: LearnBenchSettings) -> tuple[dict[str, Any], pd.DataFrame]:
         algos[algo] = pooled(algo, having, settings.thresholds)
         tables += [table[table["algo"] == algo] for _, _, table in having]
     merged = {"algos": algos, "how": sources[0][1].get("how", ""), "merged_from": [str(p) for p, _, _ in sources]}
-    return merged, pd.concat(tables, ignore_index=True)
+    used = [summary for _, summary, _ in sources if summary["algos"].keys() & set(settings.algos)]
+    return merged, pd.concat(tables, ignore_index=True), merged_provenance(algos, used)
+
+
+def merged_provenance(algos: dict[str, Any], summaries: list[dict[str, Any]]) -> dict[str, Any]:
+    """The merge's provenance with the seeds behind its numbers: every algorithm's, in first-seen order, and the
+    models its ``summaries`` ran."""
+    seeds = dict.fromkeys(seed for entry in algos.values() for seed in entry["seeds"])
+    return provenance(seeds=seeds) | {"models": agreed_models(summaries)}
+
+
+def agreed_models(summaries: list[dict[str, Any]]) -> dict[str, Any]:
+    """The models (label, path, hash) the first summary's provenance names, if every summary's names the same
+    hashes; none otherwise, where a source records other models or none, as summaries from before provenance."""
+    recorded = [(summary.get(PROVENANCE_KEY) or {}).get("models") or {} for summary in summaries]
+    hashes = [{label: model.get("sha256") for label, model in models.items()} for models in recorded]
+    return recorded[0] if all(named == hashes[0] for named in hashes) else {}
 
 
 #: Settings that name a run, not its recipe: summaries of one recipe on other seeds differ in these alone.

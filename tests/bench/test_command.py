@@ -71,13 +71,35 @@ def test_a_json_report_says_what_made_it(capsys) -> None:
     assert 50 < printed[PROVENANCE_KEY]["host_world_steps_per_s"] < 50_000  # a real World stepped, 64x64 frames
 
 
+def test_a_json_report_extends_the_results_own_provenance(tmp_path, capsys) -> None:
+    """A result that carries its provenance (bench learn's, as its summary file has it) keeps its models and seeds
+    and gains the host's World steps/s; one that already has the figure is not measured again."""
+    from bench.command import report
+    from services.results import PROVENANCE_KEY, provenance
+
+    encoder = tmp_path / "cmvae.pt"
+    encoder.write_bytes(b"weights")
+    about = provenance({"encoder": encoder}, seeds=[107, 109])
+    assert report({PROVENANCE_KEY: about, "algos": {}}, as_json=True) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert list(printed) == [PROVENANCE_KEY, "algos"]
+    assert printed[PROVENANCE_KEY]["models"] == about["models"] and printed[PROVENANCE_KEY]["seeds"] == [107, 109]
+    assert printed[PROVENANCE_KEY]["written_utc"] == about["written_utc"]  # the result's own, not one made now
+    assert 50 < printed[PROVENANCE_KEY]["host_world_steps_per_s"] < 50_000
+
+    assert report({PROVENANCE_KEY: about | {"host_world_steps_per_s": 1234.5}, "ratio": 0.5}, as_json=True) == 0
+    assert json.loads(capsys.readouterr().out)[PROVENANCE_KEY]["host_world_steps_per_s"] == 1234.5
+    assert report({PROVENANCE_KEY: about, "ratio": 0.5}, as_json=False) == 0
+    assert capsys.readouterr().out == "ratio  0.5\n"  # the table leaves the provenance to --json
+
+
 def test_the_hosts_yardstick_is_measured_in_a_process_configured_as_swimms(monkeypatch) -> None:
     """A caller started with Mesa's threads set otherwise still gets a World stepped the way swimm's processes step
     it; a step count below one is refused by name."""
     import subprocess
     import sys
 
-    from bench.command import host_world_steps_per_s
+    from bench.host import host_world_steps_per_s
 
     monkeypatch.setenv("LP_NUM_THREADS", "2")
     assert 50 < host_world_steps_per_s(300) < 50_000

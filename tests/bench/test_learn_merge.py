@@ -12,16 +12,22 @@ import pytest
 from bench.command import BenchSettings, run
 from bench.learn_settings import LearnBenchSettings
 from bench.scores import iqm
+from services.results import PROVENANCE_KEY, provenance
 
 
-def write_source(folder, name, algos: dict[str, list[float]], actor_average: int, seeds=(97, 101)) -> str:
-    """A summary with ``algos``' final returns and an evaluations table of two evaluations per seed."""
+def write_source(
+    folder, name, algos: dict[str, list[float]], actor_average: int, seeds=(97, 101), about: dict | None = None
+) -> str:
+    """A summary with ``algos``' final returns (and the provenance ``about``) and an evaluations table of two
+    evaluations per seed."""
     folder.mkdir(parents=True, exist_ok=True)
     summary = {"algos": {algo: {"seeds": list(seeds[: len(finals)]), "final_returns": finals,
                                 "minutes_to": {"2000": [1.0] * len(finals)}}
                          for algo, finals in algos.items()},
                "settings": {"actor_average": actor_average, "seeds": list(seeds), "out": f"runs/{name}"},
                "how": "final_returns: 20 episodes"}  # fmt: skip
+    if about:
+        summary[PROVENANCE_KEY] = about
     (folder / f"{name}.json").write_text(json.dumps(summary))
     rows = [{"algo": algo, "seed": seed, "num_timesteps": steps, "wall_min": steps / 1000, "mean_return": final}
             for algo, finals in algos.items() for seed, final in zip(seeds, finals, strict=False)
@@ -69,6 +75,35 @@ def test_one_recipes_seeds_from_two_summaries_are_pooled_and_aggregated_again(tm
     assert sac["settings"]["seeds"] == [97, 101, 103, 107, 109]
     evaluations = pd.read_csv(out / "evaluations.csv")
     assert sorted(evaluations["seed"].unique()) == [97, 101, 103, 107, 109]
+
+
+def test_the_merges_provenance_names_the_pooled_seeds_and_the_encoder_every_source_ran(tmp_path, capsys) -> None:
+    """The seeds of every merged algorithm, first seen first, and the encoder where every source's provenance names
+    the same one (the same file in two checkouts), none where one ran another; printed as the file has it."""
+    encoder, copy, other = tmp_path / "a" / "cmvae.pt", tmp_path / "b" / "cmvae.pt", tmp_path / "c" / "cmvae.pt"
+    for path, weights in ((encoder, b"weights"), (copy, b"weights"), (other, b"other weights")):
+        path.parent.mkdir()
+        path.write_bytes(weights)
+    sac_seeds, td3_seeds = (97, 101, 103), (97, 107)
+    sac = write_source(tmp_path, "sac", {"sac": [2540.0, 2305.3, 2070.8]}, 500, seeds=sac_seeds,
+                       about=provenance({"encoder": encoder}, seeds=sac_seeds))  # fmt: skip
+    td3 = write_source(tmp_path, "td3", {"td3": [1900.0, 2000.0]}, 0, seeds=td3_seeds,
+                       about=provenance({"encoder": copy}, seeds=td3_seeds))  # fmt: skip
+    ppo = write_source(tmp_path, "ppo", {"ppo": [2085.1]}, 0, about=provenance({"encoder": other}, seeds=(97,)))
+    out = tmp_path / "merged"
+    learn = LearnBenchSettings(algos=["sac", "td3"], merge=[sac, td3, ppo], out=str(out))
+    assert run(BenchSettings(target="learn", json=True, learn=learn)) == 0
+
+    about = json.loads((out / "summary.json").read_text())[PROVENANCE_KEY]
+    assert about["seeds"] == [97, 101, 103, 107]
+    assert about["models"] == json.loads(Path(sac).read_text())[PROVENANCE_KEY]["models"] != {}
+    assert 50 < about["host_world_steps_per_s"] < 50_000  # measured once, at the end of the merge
+    assert json.loads(capsys.readouterr().out)[PROVENANCE_KEY] == about  # --json prints the file's provenance
+
+    learn = LearnBenchSettings(algos=["sac", "ppo"], merge=[sac, td3, ppo], out=str(out))
+    assert run(BenchSettings(target="learn", learn=learn)) == 0
+    about = json.loads((out / "summary.json").read_text())[PROVENANCE_KEY]
+    assert about["seeds"] == [97, 101, 103] and about["models"] == {}  # ppo's source ran another encoder
 
 
 def test_a_different_recipe_a_seed_twice_or_an_algorithm_in_none_is_refused_by_name(tmp_path) -> None:
