@@ -27,7 +27,9 @@ also gets the Zenoh threads its setting asks for, which a process fixes when it 
 
 Before the ways, the scenery's cost (the ``plain_*``/``varied_*`` keys): the plain world and the varied one
 (sim_service/scenery.py) step in-process, one :data:`SCENERY_EPISODE_STEPS`-step episode each in turn, so the
-varied rate averages over many drawn scenes.
+varied rate averages over many drawn scenes. Then what sharing one renderer is worth (the ``*_renderer*`` keys): a
+sim's group of :data:`SHARED_RENDERER_ENVS` Worlds stepped round-robin in-process, with a renderer each and with
+one shared, in turn.
 """
 
 from __future__ import annotations
@@ -71,6 +73,7 @@ DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs
 #: served takes about 2.3 ms on a slow day).
 LEARNER_START_S, LEARNER_S_PER_STEP = 120.0, 0.05
 SCENERY_EPISODE_STEPS = 100  # the scenery measurement's episode length: 20 scenes a world in 2000 steps
+SHARED_RENDERER_ENVS = 4  # the renderer measurement's group: a sim's share of 8 envs on two sims
 
 
 @dataclass(frozen=True)
@@ -273,23 +276,58 @@ def run_learner(way: Way, endpoint: str, steps: int, rounds: int, sim: Service) 
 def measure_scenery(steps: int) -> dict:
     """In-process steps/s of the plain and the varied world, ``steps`` each, episode for episode in turn (which of
     the two goes first alternating), so both see the same drift of the machine's speed."""
-    tallies = {"plain": Tally(), "varied": Tally()}
     with ExitStack() as stack:
-        worlds = {name: World(WorldSettings(scene=SceneSettings(preset=name))) for name in tallies}
-        for world in worlds.values():
-            stack.callback(world.close)
-            world.reset(0)
-            step_inprocess(world, random_actions(WARMUP_STEPS, seed=1), Tally())
-        for episode, block in enumerate(np.array_split(np.arange(steps), max(1, steps // SCENERY_EPISODE_STEPS))):
-            for name in sorted(tallies, reverse=episode % 2 == 1):
-                worlds[name].reset(episode)
-                step_inprocess(worlds[name], random_actions(len(block), episode), tallies[name])
-    plain, varied = tallies["plain"].rate, tallies["varied"].rate
+        worlds = {name: [World(WorldSettings(scene=SceneSettings(preset=name)))] for name in ("plain", "varied")}
+        plain, varied = alternate_groups(worlds, steps, stack)
     return {
         "plain_steps_per_s": round(plain, 1),
         "varied_steps_per_s": round(varied, 1),
         "varied_over_plain": round(varied / plain, 3),
     }
+
+
+def measure_renderers(steps: int, envs: int = SHARED_RENDERER_ENVS) -> dict:
+    """In-process steps/s of a sim's group of ``envs`` Worlds stepped one after another, each with a renderer of its
+    own and all sharing one (one GL context, as `swimm sim` builds them), ``steps`` env steps each, in turn."""
+    with ExitStack() as stack:
+        own = [World() for _ in range(envs)]
+        shared = [World()]
+        shared += [World(share_renderer_with=shared[0]) for _ in range(envs - 1)]
+        own_rate, shared_rate = alternate_groups({"own": own, "shared": shared}, steps, stack)
+    return {
+        "renderer_group_envs": envs,
+        "own_renderers_steps_per_s": round(own_rate, 1),
+        "shared_renderer_steps_per_s": round(shared_rate, 1),
+        "shared_over_own_renderers": round(shared_rate / own_rate, 3),
+    }
+
+
+def alternate_groups(groups: dict[str, list[World]], steps: int, stack: ExitStack) -> list[float]:
+    """Each group's env steps/s over ``steps`` env steps: episodes of :data:`SCENERY_EPISODE_STEPS` steps, one group
+    after the other (which goes first alternating, so all see the same drift of the machine's speed), the worlds
+    of a group stepped round-robin as a sim steps its envs."""
+    tallies = {name: Tally() for name in groups}
+    for world in (world for group in groups.values() for world in group):
+        stack.callback(world.close)
+        world.reset(0)
+        step_inprocess(world, random_actions(WARMUP_STEPS, seed=1), Tally())
+    for episode, block in enumerate(np.array_split(np.arange(steps), max(1, steps // SCENERY_EPISODE_STEPS))):
+        for name in sorted(groups, reverse=episode % 2 == 1):
+            group = groups[name]
+            for index, world in enumerate(group):
+                world.reset(episode * len(group) + index)
+            step_round_robin(group, random_actions(len(block) // len(group), episode), tallies[name])
+    return [tallies[name].rate for name in groups]
+
+
+def step_round_robin(worlds: list[World], actions: list, tally: Tally) -> None:
+    """Every world takes each action of ``actions`` in turn; counts env steps."""
+    start = time.perf_counter()
+    for action in actions:
+        for world in worlds:
+            world.step(action)
+    tally.seconds += time.perf_counter() - start
+    tally.steps += len(actions) * len(worlds)
 
 
 def run(steps: int = 2000, rounds: int = ROUNDS, envs: int = 1) -> dict:
@@ -298,7 +336,7 @@ def run(steps: int = 2000, rounds: int = ROUNDS, envs: int = 1) -> dict:
     scenery's cost: ``steps`` in-process steps of the plain world and of the varied one."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
-    result = measure_scenery(steps)
+    result = measure_scenery(steps) | measure_renderers(steps)
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp, ProcessGroup(Path(tmp)) as group:
         endpoint = group.start_router()
         for way in WAYS:

@@ -190,10 +190,15 @@ class SimResponder(Service):
 
     # --- the worker -----------------------------------------------------------------------------
     def _build_envs(self) -> None:
+        """Every served env's World, on the worker thread; they share the first one's renderer (one GL context per
+        sim process: the worlds are stepped one after another, and each context costs CPU every frame)."""
         first = {"train": self.settings.first_train_env, "eval": 0}
+        renderer_of: World | None = None
         for channel, count in (("train", self.settings.train_envs), ("eval", self.settings.eval_envs)):
             for index in range(first[channel], first[channel] + count):
-                self._envs.append(LockstepEnv(channel, str(index), World(self.settings.world)))
+                world = World(self.settings.world, share_renderer_with=renderer_of)
+                renderer_of = renderer_of or world
+                self._envs.append(LockstepEnv(channel, str(index), world))
         self._by_name = {(env.channel, env.env): env for env in self._envs}
 
     def _work(self) -> None:

@@ -26,7 +26,9 @@ answer the action sooner; a step that finds nothing prepared does it itself,
 with the same draws in the same order, so prepared and unprepared runs agree
 bit for bit.
 
-Not thread-safe: MuJoCo's GL context belongs to the thread that built it.
+Not thread-safe: MuJoCo's GL context belongs to the thread that built it. Worlds stepped on one thread (a sim's
+group of envs) can share one renderer, and so one GL context (``World(settings, share_renderer_with=other)``):
+each renders its own model and data into it, so its frames are the same as with a renderer of its own.
 """
 
 from __future__ import annotations
@@ -100,7 +102,7 @@ class PreparedStep:
 
 
 class World:
-    def __init__(self, settings: WorldSettings | None = None) -> None:
+    def __init__(self, settings: WorldSettings | None = None, share_renderer_with: World | None = None) -> None:
         self.settings = settings or WorldSettings()
         self.settings.dolphin.check()
         companions = self.settings.dolphin.pod_size - 1
@@ -127,12 +129,16 @@ class World:
         self._companion_geoms = np.flatnonzero(np.isin(self.model.geom_bodyid, companion_parts))
         self._companion_bodies = [self.model.body(part_names(i)[0]).id for i in range(1, companions + 1)]
         self._camera = self.model.camera(CAMERA).id
+        self._view = mujoco.MjvCamera()  # the nose camera, as the renderer's scene is made from it
+        self._view.type, self._view.fixedcamid = mujoco.mjtCamera.mjCAMERA_FIXED, self._camera
         self.frustum = CameraFrustum.from_model(self.model, self._camera)
         self._prepared: PreparedStep | None = None
         self.scenery = Scenery(self.model)
         self.configure_scene(self.settings.scene)
         self._renderer: mujoco.Renderer | None = None
-        if self.settings.render:
+        if self.settings.render and share_renderer_with is not None:
+            self._renderer = self._shared_renderer(share_renderer_with)
+        elif self.settings.render:
             self._renderer = self._make_renderer()
         self._noise: ImageNoise | None = None
         self._noise_rng = np.random.default_rng(0)
@@ -157,6 +163,17 @@ class World:
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = True
         renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
         return renderer
+
+    def _shared_renderer(self, other: World) -> mujoco.Renderer:
+        """``other``'s renderer, if it draws frames this world's would: the same size and the same model (one GL
+        context holds one model's meshes and textures; a pod's companions add bodies)."""
+        mine, theirs = (_drawn_alike(world.settings) for world in (self, other))
+        if other._renderer is None:
+            raise ValueError("a World can share the renderer of a rendering World only: the other renders nothing")
+        if mine != theirs:
+            raise ValueError(f"Worlds share a renderer only with one (image_size, render_scale, dolphin pod_size): "
+                             f"{mine} against {theirs}")  # fmt: skip
+        return other._renderer
 
     def configure_noise(self, noise: NoiseSettings) -> None:
         """Make ``noise`` the world's image noise from the next episode on (`reset` and `place` draw it).
@@ -313,7 +330,7 @@ class World:
         segmentation render: bool (size, size) each (the companions' all False for a lone dolphin)."""
         if self._renderer is None:
             raise RuntimeError("dolphin masks need a rendering world (WorldSettings(render=True))")
-        self._renderer.update_scene(self.data, camera=self._camera, scene_option=self.scenery.option)
+        self._update_scene()
         self._renderer.enable_segmentation_rendering()
         try:
             segmentation = self._renderer.render()
@@ -339,6 +356,7 @@ class World:
         return self.model.opt.timestep
 
     def close(self) -> None:
+        """Free the renderer; Worlds sharing one are closed together (a second close does nothing)."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
@@ -480,7 +498,7 @@ class World:
     def _render(self) -> np.ndarray | None:
         if self._renderer is None:
             return None
-        self._renderer.update_scene(self.data, camera=self._camera, scene_option=self.scenery.option)
+        self._update_scene()
         image = self._downscale(self._renderer.render())
         self.clean_frame = image
         if self._noise is None:
@@ -488,6 +506,12 @@ class World:
         depth = self._render_depth() if self._noise.settings.needs_depth else None
         yaw_rate = float(self._rover_ang_vel()[2])  # + turns the nose left, so the scene slides right
         return self._noise.apply(image, depth, self._noise_rng, (yaw_rate * self.dt * self._px_per_rad, 0.0))
+
+    def _update_scene(self) -> None:
+        """The renderer's scene made from this world's own model and data (``Renderer.update_scene`` would read the
+        model the renderer was built with, which a shared renderer's is not)."""
+        mujoco.mjv_updateScene(self.model, self.data, self.scenery.option, None, self._view,
+                               mujoco.mjtCatBit.mjCAT_ALL, self._renderer.scene)  # fmt: skip
 
     def _render_depth(self) -> np.ndarray:
         """Distance along the view axis in metres, per pixel of the output image."""
@@ -502,6 +526,11 @@ class World:
         if pixels.shape[0] == size:
             return pixels
         return cv2.resize(pixels, (size, size), interpolation=cv2.INTER_AREA)
+
+
+def _drawn_alike(settings: WorldSettings) -> tuple[int, int, int]:
+    """What two Worlds must agree on to share a renderer: the frame's size and the model's bodies."""
+    return settings.image_size, settings.render_scale, settings.dolphin.pod_size
 
 
 def _child(rng: np.random.Generator) -> np.random.Generator:

@@ -1,4 +1,5 @@
-"""`swimm bench sim`'s scenery keys: the plain and the varied world's in-process rates and their ratio."""
+"""`swimm bench sim`'s in-process keys: the plain and the varied world's rates; a group's with a renderer each and
+sharing one."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import math
 
 import pytest
 
-from bench.sim import measure_scenery
+from bench.sim import measure_renderers, measure_scenery
 
 
 def test_the_scenery_measurement_reports_both_rates_and_their_ratio() -> None:
@@ -15,4 +16,14 @@ def test_the_scenery_measurement_reports_both_rates_and_their_ratio() -> None:
         assert math.isfinite(result[key]) and result[key] > 0
     assert result["varied_over_plain"] == pytest.approx(
         result["varied_steps_per_s"] / result["plain_steps_per_s"], 1e-2
+    )
+
+
+def test_the_renderer_measurement_steps_every_world_of_both_groups() -> None:
+    result = measure_renderers(steps=200, envs=2)
+    assert result["renderer_group_envs"] == 2
+    for key in ("own_renderers_steps_per_s", "shared_renderer_steps_per_s"):
+        assert math.isfinite(result[key]) and result[key] > 0
+    assert result["shared_over_own_renderers"] == pytest.approx(
+        result["shared_renderer_steps_per_s"] / result["own_renderers_steps_per_s"], 1e-2
     )
