@@ -572,23 +572,24 @@ class StateLoss:
     """How the state decoders' errors are scored: psi's square (the SPEC's) or absolute error, and a weight per label.
 
     The normalised labels' squares are small next to psi's absolute error, so with ``psi="l1"`` psi's pull on the
-    shared encoder dwarfs distance's; ``weights`` (d, theta, psi) let a training stage set that balance. A model
-    with more labels (elevation) weighs each of those 1.
+    shared encoder dwarfs distance's; ``weights`` (d, theta, psi, and the elevation for a vertical model) let a
+    training stage set that balance. A label given no weight (the elevation, of three) weighs 1.
     """
 
     psi: str = "mse"
-    weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    weights: tuple[float, ...] = (1.0, 1.0, 1.0)
 
     def __post_init__(self) -> None:
         check_psi_loss(self.psi)
         weights = tuple(self.weights)
         if (
-            len(weights) != len(LABEL_NAMES)
+            len(weights) not in (len(LABEL_NAMES), len(VERTICAL_LABEL_NAMES))
             or not all(math.isfinite(w) and w >= 0.0 for w in weights)
             or not any(weights)
         ):
             raise ValueError(
-                f"state weights {list(weights)}: expected three finite weights >= 0 (d, theta, psi), not all 0"
+                f"state weights {list(weights)}: expected three finite weights >= 0 (d, theta, psi) or four (and the "
+                "elevation), not all 0"
             )
         object.__setattr__(self, "weights", tuple(float(w) for w in weights))
 
@@ -597,6 +598,8 @@ class StateLoss:
         errors = state_errors(predicted, labels)
         psi_term = errors[:, PSI : PSI + 1].abs() if self.psi == "l1" else errors[:, PSI : PSI + 1].pow(2)
         terms = torch.cat([errors[:, :PSI].pow(2), psi_term, errors[:, PSI + 1 :].pow(2)], dim=1)
+        if len(self.weights) > terms.shape[1]:
+            raise ValueError(f"state weights {list(self.weights)} for a model of {terms.shape[1]} labels")
         weights = self.weights + (1.0,) * (terms.shape[1] - len(self.weights))
         return (terms * terms.new_tensor(weights)).mean()
 

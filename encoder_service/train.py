@@ -84,7 +84,8 @@ class TrainEncoderSettings:
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
     teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
-    state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])  # of d, theta, psi in the state error
+    # of d, theta, psi (and the elevation, for a --vertical dataset) in the state error
+    state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
     input_norm: str = "none"  # none | channel: white-balance | local: and even out the light | light: local + light
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
@@ -542,6 +543,10 @@ def run(settings: TrainEncoderSettings) -> int:
         torch.backends.cudnn.benchmark = True
 
     dataset = open_datasets(settings.dataset)
+    if len(settings.state_weights) > len(dataset.label_names):
+        labels = ", ".join(dataset.label_names)
+        raise ValueError(f"--state-weights {settings.state_weights}: one weight per label, and {settings.dataset} "
+                         f"labels {labels} (an elevation's weight needs a --vertical dataset)")  # fmt: skip
     if settings.mask_weight > 0:
         require_masks(dataset, "--mask-weight")
     train_rows, val_rows = split_indices(len(dataset), settings.val_fraction, settings.seed)

@@ -184,9 +184,23 @@ def test_state_weights_scale_each_labels_term_and_bad_weights_are_refused() -> N
         weights[index] = 5.0
         weighted = StateLoss(weights=tuple(weights))(predicted, labels)
         assert weighted.item() == pytest.approx(plain.item() + 4.0 * squares[index].item() / 3.0, rel=1e-6)
-    for bad in ((1.0, 2.0), (1.0, -1.0, 1.0), (0.0, 0.0, 0.0), (1.0, float("nan"), 1.0)):
+    for bad in ((1.0, 2.0), (1.0, -1.0, 1.0), (0.0, 0.0, 0.0), (1.0, float("nan"), 1.0), (1.0,) * 5):
         with pytest.raises(ValueError, match="state weights"):
             StateLoss(weights=bad)
+    with pytest.raises(ValueError, match="for a model of 3 labels"):
+        StateLoss(weights=(1.0, 1.0, 1.0, 2.0))(predicted, labels)
+
+
+def test_a_fourth_state_weight_scales_the_elevations_term() -> None:
+    """A vertical model's elevation weighs 1 unless a fourth weight says otherwise."""
+    raw = np.array([[4.0, 10.0, 90.0, 12.0], [8.0, -20.0, -30.0, -5.0]])
+    labels = torch.from_numpy(normalise_labels(raw, VERTICAL_LABEL_NAMES))
+    predicted = labels + torch.tensor([[0.1, -0.2, 0.3, 0.05], [-0.3, 0.05, -0.1, -0.2]], dtype=labels.dtype)
+    squares = (predicted - labels).pow(2).mean(dim=0)
+    plain = StateLoss()(predicted, labels)
+    assert StateLoss(weights=(1.0, 1.0, 1.0, 1.0))(predicted, labels).item() == pytest.approx(plain.item(), rel=1e-6)
+    weighted = StateLoss(weights=(1.0, 1.0, 1.0, 3.0))(predicted, labels)
+    assert weighted.item() == pytest.approx(plain.item() + 2.0 * squares[3].item() / 4.0, rel=1e-6)
 
 
 def test_images_become_channels_last_floats_in_minus_one_one_and_back(frames: np.ndarray) -> None:

@@ -255,6 +255,9 @@ def test_psi_loss_l1_trains_and_validates_on_the_absolute_error(dataset_dir: Pat
     with pytest.raises(ValueError, match="--state-weights"):
         run(_settings(dataset_dir, tmp_path / "bad", state_weights=[1.0, -1.0, 1.0]))
     assert not (tmp_path / "bad").exists()  # refused before anything was written
+    with pytest.raises(ValueError, match="elevation's weight needs a --vertical dataset"):
+        run(_settings(dataset_dir, tmp_path / "planar", state_weights=[1.0, 1.0, 1.0, 4.0]))
+    assert not (tmp_path / "planar" / "last.pt").exists()  # refused before the first epoch
 
 
 @pytest.fixture(scope="module")
