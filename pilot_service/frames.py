@@ -44,6 +44,14 @@ def crop_box(width: int, height: int, camera_hfov_deg: float) -> tuple[int, int,
     return round((width - w) / 2), round((height - h) / 2), round(w), round(h)
 
 
+def box_azimuth_deg(box: tuple[float, float, float, float], width: int, camera_hfov_deg: float) -> float:
+    """The azimuth (degrees, + = left, as the sim's) of the centre of an (x, y, w, h) pixel box in a frame ``width``
+    pixels wide, for a pinhole camera of horizontal field ``camera_hfov_deg``: where a tracking CMVAE's prior starts."""
+    x, _, w, _ = box
+    offset = (x + w / 2) / width * 2 - 1  # -1 at the left edge, +1 at the right
+    return -math.degrees(math.atan(offset * math.tan(math.radians(camera_hfov_deg) / 2)))
+
+
 def as_sim_frame(bgr: np.ndarray, camera_hfov_deg: float, size: int) -> np.ndarray:
     """An OpenCV BGR frame as the policy's input: the sim camera's view, ``size`` x ``size`` RGB uint8."""
     x, y, w, h = crop_box(bgr.shape[1], bgr.shape[0], camera_hfov_deg)

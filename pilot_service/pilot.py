@@ -25,8 +25,9 @@ from typing import Literal
 
 import numpy as np
 
-from pilot_service.frames import FrameSource, SourceError, as_sim_frame
+from pilot_service.frames import FrameSource, SourceError, as_sim_frame, box_azimuth_deg
 from pilot_service.policy import OnnxPolicy
+from services.geometry import ALPHA_DEG
 from services.keys import check_chunk
 from services.lifecycle import stop_on_signals
 from services.record import McapRecorder
@@ -73,6 +74,9 @@ class PilotSettings:
     heartbeat_timeout_s: float = 10.0  # how long to wait for the vehicle's first HEARTBEAT
     stream_timeout_s: float = 5.0  # a stream silent this long has stopped: the pilot ends, in neutral, saying so
     threads: int = 1  # onnxruntime threads
+    # X Y W H in the source's pixels: the dolphin to follow, for a policy on a tracking CMVAE; empty: the one the
+    # camera is centred on when the pilot starts (the rule the sim's pods train with)
+    target_box: list[int] = field(default_factory=list)
     record: bool = True  # keep the session in <out>/session.mcap: every frame the policy saw, every control
     publish: bool = False  # also publish those frames into the namespace (--connect, --namespace) as a sim would
     publish_env: str = "pilot"  # the eval-channel env id the published frames go out as
@@ -88,6 +92,23 @@ class PilotSettings:
         if self.rate_hz < 0 or self.frame_timeout_s <= 0 or self.duration_s < 0:
             raise ValueError("--rate-hz and --duration-s must be >= 0 and --frame-timeout-s > 0")
         check_chunk(self.publish_env, "--publish-env")
+        if self.target_box and (len(self.target_box) != 4 or min(self.target_box) < 0 or min(self.target_box[2:]) < 1):
+            raise ValueError(f"--target-box takes X Y W H, a box of at least one pixel inside the frame, got "
+                             f"{self.target_box}")  # fmt: skip
+
+
+def target_azimuth_deg(settings: PilotSettings, frame: np.ndarray) -> float:
+    """The azimuth of ``--target-box``'s centre in the first frame; a box outside the frame or outside the part of it
+    the policy sees is refused by name."""
+    x, y, w, h = settings.target_box
+    height, width = frame.shape[:2]
+    if x + w > width or y + h > height:
+        raise ValueError(f"--target-box {settings.target_box} reaches past the {width} x {height} frame")
+    azimuth = box_azimuth_deg((x, y, w, h), width, settings.camera_hfov_deg)
+    if abs(azimuth) > ALPHA_DEG:
+        raise ValueError(f"--target-box {settings.target_box} is centred {azimuth:+.1f} deg off the axis, outside the "
+                         f"+-{ALPHA_DEG:.2f} deg the policy sees")  # fmt: skip
+    return azimuth
 
 
 class LatestFrame:
@@ -176,6 +197,9 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
     settings.check()
     policy = OnnxPolicy(settings.policy, settings.threads)
     check_dive_mode(policy.action_names, settings.dive_mode)
+    if settings.target_box and not policy.tracks:
+        raise ValueError(f"--target-box points a target out to a policy on a tracking CMVAE; {settings.policy} "
+                         "reads no prior: it follows the dolphin the camera is centred on")  # fmt: skip
     rate = settings.rate_hz or policy.control_rate_hz
     vehicle = None
     if not settings.dry_run:
@@ -216,8 +240,13 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
                 break
             if fresh and number != used:
                 if stalled:
-                    log.warning("frames are back (frame %d): the policy starts afresh", number)
+                    log.warning("frames are back (frame %d): the policy starts afresh on the dolphin in the centre",
+                                number)  # fmt: skip
                     policy.reset()
+                elif not used and settings.target_box:
+                    policy.reset(target_azimuth_deg(settings, frame))
+                    log.info("following the dolphin in %s, %+.1f deg off the axis", settings.target_box,
+                             policy.state["prior"][0])  # fmt: skip
                 stalled, used = False, number
                 seen = as_sim_frame(frame, settings.camera_hfov_deg, policy.image_size)
                 controls.frame(seen, number)

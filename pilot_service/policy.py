@@ -60,9 +60,19 @@ class OnnxPolicy:
             raise ContractError(f"{path} outputs {width} actions but its contract names {self.action_names}")
         self.reset()
 
-    def reset(self) -> None:
-        """A new episode: an empty history and the prior at the image centre, as at every training episode's start."""
+    @property
+    def tracks(self) -> bool:
+        """Whether the file reads a prior (a policy on a tracking CMVAE), so a target can be pointed out to it."""
+        return "prior" in self.carried
+
+    def reset(self, prior_deg: float = 0.0) -> None:
+        """A new episode: an empty history and the prior at ``prior_deg`` (the azimuth of the dolphin to follow; by
+        default the image centre, as at every training episode's start)."""
+        if prior_deg and not self.tracks:
+            raise ContractError("only a policy on a tracking CMVAE takes a target's azimuth: this one has no prior")
         self.state = {name: np.zeros((1, *shape), np.float32) for name, (_, shape) in self.carried.items()}
+        if self.tracks:
+            self.state["prior"][:] = prior_deg
 
     def act(self, frame: np.ndarray) -> np.ndarray:
         """The action for one RGB frame of the contract's size."""

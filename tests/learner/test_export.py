@@ -17,6 +17,7 @@ from learner_service.export import ExportSettings, episode_frames, run
 from learner_service.identity import policy_identity, stamp
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
+from services.geometry import HFOV_DEG
 
 FRAMES = 120
 
@@ -249,3 +250,62 @@ def test_the_pilot_feeds_a_tracking_policy_its_last_next_prior_and_the_centre_af
     first = session.run(["action"], fresh)[0]
     assert not np.array_equal(session.run(["action"], fresh | {"prior": prior})[0], first)  # the reset prior mattered
     np.testing.assert_array_equal(policy.act(frames[0]), first[0])
+
+
+def test_a_target_box_starts_a_tracking_policys_prior_at_the_boxes_azimuth(tracking_export: Path, tmp_path) -> None:
+    """`swimm pilot --target-box X Y W H`: the first frame is read with the prior at the azimuth of the box's centre
+    (its pinhole bearing, + = left), where without a box it starts at the centre."""
+    import csv
+    import threading
+
+    import cv2
+
+    from pilot_service.frames import FrameSource, as_sim_frame, box_azimuth_deg
+    from pilot_service.pilot import PilotSettings, fly, limited
+    from pilot_service.policy import OnnxPolicy
+
+    assert box_azimuth_deg((60, 0, 40, 10), 160, 90.0) == pytest.approx(0.0)  # centred
+    assert box_azimuth_deg((0, 0, 0, 10), 160, 90.0) == pytest.approx(45.0)  # the left edge of a 90-degree view
+    assert box_azimuth_deg((100, 0, 40, 10), 160, 90.0) == pytest.approx(-np.degrees(np.arctan(0.5)))  # 3/4 across
+
+    video = tmp_path / "frames.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 10, (160, 160))
+    for frame in np.random.default_rng(3).integers(0, 256, (3, 160, 160, 3), dtype=np.uint8):
+        writer.write(frame)
+    writer.release()
+    box = [30, 40, 20, 30]  # centred a quarter of the width left of the middle
+    settings = PilotSettings(policy=str(tracking_export), source=str(video), camera_hfov_deg=HFOV_DEG, dry_run=True,
+                             rate_hz=50, target_box=box, out=str(tmp_path / "pilot"))  # fmt: skip
+    with fly(settings, threading.Event()).open() as rows:
+        first = next(row for row in csv.DictReader(rows) if row["frame"] == "1")
+
+    source = FrameSource(str(video))
+    seen = as_sim_frame(source.read(), HFOV_DEG, 64)
+    source.close()
+    policy = OnnxPolicy(tracking_export)
+    policy.reset(box_azimuth_deg(tuple(box), 160, HFOV_DEG))
+    assert policy.state["prior"][0] == pytest.approx(np.degrees(np.arctan(0.5 * np.tan(np.radians(HFOV_DEG / 2)))))
+    expected = limited(policy.act(seen), policy.action_names, settings)
+    assert (float(first["surge"]), float(first["yaw"])) == pytest.approx((expected["surge"], expected["yaw"]), abs=1e-6)
+    policy.reset()
+    centred = limited(policy.act(seen), policy.action_names, settings)
+    assert (centred["surge"], centred["yaw"]) != pytest.approx((expected["surge"], expected["yaw"]), abs=1e-6)
+
+
+def test_a_target_box_the_policy_cannot_use_is_refused_by_name(tracking_export: Path, tmp_path) -> None:
+    import threading
+
+    from pilot_service.pilot import PilotSettings, fly, target_azimuth_deg
+
+    with pytest.raises(ValueError, match="--target-box takes X Y W H"):
+        PilotSettings(target_box=[1, 2, 3]).check()
+    frame = np.zeros((120, 160, 3), np.uint8)
+    with pytest.raises(ValueError, match="reaches past the 160 x 120 frame"):
+        target_azimuth_deg(PilotSettings(target_box=[150, 0, 20, 20]), frame)
+    with pytest.raises(ValueError, match="outside the"):  # a wide lens's edge: outside the view the policy is shown
+        target_azimuth_deg(PilotSettings(target_box=[0, 0, 4, 4], camera_hfov_deg=110.0), frame)
+    plain = tmp_path / "plain.onnx"
+    assert run(ExportSettings(out=str(plain), check_frames=5)) == 0
+    with pytest.raises(ValueError, match="reads no prior"):
+        fly(PilotSettings(policy=str(plain), source="missing.mp4", dry_run=True, target_box=[0, 0, 8, 8]),
+            threading.Event())  # fmt: skip
