@@ -12,7 +12,6 @@ dimension does when swept alone.
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,6 +37,7 @@ from encoder_service.model import (
 )
 from encoder_service.train import resolve_device
 from services.geometry import camera_centred
+from services.results import provenance, write_result
 
 log = logging.getLogger(__name__)
 
@@ -327,7 +327,7 @@ def run(settings: EvalEncoderSettings) -> int:
         metrics["noisy"], noisy_figures = _noise_report(model, dataset, noisy, rows, encoded, settings, out, device)
         written += noisy_figures
     metrics["figures"] = written
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_result(out / "metrics.json", metrics, provenance({"encoder": checkpoint}, seeds=[dataset.seed]))
     mae = metrics["mae"]
     log.info(
         "MAE d %.3f m, theta %.2f deg, psi %.1f deg (median %.1f); image MAE %.1f/255; wrote %s",

@@ -9,7 +9,6 @@ exactly where a run stopped (the shuffle order is a function of (seed, epoch)).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -60,6 +59,7 @@ from encoder_service.model import (
     read_checkpoint,
 )
 from services.lifecycle import sigterm_as_ctrl_c
+from services.results import provenance, write_result
 
 log = logging.getLogger(__name__)
 
@@ -692,7 +692,8 @@ def run(settings: TrainEncoderSettings) -> int:
         "history": history,
         "wall_time_s": time.perf_counter() - started,
     }
-    (out / "train_summary.json").write_text(json.dumps(summary, indent=2))
+    starts = {"init": settings.init, "teacher": settings.teacher}
+    write_result(out / "train_summary.json", summary, provenance(starts, seeds=[settings.seed]))
     if settings.mask_weight > 0 and epochs_run > 0:
         save_mask_figure(model, dataset, val_rows[:8], out / "masks.png", device)
     log.info("done: best validation loss %.5f at epoch %d; %s", best_val, best_epoch, best_path)

@@ -11,6 +11,7 @@ import torch
 
 from encoder_service.evaluate import EncodedSet, EvalEncoderSettings, psi_breakdown, run, state_metrics
 from encoder_service.model import CMVAE, make_checkpoint
+from services.results import file_sha256
 from tests.encoder.cmvae_testdata import write_dataset
 
 FIGURES = ["reconstructions.png", "interpolation.png", "latent_sweeps.png", "state_scatter.png"]
@@ -45,6 +46,8 @@ def test_clean_and_noisy_metrics_and_figures(setup: dict[str, Path], tmp_path: P
     assert run(settings) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["count"] == 30 and metrics["n_z"] == 10 and metrics["dataset_seed"] == 5
+    about = metrics["provenance"]  # what made the numbers: the encoder by its content hash, the frames' seed
+    assert about["models"]["encoder"]["sha256"] == file_sha256(setup["checkpoint"]) and about["seeds"] == [5]
     assert set(metrics["mae"]) == {"d_m", "theta_deg", "psi_deg"}
     assert set(metrics["mae_normalised"]) == {"d", "theta", "psi"}
     assert 0 < metrics["mae"]["d_m"] <= 8 and 0 < metrics["mae"]["psi_deg"] <= 180

@@ -63,6 +63,7 @@ def test_two_epochs_lower_the_validation_loss_and_write_safe_checkpoints(dataset
     summary = _summary(out)
     assert summary["dataset_count"] == 128 and summary["train_count"] == 96 and summary["val_count"] == 32
     assert summary["epochs_run"] == 2 and summary["wall_time_s"] > 0
+    assert summary["provenance"]["seeds"] == [summary["settings"]["seed"]] and "git" in summary["provenance"]
     first, second = summary["history"]
     assert second["val_loss"] < first["val_loss"]
     assert summary["best_epoch"] == 2 and summary["best_val_loss"] == pytest.approx(second["val_loss"])
