@@ -129,11 +129,17 @@ class Tally:
 
 def step_inprocess(world: World, actions: list, tally: Tally) -> None:
     """One World in this process takes ``actions`` back to back."""
+    step_round_robin([world], actions, tally)
+
+
+def step_round_robin(worlds: list[World], actions: list, tally: Tally) -> None:
+    """Every world takes each action of ``actions`` in turn, as a sim steps its envs; counts env steps."""
     start = time.perf_counter()
     for action in actions:
-        world.step(action)
+        for world in worlds:
+            world.step(action)
     tally.seconds += time.perf_counter() - start
-    tally.steps += len(actions)
+    tally.steps += len(actions) * len(worlds)
 
 
 class ServedEnv:
@@ -318,16 +324,6 @@ def alternate_groups(groups: dict[str, list[World]], steps: int, stack: ExitStac
                 world.reset(episode * len(group) + index)
             step_round_robin(group, random_actions(len(block) // len(group), episode), tallies[name])
     return [tallies[name].rate for name in groups]
-
-
-def step_round_robin(worlds: list[World], actions: list, tally: Tally) -> None:
-    """Every world takes each action of ``actions`` in turn; counts env steps."""
-    start = time.perf_counter()
-    for action in actions:
-        for world in worlds:
-            world.step(action)
-    tally.seconds += time.perf_counter() - start
-    tally.steps += len(actions) * len(worlds)
 
 
 def run(steps: int = 2000, rounds: int = ROUNDS, envs: int = 1) -> dict:
