@@ -4,7 +4,8 @@
 same thing either way, so the only difference between a distributed and an in-process run is the transport:
 
 - ``"zenoh"``: a :class:`learner_service.proxy_env.ProxyVecEnv` driving ``n_envs`` envs of a running sim;
-- ``"inprocess"``: a DummyVecEnv of :class:`learner_service.inprocess_env.TrackingEnv`, each with its own World.
+- ``"inprocess"``: a DummyVecEnv of :class:`learner_service.inprocess_env.TrackingEnv`, each with its own World,
+  all drawing through the first one's renderer (one GL context, as in a sim process).
 
 Sub-env i has base seed ``base_seed + i`` in both. Both are wrapped in one VecMonitor that records each
 episode's reward, length, time and termination ``cause`` (empty for the time limit) in one CSV, which the
@@ -15,6 +16,7 @@ Monitor per sub-env, because the ProxyVecEnv's sub-envs are not separate gymnasi
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import typing
 from pathlib import Path
@@ -66,8 +68,10 @@ def make_env(
     *,
     encoder: Any = None,
     session: Any = None,
+    share_renderer_with: gym.Env | None = None,
 ) -> gym.Env:
-    """One env (for evaluation episodes): a ProxyEnv on ``proxy.channel``/``env_id``, or a TrackingEnv."""
+    """One env (for evaluation episodes): a ProxyEnv on ``proxy.channel``/``env_id``, or a TrackingEnv (drawing
+    through ``share_renderer_with``'s renderer when given, another TrackingEnv)."""
     check_backend(backend)
     if backend == "zenoh":
         from learner_service.proxy_env import ProxyEnv  # zenoh only when the backend needs it
@@ -75,7 +79,13 @@ def make_env(
         return ProxyEnv(task, _require_proxy(proxy), env_id, base_seed, session=session)
     from learner_service.inprocess_env import TrackingEnv, task_world  # MuJoCo: not in the torch image
 
-    return TrackingEnv(task, task_world(task), base_seed=base_seed, encoder=shared_encoder(task, encoder))
+    return TrackingEnv(
+        task,
+        task_world(task),
+        base_seed=base_seed,
+        encoder=shared_encoder(task, encoder),
+        share_renderer_with=share_renderer_with,
+    )
 
 
 def make_vec_env(
@@ -107,11 +117,16 @@ def make_vec_env(
         vec_env: VecEnv = ProxyVecEnv(task, proxy, base_seed, session=session)
     else:
         encoder = shared_encoder(task, encoder)
-        factories = [
-            lambda index=index: make_env("inprocess", task, base_seed=base_seed + index, encoder=encoder)
-            for index in range(n_envs)
-        ]
-        vec_env = DummyVecEnv(factories)
+        built: list[gym.Env] = []
+
+        def build(index: int) -> gym.Env:  # DummyVecEnv calls these in order and steps the envs one after another
+            first = built[0] if built else None
+            built.append(
+                make_env("inprocess", task, base_seed=base_seed + index, encoder=encoder, share_renderer_with=first)
+            )
+            return built[-1]
+
+        vec_env = DummyVecEnv([functools.partial(build, index) for index in range(n_envs)])
     log.info("%d %s env(s), obs %s, base seed %d", n_envs, backend, task.obs, base_seed)
     filename = str(monitor_path) if monitor_path is not None else None
     return VecMonitor(vec_env, filename=filename, info_keywords=MONITOR_KEYWORDS)

@@ -57,6 +57,9 @@ class TrackingEnv(gym.Env):
     one, the default :class:`encoder_service.inference.LatentEncoder` checkpoint is loaded at the first reset. One
     that ``tracks`` reads each frame's prior too, as the distributed loop hands it: the azimuth its previous latent
     decoded to (``next_priors``), the image centre at an episode's first frame.
+
+    ``share_renderer_with`` draws through another env's renderer (one GL context for envs stepped one after
+    another, as a sim's are: see :class:`sim_service.world.World`).
     """
 
     metadata = {"render_modes": ["rgb_array"]}
@@ -68,13 +71,16 @@ class TrackingEnv(gym.Env):
         world_settings: WorldSettings | None = None,
         base_seed: int = 0,
         encoder: Any = None,
+        share_renderer_with: TrackingEnv | None = None,
     ) -> None:
         self.task = TrackingTask(task_settings)
         needs_images = self.task.settings.obs in IMAGE_MODES
         world_settings = world_settings or task_world(self.task.settings)
         if needs_images and not world_settings.render:
             raise ValueError(f"observation mode {self.task.settings.obs!r} needs a rendering world (render=True)")
-        self.world = World(world_settings)
+        self.world = World(
+            world_settings, share_renderer_with=share_renderer_with.world if share_renderer_with else None
+        )
         self.observation_space = self.task.observation_space
         self.action_space = self.task.action_space
         self.base_seed = base_seed

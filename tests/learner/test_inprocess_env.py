@@ -12,6 +12,7 @@ from stable_baselines3.common.monitor import Monitor
 
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
+from learner_service.envs import make_vec_env
 from learner_service.inprocess_env import TrackingEnv
 from learner_service.learn_settings import TrackerGains
 from learner_service.registry import make_model
@@ -241,3 +242,31 @@ def test_scripted_tracker_keeps_the_dolphin_for_a_whole_episode() -> None:
         steps += 1
     assert terminated and steps < 3000 and info["cause"] in ("visibility", "distance")
     env.close()
+
+
+def test_in_process_vec_envs_share_one_renderer_and_see_what_envs_of_their_own_see() -> None:
+    """make_vec_env's in-process envs draw through the first one's renderer (one GL context), frame for frame as
+    envs with a renderer each: interleaved steps, two episodes each, the second restarted on another seed."""
+    task = TaskSettings(obs="image", max_steps=30)
+    vec_env = make_vec_env("inprocess", task, n_envs=3, base_seed=BASE_SEED)
+    own = [TrackingEnv(task, base_seed=BASE_SEED + index) for index in range(3)]
+    try:
+        worlds = [env.world for env in vec_env.unwrapped.envs]
+        assert all(world._renderer is worlds[0]._renderer for world in worlds)
+        assert len({id(env.world._renderer) for env in own}) == 3
+        actions = np.random.default_rng(3).uniform(-1, 1, (40, 3, 2)).astype(np.float32)
+        frames = [vec_env.reset()["image"]]
+        expected = [np.stack([env.reset()[0]["image"] for env in own])]
+        for step_actions in actions:  # past max_steps: the vec env resets itself, so the own envs do too
+            frames.append(vec_env.step(step_actions)[0]["image"])
+            row = []
+            for env, action in zip(own, step_actions, strict=True):
+                obs, _, terminated, truncated, _ = env.step(action)
+                row.append((env.reset()[0] if terminated or truncated else obs)["image"])
+            expected.append(np.stack(row))
+        assert all(np.array_equal(got, want) for got, want in zip(frames, expected, strict=True))
+        assert len({frame.tobytes() for frame in frames[-1]}) == 3  # three different scenes, not one drawn thrice
+    finally:
+        vec_env.close()
+        for env in own:
+            env.close()
