@@ -494,20 +494,22 @@ def _matched_to(
 
 
 def _teacher(settings: TrainEncoderSettings, dataset: AnyDataset, device: torch.device) -> CMVAE | None:
-    """The frozen teacher of a distillation run, or None; refused unless every frame has its clean twin."""
+    """The frozen teacher of a distillation run, or None; refused unless every frame has its clean twin and the
+    teacher's latent ties the dataset's labels (a planar teacher's z[3] is no elevation)."""
     if not settings.teacher:
         return None
-    if dataset.label_names != LABEL_NAMES:
-        raise ValueError(
-            f"--teacher distils a planar CMVAE's latent, whose z[{len(LABEL_NAMES)}] is not the elevation that "
-            f"{settings.dataset}'s labels ask for: train a --vertical dataset without --teacher"
-        )
     if not dataset.paired:
         raise ValueError(
             f"--teacher needs a paired dataset (each noisy frame with its clean twin, `swimm dataset --paired`); "
             f"{settings.dataset} is not paired"
         )
     teacher, checkpoint = load_model(settings.teacher, device)
+    if teacher.labels != dataset.label_names:
+        raise ValueError(
+            f"--teacher {settings.teacher} reads {', '.join(teacher.labels)}; {settings.dataset}'s labels are "
+            f"{', '.join(dataset.label_names)}: distil from a CMVAE of the same labels (a --vertical dataset from "
+            "encoder_service/models/cmvae_vertical.pt)"
+        )
     if teacher.n_z != settings.n_z:
         raise ValueError(f"--teacher {settings.teacher} has n_z={teacher.n_z}, settings say {settings.n_z}")
     log.info(

@@ -30,6 +30,8 @@ from encoder_service.train import (
     validate,
 )
 
+VERTICAL_CHECKPOINT = DEFAULT_CHECKPOINT.with_name("cmvae_vertical.pt")
+
 
 @pytest.fixture(scope="module")
 def dataset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -417,5 +419,34 @@ def test_a_vertical_dataset_is_refused_where_its_labels_cannot_serve(
 ) -> None:
     with pytest.raises(DatasetFormatError, match="cannot mix datasets with different labels"):
         run(_settings(dataset_dir, tmp_path / "mixed", dataset=[str(dataset_dir), str(vertical_dir)], epochs=1))
-    with pytest.raises(ValueError, match="--teacher distils a planar CMVAE"):
-        run(_settings(vertical_dir, tmp_path / "distil", epochs=1, teacher=str(DEFAULT_CHECKPOINT)))
+    with pytest.raises(ValueError, match="--teacher needs a paired dataset"):
+        run(_settings(vertical_dir, tmp_path / "distil", epochs=1, teacher=str(VERTICAL_CHECKPOINT)))
+
+
+@pytest.fixture(scope="module")
+def paired_vertical_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from sim_service.dataset import VERTICAL_RANGES, write_dataset
+    from sim_service.noise import NoiseSettings
+    from sim_service.settings import WorldSettings
+
+    murky = WorldSettings(noise=NoiseSettings(preset="murky"))
+    return write_dataset(tmp_path_factory.mktemp("cmvae-vertical-paired") / "frames", count=64, seed=3, shard_size=32,
+                         world_settings=murky, ranges=VERTICAL_RANGES, progress=False, paired=True)  # fmt: skip
+
+
+def test_a_vertical_dataset_distils_from_a_vertical_teacher_only(paired_vertical_dir: Path, tmp_path: Path) -> None:
+    """The 3d task's CMVAE teaches its own labels: the student keeps its four decoders and learns the teacher's
+    latents of the clean twins; a planar teacher, whose z[3] is no elevation, is refused by name."""
+    from encoder_service.model import load_model, read_checkpoint
+
+    with pytest.raises(ValueError, match=r"reads d, theta, psi; .* labels are d, theta, psi, elevation"):
+        run(_settings(paired_vertical_dir, tmp_path / "planar", epochs=1, teacher=str(DEFAULT_CHECKPOINT)))
+    out = tmp_path / "run"
+    assert run(_settings(paired_vertical_dir, out, teacher=str(VERTICAL_CHECKPOINT), epochs=2, lr=1e-3)) == 0
+    teacher, _ = load_model(VERTICAL_CHECKPOINT)
+    student = read_checkpoint(out / "last.pt")
+    assert student["config"]["labels"] == ["d", "theta", "psi", "elevation"]
+    frozen = [name for name in teacher.state_dict() if name.startswith("state_decoders.")]
+    assert any(name.startswith("state_decoders.3.") for name in frozen)
+    assert all(torch.equal(student["state_dict"][name], teacher.state_dict()[name]) for name in frozen)
+    assert "mae_elevation" in _summary(out)["last_val_metrics"]
