@@ -86,7 +86,11 @@ def provenance(
 
 
 def _run_as_swimm() -> bool:
-    return Path(sys.argv[0]).name in ("swimm", "cli.py") if sys.argv else False
+    """Whether this process is a swimm command: the console script, the CLI module or ``python -m swimm``."""
+    if not sys.argv:
+        return False
+    program = Path(sys.argv[0])
+    return program.name in ("swimm", "cli.py") or (program.name == "__main__.py" and program.parent.name == "swimm")
 
 
 def write_result(path: str | Path, record: Mapping[str, Any], about: Mapping[str, Any]) -> Path:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import shlex
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +106,17 @@ def test_a_noisy_dataset_of_other_poses_is_refused(setup: dict[str, Path], tmp_p
     )
     with pytest.raises(ValueError, match="same seed"):
         run(settings)
+
+
+def test_a_result_made_by_python_m_swimm_records_the_swimm_command(setup: dict[str, Path], tmp_path: Path) -> None:
+    """`python -m swimm` (how a worktree snapshot runs its own code) records the command as `swimm ...`, as the
+    console script does, so the recorded command reruns on any checkout."""
+    out = tmp_path / "eval"
+    args = ["eval-encoder", "--checkpoint", str(setup["checkpoint"]), "--dataset", str(setup["clean"]),
+            "--out", str(out), "--max-images", "8", "--device", "cpu"]  # fmt: skip
+    subprocess.run([sys.executable, "-m", "swimm", *args], check=True, capture_output=True, timeout=300)
+    recorded = json.loads((out / "metrics.json").read_text())["provenance"]["command"]
+    assert recorded == shlex.join(["swimm", *args])
 
 
 def test_a_missing_checkpoint_names_the_command(setup: dict[str, Path], tmp_path: Path) -> None:
