@@ -304,9 +304,11 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
 def write_results(
     out: Path, summary: dict[str, Any], evaluations: pd.DataFrame, about: dict[str, Any]
 ) -> dict[str, Any]:
-    """The results folder: the summary (with its provenance ``about`` and the host's World steps/s measured now,
-    after the work), every evaluation in one table and the learning curves; returns the summary as written."""
-    about = {**about, "host_world_steps_per_s": host_world_steps_per_s()}
+    """The results folder: the summary (with its provenance ``about`` and, unless that has it, the host's World
+    steps/s measured now, after the work), every evaluation in one table and the learning curves; returns the
+    summary as written."""
+    if "host_world_steps_per_s" not in about:
+        about = {**about, "host_world_steps_per_s": host_world_steps_per_s()}
     out.mkdir(parents=True, exist_ok=True)
     evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
     write_result(out / SUMMARY, summary, about)

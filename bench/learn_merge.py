@@ -5,8 +5,8 @@ benchmark of three algorithms x five seeds takes longer than one working session
 are made by several invocations. Merging takes each algorithm of ``--algos`` from the summaries that have it (one
 recipe's seeds may come from several runs: they are pooled, and the aggregates computed again over them all),
 keeps the recipe's settings beside it (``settings``, ``sources``) and writes ``summary.json``,
-``evaluations.csv`` and ``learn.png`` to ``--out`` as a training run would. Its provenance names the seeds pooled
-and the encoder the sources' provenance names, where they all name the same one.
+``evaluations.csv`` and ``learn.png`` to ``--out`` as a training run would. Its provenance names the seeds pooled,
+the encoder the sources' provenance names, where they all name the same one, and each source's host.
 
 A summary is a results folder's ``summary.json`` (its ``evaluations.csv`` beside it) or a committed copy
 ``<name>.json`` with ``<name>-evaluations.csv`` beside it (as in docs/bench/).
@@ -62,15 +62,28 @@ def merge(settings: LearnBenchSettings) -> tuple[dict[str, Any], pd.DataFrame, d
         algos[algo] = pooled(algo, having, settings.thresholds)
         tables += [table[table["algo"] == algo] for _, _, table in having]
     merged = {"algos": algos, "how": sources[0][1].get("how", ""), "merged_from": [str(p) for p, _, _ in sources]}
-    used = [summary for _, summary, _ in sources if summary["algos"].keys() & set(settings.algos)]
+    used = [(path, summary) for path, summary, _ in sources if summary["algos"].keys() & set(settings.algos)]
     return merged, pd.concat(tables, ignore_index=True), merged_provenance(algos, used)
 
 
-def merged_provenance(algos: dict[str, Any], summaries: list[dict[str, Any]]) -> dict[str, Any]:
-    """The merge's provenance with the seeds behind its numbers: every algorithm's, in first-seen order, and the
-    models its ``summaries`` ran."""
+def merged_provenance(algos: dict[str, Any], sources: list[tuple[Path, dict[str, Any]]]) -> dict[str, Any]:
+    """The merge's provenance with the seeds behind its numbers: every algorithm's, in first-seen order; the
+    models its ``sources`` ran; and the hosts they ran on. Its own host figure stays null: the merge trains
+    nothing, and its wall times are the sources' hosts'."""
     seeds = dict.fromkeys(seed for entry in algos.values() for seed in entry["seeds"])
-    return provenance(seeds=seeds) | {"models": agreed_models(summaries)}
+    summaries = [summary for _, summary in sources]
+    return provenance(seeds=seeds) | {
+        "models": agreed_models(summaries),
+        "host_world_steps_per_s": None,
+        "source_hosts": [source_host(path, summary) for path, summary in sources],
+    }
+
+
+def source_host(path: Path, summary: dict[str, Any]) -> dict[str, Any]:
+    """Where a merged summary ran, as its provenance says (nulls for a summary from before provenance)."""
+    about = summary.get(PROVENANCE_KEY) or {}
+    return {"summary": str(path), "host": about.get("host"),
+            "host_world_steps_per_s": about.get("host_world_steps_per_s")}  # fmt: skip
 
 
 def agreed_models(summaries: list[dict[str, Any]]) -> dict[str, Any]:
