@@ -33,6 +33,19 @@ def test_the_shipped_policy_follows_the_dolphin_from_the_camera_alone(tmp_path) 
     assert shipped["mean_return"] > 0.7 * baseline["mean_return"]
 
 
+def test_the_shipped_3d_policy_follows_the_dolphin_in_depth_from_the_camera_alone(tmp_path) -> None:
+    """sac_cmvae_3d.zip on the vertical CMVAE it records, in the 3d task, against the ground-truth tracker."""
+    policy = Path(SHIPPED_POLICY).with_name("sac_cmvae_3d.zip")
+    given = EvaluationSettings(backend="inprocess", obs="cmvae", task="3d", algo=["scripted", "sac"],
+                               checkpoint=[str(policy)], episodes=1, steps=STEPS, seed=113, progress_bar=False,
+                               figures=False)  # fmt: skip
+    summaries = evaluate(given, tmp_path)
+    shipped, baseline = summaries["sac"], summaries["scripted"]
+    assert shipped["A'"] == shipped["D'"] == shipped["C'"] == 0.0
+    assert shipped["E"] < 0.2  # it heaves: with depth held the dolphin's elevation error is about 0.34
+    assert shipped["mean_return"] > 0.7 * baseline["mean_return"]
+
+
 #: The shipped policies, each told apart from every other by its actions on IDENTITY_OBS fixed observations: latents
 #: and action history drawn uniformly from [-1, 1] with IDENTITY_SEED (the layout the policies read, 30 numbers).
 SHIPPED = (
