@@ -18,7 +18,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from bench.host import host_world_steps_per_s
+from bench.host import with_host_figure
 from bench.learn_settings import LearnBenchSettings
 from encoder_service import check_engine
 from services.results import PROVENANCE_KEY, provenance
@@ -111,9 +111,7 @@ def report(result: dict, as_json: bool) -> int:
 def with_provenance(result: dict) -> dict:
     """``result`` with its own provenance (bench learn's: the one its summary file has), one made now where it has
     none, and the host's World steps/s measured only where that lacks it: one result, one provenance."""
-    about = dict(result.get(PROVENANCE_KEY) or provenance())
-    if "host_world_steps_per_s" not in about:
-        about["host_world_steps_per_s"] = host_world_steps_per_s()
+    about = with_host_figure(dict(result.get(PROVENANCE_KEY) or provenance()))
     rest = {key: value for key, value in result.items() if key != PROVENANCE_KEY}
     return {PROVENANCE_KEY: about, **rest}
 

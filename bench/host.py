@@ -21,6 +21,8 @@ from services.process import DEFAULT_RENDER_THREADS, ProcessSettings, child_envi
 
 log = logging.getLogger(__name__)
 
+#: The provenance key of the yardstick's figure.
+HOST_FIGURE = "host_world_steps_per_s"
 #: How long measuring the host's yardstick may take (a fresh process loading MuJoCo, then 1500 steps).
 HOST_TIMEOUT_S = 300
 
@@ -39,6 +41,14 @@ def host_world_steps_per_s(steps: int = 1500) -> float | None:
         problem = str(exc)
     log.warning("the result carries no host_world_steps_per_s, the measurement failed:\n%s", problem)
     return None
+
+
+def with_host_figure(about: dict) -> dict:
+    """A provenance with the host's World steps/s: ``about`` itself where it has the figure (or says why not, as a
+    merge's null does), else a copy with it measured now."""
+    if HOST_FIGURE in about:
+        return about
+    return {**about, HOST_FIGURE: host_world_steps_per_s()}
 
 
 def measure(steps: int) -> float:

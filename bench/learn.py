@@ -38,7 +38,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from bench.host import host_world_steps_per_s
+from bench.host import with_host_figure
 from bench.learn_merge import merge
 from bench.learn_settings import SUMMARY, LearnBenchSettings
 from bench.scores import curve_band, final_aggregates, first_reaching
@@ -307,8 +307,7 @@ def write_results(
     """The results folder: the summary (with its provenance ``about`` and, unless that has it, the host's World
     steps/s measured now, after the work), every evaluation in one table and the learning curves; returns the
     summary as written."""
-    if "host_world_steps_per_s" not in about:
-        about = {**about, "host_world_steps_per_s": host_world_steps_per_s()}
+    about = with_host_figure(about)
     out.mkdir(parents=True, exist_ok=True)
     evaluations.to_csv(out / EVALUATIONS_CSV, index=False)
     write_result(out / SUMMARY, summary, about)

@@ -21,6 +21,7 @@ from typing import Any
 
 import pandas as pd
 
+from bench.host import HOST_FIGURE
 from bench.learn_settings import SUMMARY, LearnBenchSettings
 from bench.scores import final_aggregates
 from learner_service.progress import EVALUATIONS_CSV
@@ -74,7 +75,7 @@ def merged_provenance(algos: dict[str, Any], sources: list[tuple[Path, dict[str,
     summaries = [summary for _, summary in sources]
     return provenance(seeds=seeds) | {
         "models": agreed_models(summaries),
-        "host_world_steps_per_s": None,
+        HOST_FIGURE: None,
         "source_hosts": [source_host(path, summary) for path, summary in sources],
     }
 
@@ -83,7 +84,7 @@ def source_host(path: Path, summary: dict[str, Any]) -> dict[str, Any]:
     """Where a merged summary ran, as its provenance says (nulls for a summary from before provenance)."""
     about = summary.get(PROVENANCE_KEY) or {}
     return {"summary": str(path), "host": about.get("host"),
-            "host_world_steps_per_s": about.get("host_world_steps_per_s")}  # fmt: skip
+            HOST_FIGURE: about.get(HOST_FIGURE)}  # fmt: skip
 
 
 def agreed_models(summaries: list[dict[str, Any]]) -> dict[str, Any]:

@@ -437,7 +437,7 @@ def paired_vertical_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_a_vertical_dataset_distils_from_a_vertical_teacher_only(paired_vertical_dir: Path, tmp_path: Path) -> None:
     """The 3d task's CMVAE teaches its own labels: the student keeps its four decoders and learns the teacher's
     latents of the clean twins; a planar teacher, whose z[3] is no elevation, is refused by name."""
-    from encoder_service.model import load_model, read_checkpoint
+    from encoder_service.model import read_checkpoint
 
     with pytest.raises(ValueError, match=r"reads d, theta, psi; .* labels are d, theta, psi, elevation"):
         run(_settings(paired_vertical_dir, tmp_path / "planar", epochs=1, teacher=str(DEFAULT_CHECKPOINT)))
