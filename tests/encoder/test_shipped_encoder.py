@@ -57,27 +57,35 @@ ROBUST = {
 MURKY_TOLERANCE = {"d_m": 0.12, "theta_deg": 0.4, "psi_deg": 10.0}  # noisier errors: a wider sampling spread
 
 
-@pytest.mark.parametrize("checkpoint", list(ROBUST), ids=lambda path: path.stem)
-def test_a_noise_robust_cmvae_scores_its_documented_errors_on_fresh_clean_and_murky_frames(
-    tmp_path: Path, checkpoint: Path
-) -> None:
+def _check_documented(checkpoint: Path, documented_file: Path, folder: Path, clean: dict, murky: dict, **ranges):
+    """The CMVAE's errors on 400 fresh frames of seed 5, clean and (where documented) under the murky preset, within
+    ``clean`` / ``murky`` tolerances of its documented ones; ``ranges`` (VERTICAL_RANGES) for a vertical CMVAE.
+    Returns the encoder and the clean frames' folder."""
     from sim_service.dataset import write_dataset
     from sim_service.noise import NoiseSettings
     from sim_service.settings import WorldSettings
 
-    documented = json.loads(ROBUST[checkpoint].read_text())
+    documented = json.loads(documented_file.read_text())
     assert Path(documented["checkpoint"]).name == checkpoint.name and documented["dataset_seed"] == 5
     encoder = LatentEncoder(checkpoint)
-    murky = WorldSettings(noise=NoiseSettings(preset="murky"))
-    for name, world, expected, tolerance in (
-        ("clean", None, documented["mae"], TOLERANCE),
-        ("murky", murky, documented["noisy"]["mae"], MURKY_TOLERANCE),
-    ):
-        measured = _mae(
-            encoder, write_dataset(tmp_path / name, count=400, seed=5, world_settings=world, progress=False)
-        )
-        for label, allowed in tolerance.items():
+    conditions = [("clean", None, documented["mae"], clean)]
+    if "noisy" in documented:
+        murky_world = WorldSettings(noise=NoiseSettings(preset="murky"))
+        conditions.append(("murky", murky_world, documented["noisy"]["mae"], murky))
+    for name, world, expected, tolerances in conditions:
+        held_out = write_dataset(folder / name, count=400, seed=5, world_settings=world, progress=False, **ranges)
+        measured = _mae(encoder, held_out)
+        assert set(measured) == set(tolerances)
+        for label, allowed in tolerances.items():
             assert measured[label] == pytest.approx(expected[label], abs=allowed), (name, label, measured)
+    return encoder, folder / "clean"
+
+
+@pytest.mark.parametrize("checkpoint", list(ROBUST), ids=lambda path: path.stem)
+def test_a_noise_robust_cmvae_scores_its_documented_errors_on_fresh_clean_and_murky_frames(
+    tmp_path: Path, checkpoint: Path
+) -> None:
+    _check_documented(checkpoint, ROBUST[checkpoint], tmp_path, TOLERANCE, MURKY_TOLERANCE)
 
 
 #: The 3d task's CMVAEs and their documented scores: the clean-trained one, and the one distilled onto murky frames
@@ -97,25 +105,11 @@ def test_a_3d_tasks_cmvae_scores_its_documented_errors_and_reads_mirror_averaged
     """On fresh vertical frames (and murky ones where documented) it reads d, theta, psi and the elevation as
     documented; and it reads mirror-averaged (what tells it from its weights read plainly, whose errors lie within
     these tolerances): a frame's mirror image gives the frame's latent with the theta and psi latents negated."""
-    from sim_service.dataset import VERTICAL_RANGES, write_dataset
-    from sim_service.noise import NoiseSettings
-    from sim_service.settings import WorldSettings
+    from sim_service.dataset import VERTICAL_RANGES
 
-    documented = json.loads(VERTICAL[checkpoint].read_text())
-    assert Path(documented["checkpoint"]).name == checkpoint.name and documented["dataset_seed"] == 5
-    encoder = LatentEncoder(checkpoint)
-    murky = WorldSettings(noise=NoiseSettings(preset="murky"))
-    conditions = [("clean", None, documented["mae"], VERTICAL_TOLERANCE)]
-    if "noisy" in documented:
-        conditions.append(("murky", murky, documented["noisy"]["mae"], VERTICAL_MURKY_TOLERANCE))
-    for name, world, expected, tolerances in conditions:
-        held_out = write_dataset(tmp_path / name, count=400, seed=5, world_settings=world, ranges=VERTICAL_RANGES,
-                                 progress=False)  # fmt: skip
-        measured = _mae(encoder, held_out)
-        assert set(measured) == set(tolerances)
-        for label, tolerance in tolerances.items():
-            assert measured[label] == pytest.approx(expected[label], abs=tolerance), (name, label, measured)
-    images = CMVAEDataset(tmp_path / "clean").read(np.arange(8)).images
+    encoder, clean = _check_documented(checkpoint, VERTICAL[checkpoint], tmp_path, VERTICAL_TOLERANCE,
+                                       VERTICAL_MURKY_TOLERANCE, ranges=VERTICAL_RANGES)  # fmt: skip
+    images = CMVAEDataset(clean).read(np.arange(8)).images
     mu, mu_mirror = (encoder.encode(frames)[0] for frames in (images, images[:, :, ::-1].copy()))
     np.testing.assert_allclose(mu_mirror, np.asarray(mirror_signs(VERTICAL_LABEL_NAMES, encoder.n_z)) * mu, atol=1e-3)
     theta = encoder.decode_state(mu)[1]
