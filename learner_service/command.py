@@ -138,6 +138,13 @@ def check(settings: LearnCommandSettings) -> None:
     episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
     if settings.resume and not Path(settings.resume).is_file():
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
+    if settings.sim_config and settings.backend == "zenoh":
+        raise ValueError(
+            f"--sim-config {settings.sim_config}: a running sim serves its own world; start it with `swimm sim "
+            "--config FILE`, train in process (--backend inprocess), or let `swimm up --sim-config` start the sim"
+        )
+    if settings.sim_config and not Path(settings.sim_config).is_file():
+        raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
 
 
 class Training:
@@ -199,6 +206,7 @@ class Training:
             encoder = (
                 shared_encoder(self.task, checkpoint=s.encoder_checkpoint or None) if s.backend == "inprocess" else None
             )
+            world = self.inprocess_world()
             train_proxy = self.proxy_settings("train") if session is not None else None
             env = make_vec_env(
                 s.backend,
@@ -209,16 +217,32 @@ class Training:
                 monitor_path=self.next_monitor_path(),
                 encoder=encoder,
                 session=session,
+                world=world,
             )
             stack.callback(env.close)
             eval_env = None
             if s.eval.enabled:
                 eval_proxy = self.proxy_settings("eval") if session is not None else None
                 eval_env = make_env(
-                    s.backend, self.eval_task, eval_proxy, s.eval.env, s.eval.seed, encoder=encoder, session=session
+                    s.backend,
+                    self.eval_task,
+                    eval_proxy,
+                    s.eval.env,
+                    s.eval.seed,
+                    encoder=encoder,
+                    session=session,
+                    world=world,
                 )
                 stack.callback(eval_env.close)
             return self.train(env, eval_env)
+
+    def inprocess_world(self) -> Any:
+        """The world of in-process envs from ``--sim-config`` (as a sim started with it would serve), else None."""
+        if not self.settings.sim_config:
+            return None
+        from learner_service.inprocess_env import sim_config_world  # MuJoCo: not in the torch image
+
+        return sim_config_world(self.settings.sim_config)
 
     def build_model(self, env: Any) -> Any:
         s = self.settings

@@ -69,9 +69,11 @@ def make_env(
     encoder: Any = None,
     session: Any = None,
     share_renderer_with: gym.Env | None = None,
+    world: Any = None,
 ) -> gym.Env:
     """One env (for evaluation episodes): a ProxyEnv on ``proxy.channel``/``env_id``, or a TrackingEnv (drawing
-    through ``share_renderer_with``'s renderer when given, another TrackingEnv)."""
+    through ``share_renderer_with``'s renderer when given, another TrackingEnv) in ``world``, a
+    :class:`sim_service.settings.WorldSettings` (default: the plain world) with the task's dolphin."""
     check_backend(backend)
     if backend == "zenoh":
         from learner_service.proxy_env import ProxyEnv  # zenoh only when the backend needs it
@@ -81,7 +83,7 @@ def make_env(
 
     return TrackingEnv(
         task,
-        task_world(task),
+        task_world(task, base=world),
         base_seed=base_seed,
         encoder=shared_encoder(task, encoder),
         share_renderer_with=share_renderer_with,
@@ -98,13 +100,15 @@ def make_vec_env(
     monitor_path: str | Path | None = None,
     encoder: Any = None,
     session: Any = None,
+    world: Any = None,
 ) -> VecEnv:
     """``n_envs`` envs of the task as one VecMonitor-wrapped SB3 VecEnv (see the module docstring).
 
     ``proxy`` (a :class:`learner_service.proxy_env.ProxySettings`) is needed for ``"zenoh"``; its ``envs`` are
     replaced by "0" .. "n_envs-1" unless it already names exactly ``n_envs`` ids. ``session`` shares an open
     Zenoh session (the caller closes it). ``encoder`` is the in-process latent encoder (default: the shipped
-    CMVAE, loaded once). ``monitor_path`` writes the episodes' CSV (SB3 names it ``<path>.monitor.csv``).
+    CMVAE, loaded once) and ``world`` the in-process envs' world (see :func:`make_env`). ``monitor_path`` writes
+    the episodes' CSV (SB3 names it ``<path>.monitor.csv``).
     """
     check_backend(backend)
     ids = env_ids(n_envs)
@@ -122,7 +126,14 @@ def make_vec_env(
         def build(index: int) -> gym.Env:  # DummyVecEnv calls these in order and steps the envs one after another
             first = built[0] if built else None
             built.append(
-                make_env("inprocess", task, base_seed=base_seed + index, encoder=encoder, share_renderer_with=first)
+                make_env(
+                    "inprocess",
+                    task,
+                    base_seed=base_seed + index,
+                    encoder=encoder,
+                    share_renderer_with=first,
+                    world=world,
+                )
             )
             return built[-1]
 

@@ -9,7 +9,9 @@ the same trajectory either way.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -25,12 +27,14 @@ from learner_service.task import (
     TrackingTask,
     episode_seed,
 )
+from services import settings as settings_mod
 from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.latency import latency_option
 from sim_service.noise import noise_option
+from sim_service.responder import SimSettings
 from sim_service.scenery import scene_option
-from sim_service.settings import DolphinSettings, WorldSettings
+from sim_service.settings import WorldSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
@@ -38,14 +42,23 @@ log = logging.getLogger(__name__)
 IMAGE_MODES = ("cmvae", "image")
 
 
-def task_world(task: TaskSettings, render: bool = False) -> WorldSettings:
-    """The world an in-process env of ``task`` runs: its dolphin, rendering when asked or when observations need it.
+def task_world(task: TaskSettings, render: bool = False, base: WorldSettings | None = None) -> WorldSettings:
+    """The world an in-process env of ``task`` runs: ``base`` (default: the plain world) with the task's dolphin
+    motion, rendering when asked or when observations need it.
 
     A distributed sim's dolphin is its own ``--dolphin-motion``: start it with ``3d`` for the 3d task.
     """
-    return WorldSettings(
-        render=render or task.obs in IMAGE_MODES, dolphin=DolphinSettings(motion=TASK_DOLPHIN_MOTIONS[task.task])
-    )
+    base = base or WorldSettings()
+    dolphin = dataclasses.replace(base.dolphin, motion=TASK_DOLPHIN_MOTIONS[task.task])
+    return dataclasses.replace(base, render=render or task.obs in IMAGE_MODES, dolphin=dolphin)
+
+
+def sim_config_world(path: str | Path) -> WorldSettings:
+    """The world a `swimm sim` settings file describes (its image noise, scenery, pod), for in-process envs."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"--sim-config {path}: no such settings file for the sim")
+    # The file alone: a SWIMM_* variable meant for this command must not reach the world through the sim's names.
+    return settings_mod.load(SimSettings, None, str(path), environ={}).world
 
 
 class TrackingEnv(gym.Env):

@@ -125,6 +125,9 @@ class LearnCommandSettings:
     scripted: TrackerGains = field(default_factory=TrackerGains)  # flags --scripted-*: the demonstrations' tracker
     actor_average: NonNegInt = 0  # evaluate and deliver the actor's weights averaged over ~N updates; 0 = live weights
     encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
+    sim_config: str = (
+        ""  # a `swimm sim` settings file (image noise, scenery): in-process envs' world, or `swimm up`'s sim
+    )
     step_timeout_s: PosFloat = 2.0  # distributed: wait per try before re-sending a step
     max_retries: NonNegInt = 10  # distributed: re-sends before a step fails naming the missing service
     device: str = "auto"  # torch device of the learner

@@ -84,7 +84,6 @@ class UpSettings:
     sim_eval_envs: NonNegInt = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
     topology: Literal["peer", "client"] = "peer"  # peer: direct links once the router introduces them; client: via it
     stop_timeout_s: NonNegFloat = 180.0  # how long the learner may take to save after SIGTERM before it is killed
-    sim_config: str = ""  # a `swimm sim` settings file for the sim it starts (e.g. its image noise)
     restart_limit: NonNegInt = 3  # times a router, sim or encoder that dies is restarted before the run ends (saved)
     restart_backoff_s: NonNegFloat = 2.0  # wait before a service's first restart, doubled for each one after
 
@@ -143,7 +142,7 @@ def child_commands(settings: UpSettings, endpoint: str, checkpoint: Path | None)
     zenoh = settings.learn.zenoh
     common = ["--mode", settings.topology, "--connect", endpoint, "--namespace", zenoh.namespace]
     common += zenoh_flags(zenoh.low_latency, zenoh.zenoh_threads)
-    config = ["--config", settings.sim_config] if settings.sim_config else []
+    config = ["--config", settings.learn.sim_config] if settings.learn.sim_config else []
     shares = sim_shares(settings.learn.envs, settings.sims)
     children = []
     for index, (first, count) in enumerate(shares):
@@ -322,11 +321,11 @@ def check(settings: UpSettings) -> UpSettings:
     check_ranges(settings)
     learn = settings.learn
     encoder_service.check_engine(settings.encoder_engine, "--encoder-engine")
-    if settings.sim_config and not Path(settings.sim_config).is_file():
-        raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
+    if settings.learn.sim_config and not Path(settings.learn.sim_config).is_file():
+        raise FileNotFoundError(f"--sim-config {settings.learn.sim_config}: no such settings file for the sim")
     largest_group = 0
     if learn.zenoh.low_latency:  # its messages cannot fragment: groups must fit the sim's observations
-        image_size = settings_mod.load(SimSettings, None, settings.sim_config or None).world.image_size
+        image_size = settings_mod.load(SimSettings, None, settings.learn.sim_config or None).world.image_size
         largest_group = check_low_latency_group(learn.group_size, image_size)
     group_size = group_size_for(learn.envs, learn.group_size, settings.sims, largest_group)
     settings = dataclasses.replace(settings, learn=dataclasses.replace(learn, group_size=group_size))
@@ -360,6 +359,7 @@ def learner_settings(settings: UpSettings, endpoint: str, run_dir: Path) -> Lear
         zenoh=dataclasses.replace(learn.zenoh, mode=settings.topology, connect=[endpoint]),
         run_dir=str(run_dir),
         backend="zenoh",
+        sim_config="",  # the sim it starts reads the file
         progress_bar=False,  # this command draws the bar
     )
 

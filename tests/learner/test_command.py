@@ -8,6 +8,7 @@ import threading
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -219,6 +220,43 @@ def test_inprocess_cmvae_trains_on_latents_of_a_given_encoder(tmp_path: Path) ->
     assert result.num_timesteps >= 60 and result.episodes == len(episodes)
     saved = SAC.load(tmp_path / "run" / FINAL_MODEL)
     assert saved.observation_space.shape == (30,)  # 10 latents + 10 previous (surge, yaw) actions
+
+
+def test_inprocess_runs_train_and_evaluate_in_the_world_of_a_sim_settings_file(tmp_path: Path) -> None:
+    """--sim-config gives in-process envs the world a sim started with the file serves (here: every episode under
+    the murky preset), with the task's dolphin: the 3d task's, though the file names no motion."""
+    sim_config = tmp_path / "sim.yaml"
+    sim_config.write_text("noise_preset: murky\n")
+    settings = tiny_settings(tmp_path / "run", obs="image", task="3d", sim_config=str(sim_config), steps=20)
+    training = Training(settings)
+    world = training.inprocess_world()
+    assert world.noise.preset == "murky"
+    env = make_vec_env("inprocess", training.task, n_envs=2, base_seed=5, world=world)
+    plain = make_vec_env("inprocess", training.task, n_envs=2, base_seed=5)
+    try:
+        murky_world, plain_world = env.unwrapped.envs[0].world, plain.unwrapped.envs[0].world
+        assert murky_world.settings.dolphin.motion == plain_world.settings.dolphin.motion == "3d"
+        assert murky_world.settings.noise == world.noise and plain_world.settings.noise.preset == "off"
+        murky_frames, plain_frames = env.reset()["image"], plain.reset()["image"]
+        assert murky_frames.shape == plain_frames.shape and not np.array_equal(murky_frames, plain_frames)
+    finally:
+        env.close()
+        plain.close()
+    settings.eval.enabled = False
+    assert Training(settings).run().num_timesteps >= 20
+
+
+def test_a_sim_settings_file_is_refused_where_no_in_process_world_reads_it(tmp_path: Path) -> None:
+    sim_config = tmp_path / "sim.yaml"
+    sim_config.write_text("noise_preset: murky\n")
+    with pytest.raises(ValueError, match="--sim-config .*sim.yaml: a running sim serves its own world"):
+        check(LearnCommandSettings(sim_config=str(sim_config)))  # the zenoh backend: the sim is another process
+    with pytest.raises(FileNotFoundError, match="--sim-config .*absent.yaml: no such settings file"):
+        check(LearnCommandSettings(backend="inprocess", sim_config=str(tmp_path / "absent.yaml")))
+    sim_config.write_text("noise_presett: murky\n")
+    settings = tiny_settings(tmp_path / "run", sim_config=str(sim_config))
+    with pytest.raises(settings_mod.SettingsError, match="noise_presett"):
+        Training(settings).inprocess_world()
 
 
 def test_the_bar_names_each_phase_in_order_with_its_own_count(tmp_path: Path, monkeypatch) -> None:
