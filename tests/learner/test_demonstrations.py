@@ -244,15 +244,15 @@ def test_the_shipped_policys_recipe_loads_as_swimm_up_settings() -> None:
 
 def test_the_noise_robust_recipe_names_files_that_ship() -> None:
     from learner_service.command import check
-    from learner_service.up import UpSettings, encoder_checkpoint
+    from learner_service.up import UpSettings, encoder_checkpoint, learner_settings
     from services import settings as settings_mod
 
     root = Path(__file__).resolve().parents[2]
     up = settings_mod.load(UpSettings, None, root / "learner_service" / "models" / "sac_cmvae_robust.yaml", environ={})
-    check(up.learn)
+    check(learner_settings(up, "tcp/127.0.0.1:7447", Path(".")))  # the learner it starts; its sim reads the file
     assert up.learn.demo.teacher == LATENT_SCRIPTED and up.learn.obs == "cmvae"
     assert encoder_checkpoint(up.learn).name == "cmvae_robust.pt"  # refuses a missing file
-    sim = yaml.safe_load((root / up.sim_config).read_text())
+    sim = yaml.safe_load((root / up.learn.sim_config).read_text())
     assert sim["noise_randomise"] is True and sim["noise_preset"] == "murky"
     assert (root / "learner_service" / "models" / "sac_cmvae_robust.zip").is_file()
 
