@@ -257,17 +257,26 @@ def test_the_noise_robust_recipe_names_files_that_ship() -> None:
     assert (root / "learner_service" / "models" / "sac_cmvae_robust.zip").is_file()
 
 
-def test_the_3d_recipe_loads_as_swimm_learn_settings_on_the_encoder_its_policy_records() -> None:
+@pytest.mark.parametrize(
+    ("recipe", "encoder", "noise"),
+    [("sac_cmvae_3d", "cmvae_vertical.pt", None), ("sac_cmvae_3d_robust", "cmvae_vertical_robust.pt", "murky")],
+)
+def test_the_3d_recipes_load_as_swimm_learn_settings_on_the_encoder_their_policy_records(
+    recipe, encoder, noise
+) -> None:
     from learner_service.command import check
     from learner_service.identity import read_identity
+    from learner_service.inprocess_env import sim_config_world
     from learner_service.learn_settings import LearnCommandSettings
     from learner_service.up import encoder_checkpoint
     from services import settings as settings_mod
 
-    models = Path(__file__).resolve().parents[2] / "learner_service" / "models"
-    learn = settings_mod.load(LearnCommandSettings, None, models / "sac_cmvae_3d.yaml", environ={})
+    root = Path(__file__).resolve().parents[2]
+    models = root / "learner_service" / "models"
+    learn = settings_mod.load(LearnCommandSettings, None, models / f"{recipe}.yaml", environ={})
     check(learn)
     assert (learn.task, learn.demo.teacher, learn.scripted.surge_gain) == ("3d", LATENT_SCRIPTED, 0.5)
-    recorded = read_identity(models / "sac_cmvae_3d.zip")
+    recorded = read_identity(models / f"{recipe}.zip")
     assert recorded["task"]["name"] == "3d" and recorded["encoder"]["path"] == learn.encoder_checkpoint
-    assert encoder_checkpoint(learn).name == "cmvae_vertical.pt"
+    assert encoder_checkpoint(learn).name == encoder
+    assert (sim_config_world(root / learn.sim_config).noise.preset if learn.sim_config else None) == noise

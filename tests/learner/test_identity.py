@@ -25,7 +25,8 @@ from services.results import REPO_ROOT, file_sha256
 MODELS = REPO_ROOT / "learner_service" / "models"
 ENCODERS = REPO_ROOT / "encoder_service" / "models"
 SHIPPED_PAIRS = {"sac_cmvae.zip": "cmvae.pt", "sac_cmvae_robust.zip": "cmvae_robust.pt",
-                 "sac_cmvae_latency.zip": "cmvae_mixture.pt", "sac_cmvae_3d.zip": "cmvae_vertical.pt"}  # fmt: skip
+                 "sac_cmvae_latency.zip": "cmvae_mixture.pt", "sac_cmvae_3d.zip": "cmvae_vertical.pt",
+                 "sac_cmvae_3d_robust.zip": "cmvae_vertical_robust.pt"}  # fmt: skip
 
 
 @pytest.mark.parametrize(("policy", "encoder"), SHIPPED_PAIRS.items())
