@@ -48,7 +48,7 @@ from learner_service.demonstrations import demonstrate, resume_cloning
 from learner_service.envs import check_backend, make_env, make_vec_env, shared_encoder
 from learner_service.episodic import episodic_schedule
 from learner_service.identity import check_task, encoder_for, policy_identity, stamp
-from learner_service.learn_settings import LearnCommandSettings, default_run_dir
+from learner_service.learn_settings import LearnCommandSettings, check_sim_config, default_run_dir
 from learner_service.live_encoders import require_live_encoders
 from learner_service.plots import plot_training, read_monitor
 from learner_service.progress import (
@@ -143,8 +143,7 @@ def check(settings: LearnCommandSettings) -> None:
             f"--sim-config {settings.sim_config}: a running sim serves its own world; start it with `swimm sim "
             "--config FILE`, train in process (--backend inprocess), or let `swimm up --sim-config` start the sim"
         )
-    if settings.sim_config and not Path(settings.sim_config).is_file():
-        raise FileNotFoundError(f"--sim-config {settings.sim_config}: no such settings file for the sim")
+    check_sim_config(settings.sim_config)
 
 
 class Training:

@@ -55,8 +55,6 @@ def task_world(task: TaskSettings, render: bool = False, base: WorldSettings | N
 
 def sim_config_world(path: str | Path) -> WorldSettings:
     """The world a `swimm sim` settings file describes (its image noise, scenery, pod), for in-process envs."""
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"--sim-config {path}: no such settings file for the sim")
     # The file alone: a SWIMM_* variable meant for this command must not reach the world through the sim's names.
     return settings_mod.load(SimSettings, None, str(path), environ={}).world
 

@@ -125,15 +125,19 @@ class LearnCommandSettings:
     scripted: TrackerGains = field(default_factory=TrackerGains)  # flags --scripted-*: the demonstrations' tracker
     actor_average: NonNegInt = 0  # evaluate and deliver the actor's weights averaged over ~N updates; 0 = live weights
     encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
-    sim_config: str = (
-        ""  # a `swimm sim` settings file (image noise, scenery): in-process envs' world, or `swimm up`'s sim
-    )
+    sim_config: str = ""  # a `swimm sim` settings file (noise, scenery): the in-process envs' or `swimm up`'s sim's
     step_timeout_s: PosFloat = 2.0  # distributed: wait per try before re-sending a step
     max_retries: NonNegInt = 10  # distributed: re-sends before a step fails naming the missing service
     device: str = "auto"  # torch device of the learner
     threads: NonNegInt = 1  # torch CPU threads; 1 leaves the other cores to the sim and encoder; 0 = torch's default
     log_interval_s: PosFloat = 30.0  # seconds between progress lines in the log
     progress_bar: bool = True  # tqdm bar (only when stderr is a terminal)
+
+
+def check_sim_config(path: str) -> None:
+    """Refuse a ``--sim-config`` that names no file, before anything starts."""
+    if path and not Path(path).is_file():
+        raise FileNotFoundError(f"--sim-config {path}: no such settings file for the sim")
 
 
 def default_run_dir(settings: LearnCommandSettings) -> Path:

@@ -35,7 +35,12 @@ import yaml
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 import encoder_service
-from learner_service.learn_settings import TASK_DOLPHIN_MOTIONS, LearnCommandSettings, default_run_dir
+from learner_service.learn_settings import (
+    TASK_DOLPHIN_MOTIONS,
+    LearnCommandSettings,
+    check_sim_config,
+    default_run_dir,
+)
 from learner_service.progress import (
     BEST_MODEL,
     BEST_MODEL_SCORE,
@@ -321,8 +326,7 @@ def check(settings: UpSettings) -> UpSettings:
     check_ranges(settings)
     learn = settings.learn
     encoder_service.check_engine(settings.encoder_engine, "--encoder-engine")
-    if settings.learn.sim_config and not Path(settings.learn.sim_config).is_file():
-        raise FileNotFoundError(f"--sim-config {settings.learn.sim_config}: no such settings file for the sim")
+    check_sim_config(settings.learn.sim_config)
     largest_group = 0
     if learn.zenoh.low_latency:  # its messages cannot fragment: groups must fit the sim's observations
         image_size = settings_mod.load(SimSettings, None, settings.learn.sim_config or None).world.image_size
