@@ -97,6 +97,8 @@ def agreed_models(summaries: list[dict[str, Any]]) -> dict[str, Any]:
 
 #: Settings that name a run, not its recipe: summaries of one recipe on other seeds differ in these alone.
 RUN_ONLY = ("seeds", "out", "resume", "merge")
+#: The wall-time cap: a host's speed, not the recipe, where it ended no run (the runs trained their step budget).
+WALL_CAP = "budget_min"
 #: Per-seed fields of a summary's algorithm entry, and those holding per-seed lists under each threshold.
 PER_SEED = ("final_returns", "final_metrics", "final_episode_returns", "best_eval_returns", "best_model_returns",
             "steps", "trained_steps", "wall_min")  # fmt: skip
@@ -111,6 +113,8 @@ def pooled(algo: str, having: list[tuple[Path, dict, pd.DataFrame]], thresholds:
     for path, summary, _ in others:
         differ = sorted(key for key in recipe.keys() | _recipe(summary).keys()
                         if recipe.get(key) != _recipe(summary).get(key))  # fmt: skip
+        if all(_cap_ended_no_run(source, algo) for source in (first, summary)):
+            differ = [key for key in differ if key != WALL_CAP]
         if differ:
             raise ValueError(f"--merge: {algo} is in {first_path} and {path}, which ran different recipes "
                              f"({', '.join(differ)} differ); merge the seeds of one recipe only")  # fmt: skip
@@ -129,6 +133,16 @@ def pooled(algo: str, having: list[tuple[Path, dict, pd.DataFrame]], thresholds:
     settings = first.get("settings") or {}
     return entry | {"settings": settings | {"seeds": seeds} if settings else settings,
                     "sources": [str(path) for path, _, _ in having]}  # fmt: skip
+
+
+def _cap_ended_no_run(summary: dict[str, Any], algo: str) -> bool:
+    """Whether every seed of ``algo`` in ``summary`` trained its whole step budget inside the wall-time cap (read from
+    ``trained_steps``, or in older summaries from each run's minutes): then the cap shaped none of its results."""
+    settings, entry = summary.get("settings") or {}, summary["algos"][algo]
+    if entry.get("trained_steps"):
+        return all(steps is not None and steps >= settings.get("budget_steps", 0) for steps in entry["trained_steps"])
+    cap, minutes = settings.get("budget_min"), entry.get("wall_min")
+    return bool(cap and minutes) and all(value is not None and value < cap for value in minutes)
 
 
 def _recipe(summary: dict[str, Any]) -> dict[str, Any]:

@@ -126,6 +126,30 @@ def test_a_different_recipe_a_seed_twice_or_an_algorithm_in_none_is_refused_by_n
     assert not out.exists()
 
 
+def test_summaries_that_differ_only_in_a_wall_time_cap_no_run_reached_are_pooled(tmp_path) -> None:
+    """A slower host's runs of one recipe under a larger cap pool with the first runs when every run trained its
+    step budget (``trained_steps``, or in older summaries minutes under the cap); a cap that cut a run refuses."""
+
+    def source(name: str, seeds: tuple[int, ...], cap: float, **entry) -> str:
+        path = write_source(tmp_path, name, {"ppo": [2300.0] * len(seeds)}, 500, seeds=seeds)
+        summary = json.loads(Path(path).read_text())
+        summary["settings"] |= {"budget_steps": 400_000, "budget_min": cap}
+        summary["algos"]["ppo"] |= entry
+        Path(path).write_text(json.dumps(summary))
+        return path
+
+    fast = source("fast", (107, 109), 25.0, wall_min=[13.7, 11.9])  # an older summary: no trained_steps
+    slow = source("slow", (97, 101), 40.0, trained_steps=[401_408, 401_408], wall_min=[29.0, 25.9])
+    cut = source("cut", (103,), 40.0, trained_steps=[327_680], wall_min=[40.0])
+    out = tmp_path / "merged"
+    learn = LearnBenchSettings(algos=["ppo"], merge=[slow, fast], out=str(out))
+    assert run(BenchSettings(target="learn", learn=learn)) == 0
+    assert json.loads((out / "summary.json").read_text())["algos"]["ppo"]["seeds"] == [97, 101, 107, 109]
+    for merge in ([cut, fast], [fast, cut]):
+        with pytest.raises(ValueError, match=r"which ran different recipes \(budget_min differ\)"):
+            run(BenchSettings(target="learn", learn=LearnBenchSettings(algos=["ppo"], merge=merge, out=str(out / "x"))))
+
+
 def test_a_summary_without_its_evaluations_is_named(tmp_path) -> None:
     source = write_source(tmp_path, "lonely", {"sac": [2000.0]}, actor_average=0)
     (tmp_path / "lonely-evaluations.csv").unlink()
