@@ -109,11 +109,11 @@ def pooled(algo: str, having: list[tuple[Path, dict, pd.DataFrame]], thresholds:
     """``algo``'s entry from one summary, or its seeds pooled from several that ran the same recipe (aggregates
     computed again over every seed); a different recipe or a seed run twice is refused by name."""
     (first_path, first, _), *others = having
-    recipe = _recipe(first)
+    recipe, first_uncapped = _recipe(first), _cap_ended_no_run(first, algo)
     for path, summary, _ in others:
-        differ = sorted(key for key in recipe.keys() | _recipe(summary).keys()
-                        if recipe.get(key) != _recipe(summary).get(key))  # fmt: skip
-        if all(_cap_ended_no_run(source, algo) for source in (first, summary)):
+        other = _recipe(summary)
+        differ = sorted(key for key in recipe.keys() | other.keys() if recipe.get(key) != other.get(key))
+        if first_uncapped and _cap_ended_no_run(summary, algo):
             differ = [key for key in differ if key != WALL_CAP]
         if differ:
             raise ValueError(f"--merge: {algo} is in {first_path} and {path}, which ran different recipes "
