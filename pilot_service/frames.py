@@ -9,9 +9,11 @@ camera's horizontal field of view, then resized to the policy's input: the sim r
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import tempfile
+import time
 from pathlib import Path
 from urllib.parse import urlparse
 
@@ -19,6 +21,8 @@ import cv2
 import numpy as np
 
 from services.geometry import HFOV_DEG, VFOV_DEG
+
+log = logging.getLogger(__name__)
 
 RTP_SDP = """v=0
 o=- 0 0 IN IP4 127.0.0.1
@@ -60,27 +64,35 @@ def as_sim_frame(bgr: np.ndarray, camera_hfov_deg: float, size: int) -> np.ndarr
 
 
 class FrameSource:
-    """Opens a source and reads frames from it; ``read`` returns None once the source has ended."""
+    """Opens a source and reads frames from it; ``read`` returns None once the source has ended. A live source that
+    has given no frame yet is opened again until ``first_frame_timeout_s`` has passed: a stream may start after the
+    pilot, and FFmpeg cannot decode a stream it opened before the stream's first packets described it."""
 
-    def __init__(self, source: str, read_timeout_s: float = 5.0) -> None:
+    def __init__(self, source: str, read_timeout_s: float = 5.0, first_frame_timeout_s: float = 0.0) -> None:
         self.source = source
         self.is_file = Path(source).is_file()  # a file's end is the end of the flight; a stream's is an error
         self._sdp: Path | None = None
-        if source.isdigit():
-            self.capture = cv2.VideoCapture(int(source))
-        else:
-            # Bounded waits: a stream that stops makes read() fail instead of blocking for ever.
-            timeouts = [
-                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC,
-                10_000,
-                cv2.CAP_PROP_READ_TIMEOUT_MSEC,
-                int(read_timeout_s * 1000),
-            ]
-            self.capture = cv2.VideoCapture(self._ffmpeg_target(source), cv2.CAP_FFMPEG, timeouts)
+        self._read_timeout_s = read_timeout_s
+        self._first_frame_deadline = time.monotonic() + first_frame_timeout_s
+        self._seen_a_frame = False
+        self.capture = self._open()
         if not self.capture.isOpened():
             self.close()
             raise SourceError(f"cannot open the video source {source!r} (a file, a camera number, or a stream URL "
                               "such as rtp://@:5600)")  # fmt: skip
+
+    def _open(self) -> cv2.VideoCapture:
+        if self.source.isdigit():
+            return cv2.VideoCapture(int(self.source))
+        # Bounded waits: a stream that stops makes read() fail instead of blocking for ever.
+        timeouts = [
+            cv2.CAP_PROP_OPEN_TIMEOUT_MSEC,
+            10_000,
+            cv2.CAP_PROP_READ_TIMEOUT_MSEC,
+            int(self._read_timeout_s * 1000),
+        ]
+        target = str(self._sdp) if self._sdp is not None else self._ffmpeg_target(self.source)
+        return cv2.VideoCapture(target, cv2.CAP_FFMPEG, timeouts)
 
     def _ffmpeg_target(self, source: str) -> str:
         url = urlparse(source)
@@ -106,8 +118,16 @@ class FrameSource:
         return 1.0 / fps if fps > 0 else 0.0
 
     def read(self) -> np.ndarray | None:
-        ok, frame = self.capture.read()
-        return frame if ok else None
+        while True:
+            ok, frame = self.capture.read()
+            if ok:
+                self._seen_a_frame = True
+                return frame
+            if self._seen_a_frame or self.is_file or time.monotonic() >= self._first_frame_deadline:
+                return None
+            log.info("no frame from %s yet: opening it again to wait for the stream", self.source)
+            self.capture.release()
+            self.capture = self._open()
 
     def close(self) -> None:
         self.capture.release()

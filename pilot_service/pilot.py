@@ -73,6 +73,7 @@ class PilotSettings:
     duration_s: float = 0.0  # stop after this many seconds; 0 = until the source ends or Ctrl-C
     heartbeat_timeout_s: float = 10.0  # how long to wait for the vehicle's first HEARTBEAT
     stream_timeout_s: float = 5.0  # a stream silent this long has stopped: the pilot ends, in neutral, saying so
+    first_frame_timeout_s: float = 60.0  # a stream may start after the pilot: it waits this long for a first frame
     threads: int = 1  # onnxruntime threads
     # X Y W H in the source's pixels: the dolphin to follow, for a policy on a tracking CMVAE; empty: the one the
     # camera is centred on when the pilot starts (the rule the sim's pods train with)
@@ -89,8 +90,10 @@ class PilotSettings:
                 f"--max-surge, --max-yaw and --max-heave must be in (0, 1], got {self.max_surge}, {self.max_yaw}, "
                 f"{self.max_heave}"
             )
-        if self.rate_hz < 0 or self.frame_timeout_s <= 0 or self.duration_s < 0:
-            raise ValueError("--rate-hz and --duration-s must be >= 0 and --frame-timeout-s > 0")
+        if self.rate_hz < 0 or self.frame_timeout_s <= 0 or self.duration_s < 0 or self.first_frame_timeout_s < 0:
+            raise ValueError(
+                "--rate-hz, --duration-s and --first-frame-timeout-s must be >= 0 and --frame-timeout-s > 0"
+            )
         check_chunk(self.publish_env, "--publish-env")
         if self.target_box and (len(self.target_box) != 4 or min(self.target_box) < 0 or min(self.target_box[2:]) < 1):
             raise ValueError(f"--target-box takes X Y W H, a box of at least one pixel inside the frame, got "
@@ -206,7 +209,7 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
         from pilot_service.vehicle import Vehicle  # pymavlink only where a vehicle is flown
 
         vehicle = Vehicle(settings.mavlink, settings.source_system, settings.heartbeat_timeout_s)
-    source = FrameSource(settings.source, settings.stream_timeout_s)
+    source = FrameSource(settings.source, settings.stream_timeout_s, settings.first_frame_timeout_s)
     folder = Path(settings.out or f"runs/pilot-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}")
     controls = ControlLog(folder, settings.record)
     publisher = None

@@ -181,6 +181,8 @@ def test_what_cannot_be_flown_is_refused_by_name(exported: Path, tmp_path) -> No
         PilotSettings(max_surge=1.5).check()
     with pytest.raises(ValueError, match="--max-heave.*got 0.5, 0.5, 0.0"):
         PilotSettings(max_heave=0.0).check()
+    with pytest.raises(ValueError, match="--first-frame-timeout-s must be >= 0"):
+        PilotSettings(first_frame_timeout_s=-1.0).check()
     for names, problem in ((["surge", "sway"], "drives \\['surge', 'sway'\\]; the pilot flies"),
                            (["surge", "heave", "yaw"], "outputs 2 actions but its contract names")):  # fmt: skip
         relabelled = tmp_path / f"{len(names)}-actions.onnx"
@@ -236,11 +238,17 @@ def test_the_pilot_flies_a_vehicle_from_an_rtp_stream_and_goes_neutral_when_it_s
                   f"udpin:127.0.0.1:{mavlink_port}", "--rate-hz", str(rate), "--frame-timeout-s", str(timeout_s),
                   "--duration-s", "40", "--stream-timeout-s", "3", "--camera-hfov-deg", str(HFOV_DEG),
                   "--out", str(out))  # fmt: skip
-    sender = subprocess.Popen(["ffmpeg", "-loglevel", "error", "-re", "-stream_loop", "-1", "-i", str(dive_video),
-                               "-an", "-c:v", "libx264", "-preset", "ultrafast", "-tune", "zerolatency", "-g", "5",
-                               "-x264-params", "repeat-headers=1", "-f", "rtp", f"rtp://127.0.0.1:{rtp_port}"],
-                              stdout=subprocess.DEVNULL)  # fmt: skip
+    sender = None
     try:
+        # The stream starts after the pilot has opened it and waited once in vain: it opens it again.
+        deadline = time.monotonic() + 60
+        while not pilot.log_path.is_file() or "no frame from" not in pilot.log_path.read_text():
+            assert pilot.alive and time.monotonic() < deadline, pilot.log_tail()
+            time.sleep(0.2)
+        sender = subprocess.Popen(["ffmpeg", "-loglevel", "error", "-re", "-stream_loop", "-1", "-i",
+                                   str(dive_video), "-an", "-c:v", "libx264", "-preset", "ultrafast", "-tune",
+                                   "zerolatency", "-g", "5", "-x264-params", "repeat-headers=1", "-f", "rtp",
+                                   f"rtp://127.0.0.1:{rtp_port}"], stdout=subprocess.DEVNULL)  # fmt: skip
         deadline = time.monotonic() + 40
         while not (out / "controls.csv").is_file() or _frames_used(out / "controls.csv") < 60:  # 6 s of 10 fps
             assert pilot.alive and time.monotonic() < deadline, pilot.log_tail()
@@ -250,8 +258,9 @@ def test_the_pilot_flies_a_vehicle_from_an_rtp_stream_and_goes_neutral_when_it_s
 
     finally:
         for process in (sender, fake):
-            process.kill()
-            process.wait()
+            if process is not None:
+                process.kill()
+                process.wait()
     log = pilot.log_path.read_text()
     assert "no frame for" in log and "neutral controls until frames return" in log, log
     assert f"the stream 'rtp://127.0.0.1:{rtp_port}' stopped giving frames" in log, log
