@@ -32,9 +32,8 @@ from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.latency import latency_option
 from sim_service.noise import noise_option
-from sim_service.responder import SimSettings
 from sim_service.scenery import scene_option
-from sim_service.settings import WorldSettings
+from sim_service.settings import SimSettings, WorldSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)

@@ -71,8 +71,8 @@ from services.settings import (
     check_ranges,
     to_dict,
 )
-from sim_service.responder import SimSettings
 from sim_service.responder import check as check_sim
+from sim_service.settings import SimSettings
 
 log = logging.getLogger(__name__)
 

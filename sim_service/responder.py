@@ -45,28 +45,15 @@ from services.metrics import Metrics, MetricsPublisher
 from services.polling import Inbox, poll_seconds
 from services.presence import Roster, announce, live_now
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES, open_session
-from services.settings import NonNegInt, ZenohSettings, check_ranges
+from services.settings import check_ranges
 from sim_service.latency import describe_latency, latency_option
 from sim_service.lockstep import LockstepEnv, Outcome, Refusal
 from sim_service.noise import describe_noise, noise_option
 from sim_service.scenery import scene_option
-from sim_service.settings import WorldSettings
+from sim_service.settings import SimSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class SimSettings:
-    zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
-    world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
-    train_envs: NonNegInt = 1  # envs of the train channel this sim serves
-    eval_envs: NonNegInt = 1  # envs of the eval channel this sim serves
-    first_train_env: NonNegInt = 0  # train env ids start here: sims serving one run side by side take disjoint ranges
-    realtime: bool = False  # physics keeps running at physics_dt; the last action is held
-    ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
-    claim_grace_s: float = 10.0  # a claim lapses when its holder's token stays gone this long
-    poll_ms: float = 0.0  # poll the inbox this long, then nap (services/polling.py): faster lock-step for a spare core
 
 
 # The worker's requests. ``received_at``: when one reached the inbox (polling: the worker).

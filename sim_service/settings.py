@@ -1,4 +1,5 @@
-"""Settings of the simulated world, shared by `swimm sim`, `swimm dataset` and in-process use."""
+"""Settings of the simulated world, shared by `swimm sim`, `swimm dataset` and in-process use, and of the sim
+process that serves worlds (`swimm sim`)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Literal
 
+from services.settings import NonNegInt, ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.scenery import SceneSettings
@@ -62,3 +64,16 @@ class WorldSettings:
         default_factory=SceneSettings
     )  # the world's scenery, plain by default (--scene-* flags)
     dolphin: DolphinSettings = field(default_factory=DolphinSettings)  # how the target swims (--dolphin-* flags)
+
+
+@dataclass
+class SimSettings:
+    zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
+    world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
+    train_envs: NonNegInt = 1  # envs of the train channel this sim serves
+    eval_envs: NonNegInt = 1  # envs of the eval channel this sim serves
+    first_train_env: NonNegInt = 0  # train env ids start here: sims serving one run side by side take disjoint ranges
+    realtime: bool = False  # physics keeps running at physics_dt; the last action is held
+    ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
+    claim_grace_s: float = 10.0  # a claim lapses when its holder's token stays gone this long
+    poll_ms: float = 0.0  # poll the inbox this long, then nap (services/polling.py): faster lock-step for a spare core

@@ -36,7 +36,8 @@ def _router() -> Entry:
 
 
 def _sim() -> Entry:
-    from sim_service.responder import SimSettings, check, run
+    from sim_service.responder import check, run
+    from sim_service.settings import SimSettings
 
     return Entry(SimSettings, run, check)
 

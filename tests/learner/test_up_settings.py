@@ -14,7 +14,7 @@ from learner_service.learn_settings import LearnCommandSettings
 from learner_service.up import LocalSystem, ServiceDied, UpSettings, child_commands
 from services.procs import ProcessGroup
 from services.settings import SETTINGS_EXIT_CODE, from_command_line
-from sim_service.responder import SimSettings
+from sim_service.settings import SimSettings
 
 
 def swimm(*argv: str) -> subprocess.CompletedProcess:

@@ -6,8 +6,8 @@ from learner_service.proxy_env import ProxyEnv, ProxySettings
 from learner_service.task import TaskSettings
 from services.keys import Keys
 from services.presence import live_now
-from sim_service.responder import SimResponder, SimSettings
-from sim_service.settings import WorldSettings
+from sim_service.responder import SimResponder
+from sim_service.settings import SimSettings, WorldSettings
 from tests.services.test_control_presence import wait_until
 
 

@@ -13,8 +13,7 @@ import pytest
 
 from services.process import ProcessSettings, zenoh_runtime
 from services.router import RouterSettings
-from sim_service.responder import SimSettings
-from sim_service.settings import WorldSettings
+from sim_service.settings import SimSettings, WorldSettings
 
 #: `swimm <argv>` with the command's run replaced by one that reports what the process looks like then, and what a
 #: process it starts (through services.procs' environment) sees.

@@ -239,7 +239,7 @@ def test_every_shipped_settings_file_passes_validation():
     from pathlib import Path
 
     from learner_service.up import UpSettings
-    from sim_service.responder import SimSettings
+    from sim_service.settings import SimSettings
 
     root = Path(__file__).resolve().parents[2]
     shipped = {UpSettings: [*root.glob("learner_service/models/*.yaml"), *root.glob("learner_service/configs/*.yaml")],

@@ -326,7 +326,7 @@ def test_preset_and_randomise_come_from_flags_yaml_and_the_environment(tmp_path)
 def test_the_shipped_randomised_noise_config_loads_as_sim_settings():
     from pathlib import Path
 
-    from sim_service.responder import SimSettings
+    from sim_service.settings import SimSettings
 
     config = Path(noise.__file__).parent / "configs" / "randomised_noise.yaml"
     sim = settings_module.load(SimSettings, None, config, environ={})

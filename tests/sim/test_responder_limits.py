@@ -8,8 +8,8 @@ from services.low_latency import OBSERVATION_OVERHEAD_BYTES
 from services.messages import BatchItem, BatchMsg, ObservationMsg
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
 from services.settings import ZenohSettings
-from sim_service.responder import SimSettings, check_fits_low_latency
-from sim_service.settings import WorldSettings
+from sim_service.responder import check_fits_low_latency
+from sim_service.settings import SimSettings, WorldSettings
 from sim_service.world import World
 
 
