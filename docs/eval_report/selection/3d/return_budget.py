@@ -1,0 +1,106 @@
+"""Where a 3d tracker's return goes: each reward term's sum over an episode, and the CMVAE's reading errors in the
+closed loop (the frames the tracker holds the dolphin in, not reset frames).
+
+The 3d task's reward per step is 1 less a distance, an azimuth and an elevation penalty (learner_service/task.py);
+this plays the ground-truth or the camera-only scripted tracker in process and sums each penalty apart, beside the
+true azimuth and elevation it holds and the CMVAE's bias, MAE and lag-1 autocorrelation of its theta error.
+Appends one row per episode to a CSV (docs/learner.md, "Where the 3d camera tracker's return goes").
+
+    MUJOCO_GL=egl python docs/eval_report/selection/3d/return_budget.py OUT.csv --tracker camera \
+        --checkpoint encoder_service/models/cmvae_vertical.pt --episodes 3 --seed 211
+"""
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from encoder_service.inference import LatentEncoder
+from learner_service.envs import make_env
+from learner_service.learn_settings import TrackerGains
+from learner_service.scripted import LatentTracker, ScriptedTracker
+from learner_service.task import REWARD_K, TaskSettings, swimm2_elevation_penalty
+from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+
+
+def play(env, encoder: LatentEncoder, tracker, steps: int) -> np.ndarray:
+    """(true d, azimuth, elevation, read d, theta, elevation) of every step of one episode."""
+    obs, info = env.reset()
+    rows = []
+    for _ in range(steps):
+        latent = np.asarray(obs, np.float32)[None, : encoder.n_z]
+        read_d, read_theta, _, read_elevation = (float(v[0]) for v in encoder.decode_state(latent))
+        rows.append((info["d"], info["azimuth"], info["elevation"], read_d, read_theta, read_elevation))
+        obs, _, terminated, truncated, info = env.step(tracker.act(obs, info))
+        if terminated or truncated:
+            break
+    return np.array(rows)
+
+
+def budget(rows: np.ndarray) -> dict[str, float]:
+    d, azimuth, elevation, read_d, read_theta, read_elevation = rows.T
+    pen_d = np.expm1(REWARD_K * np.minimum(abs(d - OPT_D), MAX_D)) / math.expm1(REWARD_K * MAX_D)
+    pen_theta = np.log1p(REWARD_K * np.minimum(abs(azimuth), ALPHA_DEG)) / math.log1p(REWARD_K * ALPHA_DEG)
+    pen_elevation = np.array([swimm2_elevation_penalty(abs(e)) for e in elevation])
+    theta_error = read_theta - azimuth
+    return {
+        "steps": len(rows),
+        "return": float((1 - pen_d - pen_theta - pen_elevation).sum()),
+        "distance_penalty": float(pen_d.sum()),
+        "azimuth_penalty": float(pen_theta.sum()),
+        "elevation_penalty": float(pen_elevation.sum()),
+        "mean_abs_azimuth_deg": float(abs(azimuth).mean()),
+        "mean_abs_elevation_deg": float(abs(elevation).mean()),
+        "mean_d_m": float(d.mean()),
+        "theta_read_bias_deg": float(theta_error.mean()),
+        "theta_read_mae_deg": float(abs(theta_error).mean()),
+        "theta_read_lag1_autocorr": float(np.corrcoef(theta_error[:-1], theta_error[1:])[0, 1]),
+        "d_read_bias_m": float((read_d - d).mean()),
+        "elevation_read_mae_deg": float(abs(read_elevation - elevation).mean()),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--tracker", choices=["camera", "ground-truth"], required=True)
+    parser.add_argument("--checkpoint", default="encoder_service/models/cmvae_vertical.pt")
+    parser.add_argument("--episodes", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--seed", type=int, default=211)
+    parser.add_argument("--surge-gain", type=float, default=0.5)
+    parser.add_argument("--heave-gain", type=float, default=TrackerGains.heave_gain)
+    parser.add_argument("--heave-dead-band", type=float, default=TrackerGains.heave_dead_band)
+    args = parser.parse_args()
+    encoder = LatentEncoder(args.checkpoint)
+    env = make_env("inprocess", TaskSettings(obs="cmvae", task="3d"), base_seed=args.seed, encoder=encoder)
+    gains = TrackerGains(surge_gain=args.surge_gain, heave_gain=args.heave_gain, heave_dead_band=args.heave_dead_band)
+    tracker = (
+        LatentTracker(encoder.decode_state, encoder.n_z, gains) if args.tracker == "camera" else ScriptedTracker(gains)
+    )
+    rows = []
+    try:
+        for episode in range(1, args.episodes + 1):
+            rows.append(
+                {
+                    "tracker": args.tracker,
+                    "checkpoint": Path(args.checkpoint).name,
+                    "seed": args.seed,
+                    "episode": episode,
+                    "surge_gain": args.surge_gain,
+                    "heave_gain": args.heave_gain,
+                    "heave_dead_band": args.heave_dead_band,
+                    **budget(play(env, encoder, tracker, args.steps)),
+                }
+            )
+            print({k: round(v, 3) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)
+    finally:
+        env.close()
+    table = pd.DataFrame(rows)
+    table.to_csv(args.out, mode="a", header=not args.out.is_file(), index=False)
+
+
+if __name__ == "__main__":
+    main()
