@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from shift_average import shifted
 
 from encoder_service.inference import LatentEncoder
 from learner_service.envs import make_env
@@ -23,17 +24,32 @@ from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
 from learner_service.task import REWARD_K, TaskSettings, swimm2_elevation_penalty
 from services.geometry import ALPHA_DEG, MAX_D, OPT_D
+from services.messages import IMAGE_SHAPE
 
 
-def play(env, encoder: LatentEncoder, tracker, steps: int) -> np.ndarray:
-    """(true d, azimuth, elevation, read d, theta, elevation) of every step of one episode."""
+def play(env, encoder: LatentEncoder, tracker, steps: int, shifts: tuple[int, ...] = ()) -> np.ndarray:
+    """(true d, azimuth, elevation, read d, theta, elevation) of every step of one episode. With ``shifts`` the
+    readings (and the camera tracker's commands) are the means over the frame read at those pixel shifts, each
+    theta corrected by its shift's angle (shift_average.py); without, the observation's latent."""
     obs, info = env.reset()
+    focal_px = IMAGE_SHAPE[1] / 2 / math.tan(math.radians(ALPHA_DEG))
     rows = []
     for _ in range(steps):
-        latent = np.asarray(obs, np.float32)[None, : encoder.n_z]
-        read_d, read_theta, _, read_elevation = (float(v[0]) for v in encoder.decode_state(latent))
+        if shifts:
+            frame = env.render()[None]
+            mu, _ = encoder.encode(np.concatenate([shifted(frame, pixels) for pixels in shifts]))
+            read_d, read_theta, _, read_elevation = encoder.decode_state(mu)
+            read_theta = read_theta + np.degrees(np.arctan(np.array(shifts) / focal_px))
+            read_d, read_theta, read_elevation = (float(v.mean()) for v in (read_d, read_theta, read_elevation))
+        else:
+            latent = np.asarray(obs, np.float32)[None, : encoder.n_z]
+            read_d, read_theta, _, read_elevation = (float(v[0]) for v in encoder.decode_state(latent))
         rows.append((info["d"], info["azimuth"], info["elevation"], read_d, read_theta, read_elevation))
-        obs, _, terminated, truncated, info = env.step(tracker.act(obs, info))
+        if shifts and isinstance(tracker, LatentTracker):
+            action = tracker.command(read_d, read_theta, obs, read_elevation)
+        else:
+            action = tracker.act(obs, info)
+        obs, _, terminated, truncated, info = env.step(action)
         if terminated or truncated:
             break
     return np.array(rows)
@@ -73,6 +89,7 @@ def main() -> None:
     parser.add_argument("--surge-gain", type=float, default=0.5)
     parser.add_argument("--heave-gain", type=float, default=TrackerGains.heave_gain)
     parser.add_argument("--heave-dead-band", type=float, default=TrackerGains.heave_dead_band)
+    parser.add_argument("--shifts", type=int, nargs="*", default=[], help="read each frame at these pixel shifts")
     args = parser.parse_args()
     encoder = LatentEncoder(args.checkpoint)
     env = make_env("inprocess", TaskSettings(obs="cmvae", task="3d"), base_seed=args.seed, encoder=encoder)
@@ -92,7 +109,8 @@ def main() -> None:
                     "surge_gain": args.surge_gain,
                     "heave_gain": args.heave_gain,
                     "heave_dead_band": args.heave_dead_band,
-                    **budget(play(env, encoder, tracker, args.steps)),
+                    "shifts": " ".join(map(str, args.shifts)),
+                    **budget(play(env, encoder, tracker, args.steps, tuple(args.shifts))),
                 }
             )
             print({k: round(v, 3) if isinstance(v, float) else v for k, v in rows[-1].items()}, flush=True)
