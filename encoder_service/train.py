@@ -58,6 +58,7 @@ from encoder_service.model import (
     pool_masks,
     read_checkpoint,
 )
+from services.geometry import ALPHA_DEG
 from services.lifecycle import sigterm_as_ctrl_c
 from services.results import provenance, write_result
 
@@ -80,6 +81,9 @@ class TrainEncoderSettings:
     resume: bool = False  # continue from <out>/last.pt
     init: str = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
     mirror: float = 0.5  # share of training frames flipped left-right (theta and psi change sign); 0 = off
+    # training frames moved sideways by up to this many pixels, as if the camera had turned (theta and psi turn
+    # with them): what a sub-pixel read near the image centre learns from; 0 = off
+    shift_pixels: int = 0
     psi_loss: Literal["mse", "l1"] = "mse"  # mse: the SPEC's; l1: psi's absolute error, least at the likelier view
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
     teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
@@ -177,6 +181,53 @@ def _mirrored(frames: np.ndarray | None, flip: np.ndarray) -> np.ndarray | None:
     return frames
 
 
+#: Label columns a sideways turn of the camera moves: the azimuth, and the target's heading against the rover's.
+TURNED_LABELS = (LABEL_NAMES.index("theta"), LABEL_NAMES.index("psi"))
+MAX_SHIFT_PIXELS = 16  # a quarter of the frame: beyond, an edge column would fill much of it
+
+
+def shift_batch(batch: Batch, pixels: np.ndarray) -> Batch:
+    """Move each frame ``pixels[i]`` columns to the right (left if negative), the edge column repeated, and turn
+    its labels as a camera turned by that much would see them.
+
+    A pinhole camera whose image moves right by s pixels has turned left: a target at azimuth theta (+ = left)
+    lies at column -f tan(theta) from the centre, so it now reads atan(tan(theta) - s / f), f the focal length in
+    pixels; its heading against the rover's (psi) turns by the same angle, and its distance and elevation keep
+    theirs. Near the centre a pixel is 1.5 degrees, and the reading the log-shaped azimuth penalty rewards is a
+    fraction of one: the shifts show the encoder each pose at other sub-pixel phases.
+    """
+    focal_px = batch.images.shape[2] / 2 / math.tan(math.radians(ALPHA_DEG))
+    labels = batch.labels.copy()
+    theta, psi = TURNED_LABELS
+    moved = np.flatnonzero(pixels)  # the others keep their labels to the bit
+    turned = np.degrees(np.arctan(np.tan(np.radians(labels[moved, theta])) - pixels[moved] / focal_px))
+    labels[moved, psi] = (labels[moved, psi] + turned - labels[moved, theta] + 180.0) % 360.0 - 180.0
+    labels[moved, theta] = turned
+    return Batch(
+        images=_shifted(batch.images, pixels),
+        labels=labels,
+        indices=batch.indices,
+        clean=_shifted(batch.clean, pixels),
+        masks=_shifted(batch.masks, pixels, fill_edge=False),
+        centred=batch.centred,
+    )
+
+
+def _shifted(frames: np.ndarray | None, pixels: np.ndarray, fill_edge: bool = True) -> np.ndarray | None:
+    """A copy of ``frames`` (N, H, W, ...) with row i moved ``pixels[i]`` columns right; the columns it uncovers
+    repeat the edge (``fill_edge``) or are zero (masks: no dolphin there). None stays None."""
+    if frames is None:
+        return None
+    out = frames.copy()
+    for row in np.flatnonzero(pixels):
+        shift = int(pixels[row])
+        uncovered = slice(0, shift) if shift > 0 else slice(shift, None)
+        edge = frames[row][:, :1] if shift > 0 else frames[row][:, -1:]
+        out[row] = np.roll(frames[row], shift, axis=1)
+        out[row][:, uncovered] = edge if fill_edge else 0
+    return out
+
+
 def inputs_and_targets(batch: Batch, feed_clean: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The frames the encoder reads and the frames the decoder must draw.
 
@@ -265,6 +316,7 @@ def _train_epoch(
     feeds = np.random.default_rng((settings.seed, epoch, 3))
     jitters = np.random.default_rng((settings.seed, epoch, 4))
     priors = np.random.default_rng((settings.seed, epoch, 5))
+    shifts = np.random.default_rng((settings.seed, epoch, 6))
     with tqdm(
         prefetch(batches),
         total=n_batches,
@@ -276,6 +328,9 @@ def _train_epoch(
         for batch in bar:
             if settings.mirror > 0:
                 batch = mirror_batch(batch, flips.random(len(batch.indices)) < settings.mirror)
+            if settings.shift_pixels > 0:
+                span = settings.shift_pixels
+                batch = shift_batch(batch, shifts.integers(-span, span + 1, len(batch.indices)))
             feed_clean = feeds.random(len(batch.indices)) < settings.clean_share
             loss = _loss(model, batch, feed_clean, settings, device, teacher, jitters, priors)
             optimiser.zero_grad(set_to_none=True)
@@ -534,6 +589,8 @@ def run(settings: TrainEncoderSettings) -> int:
     for flag, share in shares.items():
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
+    if not 0 <= settings.shift_pixels <= MAX_SHIFT_PIXELS:
+        raise ValueError(f"--shift-pixels must be 0 (off) to {MAX_SHIFT_PIXELS}, got {settings.shift_pixels}")
     if not (math.isfinite(settings.mask_weight) and settings.mask_weight >= 0):
         raise ValueError(f"--mask-weight must be a finite weight >= 0 (0 = no mask head), got {settings.mask_weight}")
     started = time.perf_counter()

@@ -27,6 +27,7 @@ from encoder_service.train import (
     mirror_batch,
     recalibrate_batch_norm,
     run,
+    shift_batch,
     validate,
 )
 
@@ -154,6 +155,53 @@ def test_a_mirrored_frame_is_the_frame_of_the_mirrored_pose() -> None:
             assert np.array_equal(mirror_batch(batch, np.array([False])).images, batch.images)
     finally:
         world.close()
+
+
+def test_a_shifted_frame_is_the_frame_of_a_camera_turned_by_its_angle() -> None:
+    """Moving a frame s pixels right and turning theta and psi by atan(tan(theta) - s / f) - theta gives what the
+    camera sees once the rover has turned left by that angle."""
+    from sim_service.world import World
+
+    world = World()
+    try:
+        rover = np.array([0.0, 0.0, -4.0])
+        theta, psi, d = 8.0, 60.0, 5.0
+        bearing = math.radians(theta)
+        target = rover + d * np.array([math.cos(bearing), math.sin(bearing), 0.0])
+        frame = world.place(rover, 0.0, target, math.radians(psi))[1]
+        batch = Batch(
+            images=np.stack([frame, frame]),
+            labels=np.array([[d, theta, psi, 5.0]] * 2, np.float32),
+            indices=np.arange(2),
+            masks=np.ones((2, 64, 64), bool),
+        )
+        shifted = shift_batch(batch, np.array([3, 0]))
+        focal_px = 32 / math.tan(math.radians(39.9758))  # half the 64-pixel width over tan(alpha)
+        turned = math.degrees(math.atan(math.tan(math.radians(theta)) - 3 / focal_px))
+        np.testing.assert_allclose(shifted.labels[0], [d, turned, psi + turned - theta, 5.0], atol=1e-4)
+        assert turned == pytest.approx(3.545, abs=0.005)  # by hand: atan(tan(8 deg) - 3 / 38.19), 1.5 deg a pixel
+        np.testing.assert_array_equal(shifted.labels[1], batch.labels[1])
+        np.testing.assert_array_equal(shifted.images[1], frame)
+        assert not shifted.masks[0][:, :3].any() and shifted.masks[0][:, 3:].all()  # no dolphin where none was drawn
+
+        # The turned camera's frame is nearest the frame moved by 3 pixels, of all moves from -5 to 5 (the water's
+        # shading turns with the camera too, so not equal to it).
+        truth = world.place(rover, math.radians(theta - turned), target, math.radians(psi))[1].astype(int)
+        errors = {
+            pixels: np.abs(shift_batch(batch, np.array([pixels, 0])).images[0].astype(int) - truth)[:, 5:-5].mean()
+            for pixels in range(-5, 6)
+        }
+        assert min(errors, key=errors.get) == 3 and errors[3] < 0.6 * errors[0], errors
+    finally:
+        world.close()
+
+
+def test_shifted_training_runs_and_a_shift_past_a_quarter_frame_is_refused(dataset_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "shifted"
+    assert run(_settings(dataset_dir, out, epochs=1, shift_pixels=3)) == 0
+    assert _summary(out)["settings"]["shift_pixels"] == 3
+    with pytest.raises(ValueError, match="--shift-pixels must be 0 \\(off\\) to 16, got 17"):
+        run(_settings(dataset_dir, tmp_path / "refused", shift_pixels=17))
 
 
 def test_batch_norm_statistics_are_re_estimated_at_the_final_weights(dataset_dir: Path) -> None:
