@@ -87,13 +87,21 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3000)
     parser.add_argument("--seed", type=int, default=211)
     parser.add_argument("--surge-gain", type=float, default=0.5)
+    parser.add_argument("--yaw-gain", type=float, default=TrackerGains.yaw_gain)
+    parser.add_argument("--yaw-damping", type=float, default=TrackerGains.yaw_damping)
     parser.add_argument("--heave-gain", type=float, default=TrackerGains.heave_gain)
     parser.add_argument("--heave-dead-band", type=float, default=TrackerGains.heave_dead_band)
     parser.add_argument("--shifts", type=int, nargs="*", default=[], help="read each frame at these pixel shifts")
     args = parser.parse_args()
     encoder = LatentEncoder(args.checkpoint)
     env = make_env("inprocess", TaskSettings(obs="cmvae", task="3d"), base_seed=args.seed, encoder=encoder)
-    gains = TrackerGains(surge_gain=args.surge_gain, heave_gain=args.heave_gain, heave_dead_band=args.heave_dead_band)
+    gains = TrackerGains(
+        surge_gain=args.surge_gain,
+        yaw_gain=args.yaw_gain,
+        yaw_damping=args.yaw_damping,
+        heave_gain=args.heave_gain,
+        heave_dead_band=args.heave_dead_band,
+    )
     tracker = (
         LatentTracker(encoder.decode_state, encoder.n_z, gains) if args.tracker == "camera" else ScriptedTracker(gains)
     )
@@ -107,6 +115,8 @@ def main() -> None:
                     "seed": args.seed,
                     "episode": episode,
                     "surge_gain": args.surge_gain,
+                    "yaw_gain": args.yaw_gain,
+                    "yaw_damping": args.yaw_damping,
                     "heave_gain": args.heave_gain,
                     "heave_dead_band": args.heave_dead_band,
                     "shifts": " ".join(map(str, args.shifts)),
