@@ -75,6 +75,7 @@ class FrameSource:
         self._read_timeout_s = read_timeout_s
         self._first_frame_deadline = time.monotonic() + first_frame_timeout_s
         self._seen_a_frame = False
+        self._closed = False
         self.capture = self._open()
         if not self.capture.isOpened():
             self.close()
@@ -123,13 +124,14 @@ class FrameSource:
             if ok:
                 self._seen_a_frame = True
                 return frame
-            if self._seen_a_frame or self.is_file or time.monotonic() >= self._first_frame_deadline:
+            if self._seen_a_frame or self.is_file or self._closed or time.monotonic() >= self._first_frame_deadline:
                 return None
             log.info("no frame from %s yet: opening it again to wait for the stream", self.source)
             self.capture.release()
             self.capture = self._open()
 
     def close(self) -> None:
+        self._closed = True  # a reader thread waiting for a first frame stops opening the source again
         self.capture.release()
         if self._sdp is not None:
             self._sdp.unlink(missing_ok=True)
