@@ -196,7 +196,7 @@ def shift_batch(batch: Batch, pixels: np.ndarray) -> Batch:
     theirs. Near the centre a pixel is 1.5 degrees, and the reading the log-shaped azimuth penalty rewards is a
     fraction of one: the shifts show the encoder each pose at other sub-pixel phases.
     """
-    focal_px = batch.images.shape[2] / 2 / math.tan(math.radians(ALPHA_DEG))
+    focal_px = focal_length_px(batch.images.shape[2])
     labels = batch.labels.copy()
     theta, psi = TURNED_LABELS
     moved = np.flatnonzero(pixels)  # the others keep their labels to the bit
@@ -204,16 +204,21 @@ def shift_batch(batch: Batch, pixels: np.ndarray) -> Batch:
     labels[moved, psi] = (labels[moved, psi] + turned - labels[moved, theta] + 180.0) % 360.0 - 180.0
     labels[moved, theta] = turned
     return Batch(
-        images=_shifted(batch.images, pixels),
+        images=shifted_frames(batch.images, pixels),
         labels=labels,
         indices=batch.indices,
-        clean=_shifted(batch.clean, pixels),
-        masks=_shifted(batch.masks, pixels, fill_edge=False),
+        clean=shifted_frames(batch.clean, pixels),
+        masks=shifted_frames(batch.masks, pixels, fill_edge=False),
         centred=batch.centred,
     )
 
 
-def _shifted(frames: np.ndarray | None, pixels: np.ndarray, fill_edge: bool = True) -> np.ndarray | None:
+def focal_length_px(width: int) -> float:
+    """The camera's horizontal focal length in pixels for frames ``width`` pixels wide."""
+    return width / 2 / math.tan(math.radians(ALPHA_DEG))
+
+
+def shifted_frames(frames: np.ndarray | None, pixels: np.ndarray, fill_edge: bool = True) -> np.ndarray | None:
     """A copy of ``frames`` (N, H, W, ...) with row i moved ``pixels[i]`` columns right; the columns it uncovers
     repeat the edge (``fill_edge``) or are zero (masks: no dolphin there). None stays None."""
     if frames is None:

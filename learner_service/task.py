@@ -95,8 +95,8 @@ class Frame:
     logvar: np.ndarray | None = None  # (n_z,) latent log-variance
 
 
-def swimm2_reward(d: float, theta: float, k: float = REWARD_K) -> float:
-    """SWiMM 2.0 reward in [-1, 1]: exponential distance penalty plus logarithmic azimuth penalty, each capped.
+def swimm2_penalties(d: float, theta: float, k: float = REWARD_K) -> tuple[float, float]:
+    """SWiMM 2.0's exponential distance penalty and logarithmic azimuth penalty, each capped, in [0, 1].
 
     ``theta`` is the unsigned azimuth error in degrees.
     """
@@ -104,6 +104,12 @@ def swimm2_reward(d: float, theta: float, k: float = REWARD_K) -> float:
     pen_d = math.expm1(k * e_d) / math.expm1(k * MAX_D)
     e_theta = min(theta, ALPHA_DEG)
     pen_theta = math.log1p(k * e_theta) / math.log1p(k * ALPHA_DEG)
+    return pen_d, pen_theta
+
+
+def swimm2_reward(d: float, theta: float, k: float = REWARD_K) -> float:
+    """SWiMM 2.0 reward in [-1, 1]: 1 less its two penalties (:func:`swimm2_penalties`)."""
+    pen_d, pen_theta = swimm2_penalties(d, theta, k)
     return 1.0 - (pen_d + pen_theta)
 
 

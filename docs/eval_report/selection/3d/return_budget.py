@@ -11,20 +11,17 @@ Appends one row per episode to a CSV (docs/learner.md, "Where the 3d camera trac
 """
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from shift_average import shifted
+from shift_average import shift_averaged_reading
 
 from encoder_service.inference import LatentEncoder
 from learner_service.envs import make_env
 from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
-from learner_service.task import REWARD_K, TaskSettings, swimm2_elevation_penalty
-from services.geometry import ALPHA_DEG, MAX_D, OPT_D
-from services.messages import IMAGE_SHAPE
+from learner_service.task import TaskSettings, swimm2_elevation_penalty, swimm2_penalties
 
 
 def play(env, encoder: LatentEncoder, tracker, steps: int, shifts: tuple[int, ...] = ()) -> np.ndarray:
@@ -32,15 +29,12 @@ def play(env, encoder: LatentEncoder, tracker, steps: int, shifts: tuple[int, ..
     readings (and the camera tracker's commands) are the means over the frame read at those pixel shifts, each
     theta corrected by its shift's angle (shift_average.py); without, the observation's latent."""
     obs, info = env.reset()
-    focal_px = IMAGE_SHAPE[1] / 2 / math.tan(math.radians(ALPHA_DEG))
     rows = []
     for _ in range(steps):
         if shifts:
-            frame = env.render()[None]
-            mu, _ = encoder.encode(np.concatenate([shifted(frame, pixels) for pixels in shifts]))
-            read_d, read_theta, _, read_elevation = encoder.decode_state(mu)
-            read_theta = read_theta + np.degrees(np.arctan(np.array(shifts) / focal_px))
-            read_d, read_theta, read_elevation = (float(v.mean()) for v in (read_d, read_theta, read_elevation))
+            read_d, read_theta, read_elevation = (
+                float(v[0]) for v in shift_averaged_reading(encoder, env.render()[None], shifts)
+            )
         else:
             latent = np.asarray(obs, np.float32)[None, : encoder.n_z]
             read_d, read_theta, _, read_elevation = (float(v[0]) for v in encoder.decode_state(latent))
@@ -57,8 +51,7 @@ def play(env, encoder: LatentEncoder, tracker, steps: int, shifts: tuple[int, ..
 
 def budget(rows: np.ndarray) -> dict[str, float]:
     d, azimuth, elevation, read_d, read_theta, read_elevation = rows.T
-    pen_d = np.expm1(REWARD_K * np.minimum(abs(d - OPT_D), MAX_D)) / math.expm1(REWARD_K * MAX_D)
-    pen_theta = np.log1p(REWARD_K * np.minimum(abs(azimuth), ALPHA_DEG)) / math.log1p(REWARD_K * ALPHA_DEG)
+    pen_d, pen_theta = np.array([swimm2_penalties(*step) for step in zip(d, abs(azimuth), strict=True)]).T
     pen_elevation = np.array([swimm2_elevation_penalty(abs(e)) for e in elevation])
     theta_error = read_theta - azimuth
     return {

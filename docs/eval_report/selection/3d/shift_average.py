@@ -5,17 +5,16 @@ shifted by -2 to 2 pixels (edges replicated); prints the MAE and bias of each sh
     MUJOCO_GL=egl python docs/eval_report/selection/3d/shift_average.py encoder_service/models/cmvae_vertical.pt
 """
 
-import math
 import sys
 
 import numpy as np
 
 from encoder_service.inference import LatentEncoder
+from encoder_service.train import focal_length_px, shifted_frames
 from learner_service.envs import make_env
 from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker
 from learner_service.task import TaskSettings
-from services.geometry import ALPHA_DEG
 
 SHIFTS = (-2, -1, 0, 1, 2)
 
@@ -36,28 +35,25 @@ def loop_frames(encoder: LatentEncoder, steps: int = 3000, every: int = 3) -> tu
     return np.stack(frames), np.array(azimuths)
 
 
-def shifted(frames: np.ndarray, pixels: int) -> np.ndarray:
-    """Frames moved ``pixels`` columns to the right (left if negative), the edge column repeated."""
-    out = np.roll(frames, pixels, axis=2)
-    if pixels > 0:
-        out[:, :, :pixels] = frames[:, :, :1]
-    elif pixels < 0:
-        out[:, :, pixels:] = frames[:, :, -1:]
-    return out
+def shift_averaged_reading(
+    encoder: LatentEncoder, frames: np.ndarray, shifts: tuple[int, ...]
+) -> tuple[np.ndarray, ...]:
+    """(d, theta, elevation) of each frame: the means over its readings at ``shifts`` pixels (edges repeated), each
+    theta corrected by its shift's angle (a dolphin moved right reads a smaller azimuth, + = left)."""
+    focal_px = focal_length_px(frames.shape[2])
+    moved = np.concatenate([shifted_frames(frames, np.full(len(frames), p)) for p in shifts])
+    read = np.stack(encoder.decode_state(encoder.encode(moved)[0]))  # one batch: (labels, shifts * frames)
+    d, theta, elevation = (read[column].reshape(len(shifts), len(frames)) for column in (0, 1, 3))
+    theta = theta + np.degrees(np.arctan(np.array(shifts) / focal_px))[:, None]
+    return d.mean(axis=0), theta.mean(axis=0), elevation.mean(axis=0)
 
 
 def main() -> None:
     encoder = LatentEncoder(sys.argv[1])
     frames, azimuths = loop_frames(encoder)
-    focal_px = frames.shape[2] / 2 / math.tan(math.radians(ALPHA_DEG))
-    reads = {}
-    for pixels in SHIFTS:
-        mu, _ = encoder.encode(shifted(frames, pixels))
-        # A dolphin moved right reads a smaller azimuth (+ = left): add the shift's angle back.
-        reads[pixels] = encoder.decode_state(mu)[1] + math.degrees(math.atan(pixels / focal_px))
     for name, shifts in [*((f"shift {p:+d}", (p,)) for p in SHIFTS), ("mean of -1..1", (-1, 0, 1)),
                          ("mean of -2..2", SHIFTS)]:  # fmt: skip
-        error = np.mean([reads[p] for p in shifts], axis=0) - azimuths
+        error = shift_averaged_reading(encoder, frames, shifts)[1] - azimuths
         print(f"{name}: theta MAE {abs(error).mean():.3f} deg, bias {error.mean():+.3f} ({len(error)} frames)")
 
 
