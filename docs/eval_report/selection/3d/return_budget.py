@@ -11,6 +11,7 @@ Appends one row per episode to a CSV (docs/learner.md, "Where the 3d camera trac
 """
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,9 +20,11 @@ from shift_average import shift_averaged_reading
 
 from encoder_service.inference import LatentEncoder
 from learner_service.envs import make_env
+from learner_service.inprocess_env import sim_config_world
 from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
 from learner_service.task import TaskSettings, swimm2_elevation_penalty, swimm2_penalties
+from sim_service.settings import WorldSettings
 
 
 def play(env, encoder: LatentEncoder, tracker, steps: int, shifts: tuple[int, ...] = ()) -> np.ndarray:
@@ -85,9 +88,14 @@ def main() -> None:
     parser.add_argument("--heave-gain", type=float, default=TrackerGains.heave_gain)
     parser.add_argument("--heave-dead-band", type=float, default=TrackerGains.heave_dead_band)
     parser.add_argument("--shifts", type=int, nargs="*", default=[], help="read each frame at these pixel shifts")
+    parser.add_argument("--sim-config", help="the world of a `swimm sim` settings file (default: the plain world)")
+    parser.add_argument("--render-scale", type=int, default=1, help="render this many times larger, then downsample")
     args = parser.parse_args()
     encoder = LatentEncoder(args.checkpoint)
-    env = make_env("inprocess", TaskSettings(obs="cmvae", task="3d"), base_seed=args.seed, encoder=encoder)
+    world = sim_config_world(args.sim_config) if args.sim_config else WorldSettings()
+    world = replace(world, render_scale=args.render_scale)
+    task = TaskSettings(obs="cmvae", task="3d")
+    env = make_env("inprocess", task, base_seed=args.seed, encoder=encoder, world=world)
     gains = TrackerGains(
         surge_gain=args.surge_gain,
         yaw_gain=args.yaw_gain,
@@ -113,6 +121,8 @@ def main() -> None:
                     "heave_gain": args.heave_gain,
                     "heave_dead_band": args.heave_dead_band,
                     "shifts": " ".join(map(str, args.shifts)),
+                    "sim_config": args.sim_config or "",
+                    "render_scale": args.render_scale,
                     **budget(play(env, encoder, tracker, args.steps, tuple(args.shifts))),
                 }
             )
