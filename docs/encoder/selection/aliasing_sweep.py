@@ -33,8 +33,8 @@ def sweep(encoder: LatentEncoder, scale: int, psi_deg: float) -> pd.DataFrame:
         for azimuth in np.round(np.arange(-3.0, 3.001, 0.1), 1):
             # the rover turned right by the azimuth sees the dolphin that far to its left (+)
             frame = world.place(ROVER, math.radians(-azimuth), target, math.radians(psi_deg))[1]
-            mu = encoder.encode(frame[None])[0][:, : encoder.n_z]
-            read = float(encoder.decode_state(np.asarray(mu, np.float32))[1][0])
+            mu, _ = encoder.encode(frame[None])
+            read = float(encoder.decode_state(mu)[1][0])
             rows.append({"render_scale": scale, "psi_deg": psi_deg, "azimuth_deg": azimuth, "read_theta_deg": read})
     finally:
         world.close()

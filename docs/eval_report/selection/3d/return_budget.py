@@ -89,11 +89,12 @@ def main() -> None:
     parser.add_argument("--heave-dead-band", type=float, default=TrackerGains.heave_dead_band)
     parser.add_argument("--shifts", type=int, nargs="*", default=[], help="read each frame at these pixel shifts")
     parser.add_argument("--sim-config", help="the world of a `swimm sim` settings file (default: the plain world)")
-    parser.add_argument("--render-scale", type=int, default=1, help="render this many times larger, then downsample")
+    parser.add_argument("--render-scale", type=int, help="render this many times larger, then downsample")
     args = parser.parse_args()
     encoder = LatentEncoder(args.checkpoint)
     world = sim_config_world(args.sim_config) if args.sim_config else WorldSettings()
-    world = replace(world, render_scale=args.render_scale)
+    if args.render_scale is not None:  # else the settings file's, so a file that sets it is not overridden
+        world = replace(world, render_scale=args.render_scale)
     task = TaskSettings(obs="cmvae", task="3d")
     env = make_env("inprocess", task, base_seed=args.seed, encoder=encoder, world=world)
     gains = TrackerGains(
@@ -122,7 +123,7 @@ def main() -> None:
                     "heave_dead_band": args.heave_dead_band,
                     "shifts": " ".join(map(str, args.shifts)),
                     "sim_config": args.sim_config or "",
-                    "render_scale": args.render_scale,
+                    "render_scale": world.render_scale,
                     **budget(play(env, encoder, tracker, args.steps, tuple(args.shifts))),
                 }
             )
@@ -130,7 +131,12 @@ def main() -> None:
     finally:
         env.close()
     table = pd.DataFrame(rows)
-    table.to_csv(args.out, mode="a", header=not args.out.is_file(), index=False)
+    out = args.out
+    if out.is_file() and list(pd.read_csv(out, nrows=0).columns) != list(table.columns):
+        # an older file's columns would misalign the appended rows: keep the episodes beside it instead
+        out = out.with_suffix(".new.csv")
+        print(f"{args.out} has other columns than these rows; writing them to {out}")
+    table.to_csv(out, mode="a", header=not out.is_file(), index=False)
 
 
 if __name__ == "__main__":
