@@ -27,7 +27,9 @@ also gets the Zenoh threads its setting asks for, which a process fixes when it 
 
 Before the ways, the scenery's cost (the ``plain_*``/``varied_*`` keys): the plain world and the varied one
 (sim_service/scenery.py) step in-process, one :data:`SCENERY_EPISODE_STEPS`-step episode each in turn, so the
-varied rate averages over many drawn scenes. Then what sharing one renderer is worth (the ``*_renderer*`` keys): a
+varied rate averages over many drawn scenes. Then what drawing anti-aliased costs (the ``render_scaled_*`` keys):
+the plain world drawn at :data:`ANTI_ALIASED_SCALE` times the image size and area-downsampled, against the same
+world drawn as always, in turn. Then what sharing one renderer is worth (the ``*_renderer*`` keys): a
 sim's group of :data:`SHARED_RENDERER_ENVS` Worlds stepped round-robin in-process, with a renderer each and with
 one shared, in turn.
 """
@@ -74,6 +76,7 @@ DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs
 LEARNER_START_S, LEARNER_S_PER_STEP = 120.0, 0.05
 SCENERY_EPISODE_STEPS = 100  # the scenery measurement's episode length: 20 scenes a world in 2000 steps
 SHARED_RENDERER_ENVS = 4  # the renderer measurement's group: a sim's share of 8 envs on two sims
+ANTI_ALIASED_SCALE = 2  # the render-scale measurement's: frames drawn at 128x128 and area-downsampled to 64x64
 
 
 @dataclass(frozen=True)
@@ -292,6 +295,20 @@ def measure_scenery(steps: int) -> dict:
     }
 
 
+def measure_render_scale(steps: int, scale: int = ANTI_ALIASED_SCALE) -> dict:
+    """In-process steps/s of the plain world drawn as always and drawn anti-aliased (``scale`` times larger, then
+    area-downsampled: ``WorldSettings.render_scale``), ``steps`` each, episode for episode in turn."""
+    with ExitStack() as stack:
+        worlds = {"point": [World()], "scaled": [World(WorldSettings(render_scale=scale))]}
+        point, scaled = alternate_groups(worlds, steps, stack)
+    return {
+        "render_scale": scale,
+        "render_point_steps_per_s": round(point, 1),
+        "render_scaled_steps_per_s": round(scaled, 1),
+        "render_scaled_over_point": round(scaled / point, 3),
+    }
+
+
 def measure_renderers(steps: int, envs: int = SHARED_RENDERER_ENVS) -> dict:
     """In-process steps/s of a sim's group of ``envs`` Worlds stepped one after another, each with a renderer of its
     own and all sharing one (one GL context, as `swimm sim` builds them), ``steps`` env steps each, in turn."""
@@ -332,7 +349,7 @@ def run(steps: int = 2000, rounds: int = ROUNDS, envs: int = 1) -> dict:
     scenery's cost: ``steps`` in-process steps of the plain world and of the varied one."""
     if envs < 1:
         raise ValueError(f"--envs must be at least 1, got {envs}")
-    result = measure_scenery(steps) | measure_renderers(steps)
+    result = measure_scenery(steps) | measure_render_scale(steps) | measure_renderers(steps)
     with tempfile.TemporaryDirectory(prefix="swimm-bench-") as tmp, ProcessGroup(Path(tmp)) as group:
         endpoint = group.start_router()
         for way in WAYS:

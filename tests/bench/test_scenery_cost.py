@@ -1,5 +1,5 @@
-"""`swimm bench sim`'s in-process keys: the plain and the varied world's rates; a group's with a renderer each and
-sharing one."""
+"""`swimm bench sim`'s in-process keys: the plain and the varied world's rates; the plain world drawn anti-aliased;
+a group's with a renderer each and sharing one."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from bench.sim import measure_renderers, measure_scenery
+from bench.sim import measure_render_scale, measure_renderers, measure_scenery
 
 
 def test_the_scenery_measurement_reports_both_rates_and_their_ratio() -> None:
@@ -26,4 +26,14 @@ def test_the_renderer_measurement_steps_every_world_of_both_groups() -> None:
         assert math.isfinite(result[key]) and result[key] > 0
     assert result["shared_over_own_renderers"] == pytest.approx(
         result["shared_renderer_steps_per_s"] / result["own_renderers_steps_per_s"], 1e-2
+    )
+
+
+def test_the_render_scale_measurement_reports_the_scaled_rate_against_the_point_sampled_one() -> None:
+    result = measure_render_scale(steps=200, scale=2)
+    assert result["render_scale"] == 2
+    for key in ("render_point_steps_per_s", "render_scaled_steps_per_s"):
+        assert math.isfinite(result[key]) and result[key] > 0
+    assert result["render_scaled_over_point"] == pytest.approx(
+        result["render_scaled_steps_per_s"] / result["render_point_steps_per_s"], 1e-2
     )
