@@ -43,7 +43,7 @@ import json
 import logging
 import math
 import multiprocessing
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +112,9 @@ class DatasetSettings:
     masks: bool = False  # also write which pixels show the dolphin, for the encoder's mask head (train --mask-weight)
     vertical: bool = False  # the target anywhere in the vertical field of view too, labelled with its elevation
     sight_share: float = 0.25  # pod datasets (--dolphin-pod-size > 1): samples with a companion hiding the target
+    #: The target's azimuth U[-max, max] degrees; below the camera's half field of view for frames near the image
+    #: centre, where a closed loop holds the dolphin and the azimuth read must be finest.
+    max_azimuth_deg: float = ALPHA_DEG
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
 
 
@@ -303,10 +306,19 @@ def write_dataset(
 def run(settings: DatasetSettings) -> int:
     write_dataset(
         settings.out, settings.count, settings.seed, settings.shard_size, settings.world,
-        ranges=VERTICAL_RANGES if settings.vertical else None, workers=settings.workers, paired=settings.paired,
+        ranges=sampling_ranges(settings), workers=settings.workers, paired=settings.paired,
         masks=settings.masks, sight_share=settings.sight_share,
     )  # fmt: skip
     return 0
+
+
+def sampling_ranges(settings: DatasetSettings) -> SamplingRanges:
+    """What a `swimm dataset` run draws: the planar or the vertical ranges, the azimuth within its maximum."""
+    if not 0.0 < settings.max_azimuth_deg <= ALPHA_DEG:
+        raise ValueError(f"--max-azimuth-deg must be above 0 and at most the camera's half field of view "
+                         f"{ALPHA_DEG:g}: got {settings.max_azimuth_deg:g}")  # fmt: skip
+    ranges = VERTICAL_RANGES if settings.vertical else SamplingRanges()
+    return replace(ranges, azimuth_deg=settings.max_azimuth_deg)
 
 
 def _check_pod(settings: WorldSettings, sight_share: float) -> None:

@@ -236,3 +236,24 @@ def test_a_bad_pod_is_refused_naming_the_flag_before_anything_is_written(tmp_pat
     assert main(["dataset", "--out", str(tmp_path / "pod"), "--count", "2", *flags]) == 1
     assert f"dataset failed: {message}" in capsys.readouterr().err  # the CLI logs the error, not a traceback
     assert not (tmp_path / "pod").exists()
+
+
+def test_a_dataset_near_the_image_centre_draws_the_same_samples_within_its_azimuth(tmp_path):
+    common = ["--count", "24", "--seed", "3", "--vertical"]
+    assert main(["dataset", "--out", str(tmp_path / "wide"), *common]) == 0
+    assert main(["dataset", "--out", str(tmp_path / "centre"), *common, "--max-azimuth-deg", "5"]) == 0
+    wide_meta, wide = load(tmp_path / "wide")
+    meta, centre = load(tmp_path / "centre")
+    assert wide_meta["ranges"]["azimuth_deg"] == pytest.approx(ALPHA_DEG) and meta["ranges"]["azimuth_deg"] == 5.0
+    theta = centre["labels"][:, 1]
+    assert np.abs(theta).max() <= 5.0 + 1e-3 and np.abs(wide["labels"][:, 1]).max() > 5.0
+    # The same draws otherwise: each sample's azimuth is the wide one's scaled to the narrower range.
+    assert np.allclose(theta, wide["labels"][:, 1] * 5.0 / ALPHA_DEG, atol=0.05)
+    assert np.allclose(centre["labels"][:, [0, 3]], wide["labels"][:, [0, 3]], atol=1e-3)
+
+
+@pytest.mark.parametrize("value", ["0", "-3", "50"])
+def test_an_azimuth_range_outside_the_field_of_view_is_refused_by_name(tmp_path, capsys, value):
+    assert main(["dataset", "--out", str(tmp_path / "bad"), "--count", "2", "--max-azimuth-deg", value]) == 1
+    assert "dataset failed: --max-azimuth-deg must be above 0 and at most" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
