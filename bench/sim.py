@@ -27,7 +27,7 @@ also gets the Zenoh threads its setting asks for, which a process fixes when it 
 
 Before the ways, the scenery's cost (the ``plain_*``/``varied_*`` keys): the plain world and the varied one
 (sim_service/scenery.py) step in-process, one :data:`SCENERY_EPISODE_STEPS`-step episode each in turn, so the
-varied rate averages over many drawn scenes. Then what drawing anti-aliased costs (the ``render_scaled_*`` keys):
+varied rate averages over many drawn scenes. Then what drawing anti-aliased costs (the ``render_*`` keys):
 the plain world drawn at :data:`ANTI_ALIASED_SCALE` times the image size and area-downsampled, against the same
 world drawn as always, in turn. Then what sharing one renderer is worth (the ``*_renderer*`` keys): a
 sim's group of :data:`SHARED_RENDERER_ENVS` Worlds stepped round-robin in-process, with a renderer each and with
