@@ -33,16 +33,17 @@ from services.messages import IMAGE_SHAPE
 
 log = logging.getLogger(__name__)
 
-#: (frames, priors) -> (mu, logvar); a model that does not track is run on the frames alone.
-Encoder = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+#: (frames, priors) -> (mu, logvar), and a tracking model's next priors (:class:`PriorReader`) after them; a model
+#: that does not track is run on the frames alone.
+Encoder = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]]
 
 
 def _inputs(model: CMVAE, device: torch.device | str) -> tuple[torch.nn.Module, tuple[torch.Tensor, ...], list[str]]:
     """The module an engine runs for ``model``'s encoder, an example input and the inputs' names: a tracking
-    encoder reads each frame's prior too (:class:`PriorReader`)."""
+    encoder reads each frame's prior too, and gives the next (:class:`PriorReader`)."""
     example = images_to_tensor(np.zeros((1, *IMAGE_SHAPE), dtype=np.uint8), device)
     if model.tracks:
-        return PriorReader(model.encoder), (example, torch.zeros(1, device=device)), ["images", "prior"]
+        return PriorReader(model), (example, torch.zeros(1, device=device)), ["images", "prior"]
     return model.encoder, (example,), ["images"]
 
 
@@ -70,21 +71,21 @@ def _onnx_runtime(model: CMVAE, threads: int | None) -> Encoder:
     except ImportError as exc:
         raise ValueError("the onnx engine needs onnxruntime: pip install 'swimm[export]'") from exc
     encoder, example, names = _inputs(model.cpu(), "cpu")
+    outputs = ["mu", "logvar", "next_prior"] if model.tracks else ["mu", "logvar"]
     graph = io.BytesIO()
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")  # torch's notes on its TorchScript-based exporter
-        batch_axis = {name: {0: "batch"} for name in (*names, "mu", "logvar")}
-        torch.onnx.export(encoder, example, graph, input_names=names, output_names=["mu", "logvar"],
+        batch_axis = {name: {0: "batch"} for name in (*names, *outputs)}
+        torch.onnx.export(encoder, example, graph, input_names=names, output_names=outputs,
                           dynamic_axes=batch_axis, dynamo=False)  # fmt: skip
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = threads or 1
     options.inter_op_num_threads = 1
     session = onnxruntime.InferenceSession(graph.getvalue(), options, providers=["CPUExecutionProvider"])
 
-    def encode(images: torch.Tensor, prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def encode(images: torch.Tensor, prior: torch.Tensor) -> tuple[torch.Tensor, ...]:
         feeds = {"images": np.ascontiguousarray(images.numpy()), "prior": np.ascontiguousarray(prior.numpy())}
-        mu, logvar = session.run(None, {name: feeds[name] for name in names})
-        return torch.from_numpy(mu), torch.from_numpy(logvar)
+        return tuple(torch.from_numpy(output) for output in session.run(None, {name: feeds[name] for name in names}))
 
     return encode
 
@@ -133,11 +134,25 @@ class LatentEncoder:
         if images.ndim != 4 or images.shape[1:] != IMAGE_SHAPE or images.shape[0] == 0:
             raise ValueError(f"images must be shaped (N>0, {', '.join(map(str, IMAGE_SHAPE))}), got {images.shape}")
 
-    @torch.inference_mode()
     def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(mu, logvar) for a batch of RGB frames; a tracking model reads each frame's prior (N,), the azimuth in
-        degrees where its target was last seen (:meth:`next_priors`), the image centre where None (the engagement
-        rule: the target is the dolphin the camera is centred on). A model that does not track ignores them."""
+        degrees where its target was last seen (:meth:`track` gives the next), the image centre where None (the
+        engagement rule: the target is the dolphin the camera is centred on). A model that does not track ignores
+        them."""
+        mu, logvar, *_ = self._run(images, priors)
+        return mu, logvar
+
+    def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A tracking model's (mu, logvar) as :meth:`encode` gives them, and each env's next prior (N,) degrees: the
+        azimuth its latent decodes to, or its own prior where the encoder does not see its target
+        (:class:`encoder_service.model.PriorReader`)."""
+        if not self.tracks:
+            raise ValueError(f"CMVAE {self.checkpoint} does not track (no prior to hand on): call encode()")
+        mu, logvar, next_priors = self._run(images, priors)
+        return mu, logvar, next_priors
+
+    @torch.inference_mode()
+    def _run(self, images: np.ndarray, priors: np.ndarray | None) -> tuple[np.ndarray, ...]:
         self.check_images(images)
         if priors is None:
             priors = np.zeros(len(images), dtype=np.float32)
@@ -145,17 +160,13 @@ class LatentEncoder:
         if priors.shape != (len(images),) or not np.isfinite(priors).all():
             raise ValueError(f"priors must be {len(images)} finite azimuths in degrees, one per frame, got {priors!r}")
         prior = torch.from_numpy(priors).to(self.device)
-        mu, logvar = self._encoder(images_to_tensor(images, self.device), prior)
-        return mu.float().cpu().numpy(), logvar.float().cpu().numpy()
+        outputs = self._encoder(images_to_tensor(images, self.device), prior)
+        return tuple(output.float().cpu().numpy() for output in outputs)
 
     @property
     def tracks(self) -> bool:
         """Whether the model reads a prior beside each frame (trained with ``swimm train-encoder --track``)."""
         return self._model.tracks
-
-    def next_priors(self, mu: np.ndarray) -> np.ndarray:
-        """The priors (N,) of each env's next frame: the azimuths, degrees, its latents ``mu`` decode to."""
-        return np.asarray(self.decode_state(mu)[self.labels.index("theta")], dtype=np.float32)
 
     @property
     def labels(self) -> tuple[str, ...]:

@@ -232,8 +232,12 @@ class EncoderService(Service):
         observed = [obs for group in groups for obs in group.observations if isinstance(obs, ObservationMsg)]
         if observed:
             priors = [0.0 if obs.prior is None else obs.prior for obs in observed]  # None: the image centre
-            mu, logvar = self.encoder.encode(np.stack([obs.image for obs in observed]), np.asarray(priors))
-            next_priors = self.encoder.next_priors(mu).tolist() if self.encoder.tracks else [None] * len(observed)
+            images = np.stack([obs.image for obs in observed])
+            if self.encoder.tracks:
+                mu, logvar, held = self.encoder.track(images, np.asarray(priors))
+                next_priors = held.tolist()
+            else:
+                (mu, logvar), next_priors = self.encoder.encode(images), [None] * len(observed)
             self.metrics.record_batch(len(observed))
         rows = iter(range(len(observed)))
         for group in groups:

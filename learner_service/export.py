@@ -10,7 +10,8 @@ keeps the only state there is:
                              seen, zeros at an episode's start
     outputs  action          float32 (N, 2): (surge, yaw) in [-1, 1]
              next_history    float32 (N, 20): action_history with the action appended (feed it back next frame)
-             next_prior      float32 (N,): a tracking CMVAE's only: the azimuth the latent decodes to (feed it back)
+             next_prior      float32 (N,): a tracking CMVAE's only: the azimuth the latent decodes to, or the prior
+                             where the CMVAE does not see its target (feed it back)
 
 The rest of the contract (sizes, colour order, normalisation, control rate, action names, where it came from) is in
 the model's metadata (``metadata_props``), which `verify` and a pilot read. Before the file is kept it is checked
@@ -73,9 +74,7 @@ class CameraToAction(torch.nn.Module):
     def __init__(self, cmvae: CMVAE, policy: Any, history_size: int) -> None:
         super().__init__()
         self.tracks = cmvae.tracks
-        self.encoder = PriorReader(cmvae.encoder) if self.tracks else cmvae.encoder
-        self.theta = cmvae.labels.index("theta")  # the latent and state decoder LatentEncoder.next_priors reads
-        self.decoder = cmvae.state_decoders[self.theta]
+        self.encoder = PriorReader(cmvae) if self.tracks else cmvae.encoder
         self.policy = policy
         self.history_size = history_size
         low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (policy.action_space.low,
@@ -99,21 +98,15 @@ class CameraToAction(torch.nn.Module):
     def forward(self, frame: torch.Tensor, action_history: torch.Tensor,
                 prior: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:  # fmt: skip
         images = frame.permute(0, 3, 1, 2).float() / 127.5 - 1.0  # encoder_service.model.images_to_tensor
-        mu, _ = self.encoder(images) if prior is None else self.encoder(images, prior)
+        # a tracking CMVAE's PriorReader gives the next prior after (mu, logvar): none without a prior
+        mu, _, *next_prior = self.encoder(images) if prior is None else self.encoder(images, prior)
         actions = deterministic_action(self.policy, torch.cat([mu, action_history], dim=1))
         # What BasePolicy.predict does after the network: back from the squashed [-1, 1] or clip to the bounds.
         if self.policy.squash_output:
             actions = self.low + 0.5 * (actions + 1.0) * (self.high - self.low)
         action = torch.minimum(torch.maximum(actions, self.low), self.high)
         next_history = torch.cat([action_history[:, action.shape[1] :], action], dim=1)
-        if prior is None:
-            return action, next_history
-        return action, next_history, self.azimuth(mu)
-
-    def azimuth(self, mu: torch.Tensor) -> torch.Tensor:
-        """(N,) degrees the latents decode to, as ``LatentEncoder.next_priors`` (denormalise_labels) gives them."""
-        low, high = LABEL_RANGES["theta"]
-        return (self.decoder(mu[:, self.theta : self.theta + 1])[:, 0] + 1.0) * (0.5 * (high - low)) + low
+        return action, next_history, *next_prior
 
 
 #: How the vehicle holds or changes depth under each task's actions (`swimm pilot` flies heave in ALT_HOLD only).
@@ -139,7 +132,7 @@ def contract(
             "float32 (N,): degrees (+ = left) where the CMVAE's target was last seen, zeros at an "
             "episode's start (the image centre: the target is the dolphin the camera is centred on)"
         )
-        outputs["next_prior"] = "the next prior: the azimuth the latent decodes to"
+        outputs["next_prior"] = "the next prior: where the latent says the target is, the prior while it is unseen"
     return {
         "swimm.contract": json.dumps(
             {
@@ -160,7 +153,7 @@ def contract(
 
 def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: int, seed: int) -> dict[str, np.ndarray]:
     """Play the model deterministically in-process for ``frames`` steps: every frame, its prior (zeros for a CMVAE
-    that does not track) and the azimuth its latent decodes to, ActPrev and the chosen action."""
+    that does not track) and the next prior the encoder gives, ActPrev and the chosen action."""
     from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only
 
     seen: list[tuple[np.ndarray, np.float32, np.float32]] = []
@@ -168,9 +161,13 @@ def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: i
     class Recording(LatentEncoder):
         def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
             mu, logvar = super().encode(images, priors)
-            prior = np.float32(0.0 if priors is None else priors[0])
-            seen.append((images[0].copy(), prior, self.next_priors(mu)[0]))
+            seen.append((images[0].copy(), np.float32(0.0), np.float32(0.0)))  # a CMVAE that does not track
             return mu, logvar
+
+        def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+            mu, logvar, next_priors = super().track(images, priors)
+            seen.append((images[0].copy(), np.float32(0.0 if priors is None else priors[0]), next_priors[0]))
+            return mu, logvar, next_priors
 
     env = TrackingEnv(task.settings, base_seed=seed, encoder=Recording(encoder_path))
     histories, actions = [], []

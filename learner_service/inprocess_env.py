@@ -65,8 +65,8 @@ class TrackingEnv(gym.Env):
 
     ``encoder`` is any object with ``encode(images uint8 (N, 64, 64, 3)) -> (mu, logvar)``; in cmvae mode without
     one, the default :class:`encoder_service.inference.LatentEncoder` checkpoint is loaded at the first reset. One
-    that ``tracks`` reads each frame's prior too, as the distributed loop hands it: the azimuth its previous latent
-    decoded to (``next_priors``), the image centre at an episode's first frame.
+    that ``tracks`` reads each frame's prior too (``track(images, priors) -> (mu, logvar, next priors)``), as the
+    distributed loop hands it: the next prior its previous frame gave, the image centre at an episode's first frame.
 
     ``share_renderer_with`` draws through another env's renderer (one GL context for envs stepped one after
     another, as a sim's are: see :class:`sim_service.world.World`).
@@ -156,8 +156,8 @@ class TrackingEnv(gym.Env):
         if not getattr(self.encoder, "tracks", False):
             mu, logvar = self.encoder.encode(image[None])
         else:
-            mu, logvar = self.encoder.encode(image[None], np.array([self._prior], dtype=np.float32))
-            self._prior = float(self.encoder.next_priors(mu)[0])
+            mu, logvar, next_prior = self.encoder.track(image[None], np.array([self._prior], dtype=np.float32))
+            self._prior = float(next_prior[0])
         return Frame(telemetry, image=image, mu=mu[0], logvar=logvar[0])
 
     def close(self) -> None:

@@ -152,9 +152,9 @@ def test_a_tracking_encoder_reads_each_frames_prior_and_answers_the_next(
     by_seq = {msg.seq: msg for msg in feeder.take_latents(len(priors))}
     reference = LatentEncoder(tracking_checkpoint, threads=1)
     for seq, prior in enumerate(priors):
-        expected, _ = reference.encode(image[None], [prior or 0.0])
+        expected, _, next_prior = reference.track(image[None], [prior or 0.0])
         np.testing.assert_allclose(by_seq[seq].mu, expected[0], rtol=1e-4, atol=1e-4)
-        assert by_seq[seq].next_prior == pytest.approx(reference.next_priors(expected)[0], abs=1e-3)
+        assert by_seq[seq].next_prior == pytest.approx(next_prior[0], abs=1e-3)
     assert not np.allclose(by_seq[2].mu, by_seq[1].mu, atol=1e-3)  # the prior changed what it described
 
 
