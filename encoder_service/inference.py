@@ -144,8 +144,7 @@ class LatentEncoder:
 
     def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A tracking model's (mu, logvar) as :meth:`encode` gives them, and each env's next prior (N,) degrees: the
-        azimuth its latent decodes to, or its own prior where the encoder does not see its target
-        (:class:`encoder_service.model.PriorReader`)."""
+        azimuth its latent decodes to (:class:`encoder_service.model.PriorReader`)."""
         if not self.tracks:
             raise ValueError(f"CMVAE {self.checkpoint} does not track (no prior to hand on): call encode()")
         mu, logvar, next_priors = self._run(images, priors)

@@ -234,20 +234,13 @@ ENGAGEMENT_SHARE = 0.2
 EVALUATION_PRIORS_SEED = 0
 
 
-#: A locator cell whose logit is above this holds the target. A tracking encoder whose locator finds no such cell
-#: does not see its target (hidden behind a companion, or out of view), and keeps the prior it was given.
-SEEN_LOGIT = 0.0
-
-
 class PriorReader(nn.Module):
     """A tracking CMVAE as the inference engines run it: (frames (N, 3, H, W), priors (N,) degrees) ->
     (mu, logvar, next priors (N,) degrees); the stripe is drawn inside, so the ONNX file takes the prior as the
     azimuth it is.
 
-    The next prior is the azimuth the latent decodes to, except where the encoder's locator finds no cell of its
-    target: there it is the frame's own prior, so a companion that swims in front of the target, which the latent
-    then describes, does not take the target's place once it has passed (docs/encoder.md, pods). An encoder
-    without a locator always hands on its reading.
+    The next prior is the azimuth the latent decodes to, computed here so that the engines and the exported policy
+    file give it alike.
     """
 
     def __init__(self, cmvae: CMVAE) -> None:
@@ -257,12 +250,9 @@ class PriorReader(nn.Module):
         self.decoder = cmvae.state_decoders[self.theta]
 
     def forward(self, images: torch.Tensor, prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        mu, logvar, _, where = self.encoder.with_feature_map(with_prior(images, prior))
+        mu, logvar = self.encoder(with_prior(images, prior))
         low, high = LABEL_RANGES["theta"]  # denormalise_labels, in torch for the engines' graphs
-        azimuth = (self.decoder(mu[:, self.theta : self.theta + 1])[:, 0] + 1.0) * (0.5 * (high - low)) + low
-        if where is not None:
-            azimuth = torch.where(where.flatten(1).amax(dim=1) > SEEN_LOGIT, azimuth, prior.to(azimuth.dtype))
-        return mu, logvar, azimuth
+        return mu, logvar, (self.decoder(mu[:, self.theta : self.theta + 1])[:, 0] + 1.0) * (0.5 * (high - low)) + low
 
 
 def jittered_priors(azimuth_deg: np.ndarray, rng: np.random.Generator) -> np.ndarray:

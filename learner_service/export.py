@@ -10,8 +10,7 @@ keeps the only state there is:
                              seen, zeros at an episode's start
     outputs  action          float32 (N, 2): (surge, yaw) in [-1, 1]
              next_history    float32 (N, 20): action_history with the action appended (feed it back next frame)
-             next_prior      float32 (N,): a tracking CMVAE's only: the azimuth the latent decodes to, or the prior
-                             where the CMVAE does not see its target (feed it back)
+             next_prior      float32 (N,): a tracking CMVAE's only: the azimuth the latent decodes to (feed it back)
 
 The rest of the contract (sizes, colour order, normalisation, control rate, action names, where it came from) is in
 the model's metadata (``metadata_props``), which `verify` and a pilot read. Before the file is kept it is checked
@@ -132,7 +131,7 @@ def contract(
             "float32 (N,): degrees (+ = left) where the CMVAE's target was last seen, zeros at an "
             "episode's start (the image centre: the target is the dolphin the camera is centred on)"
         )
-        outputs["next_prior"] = "the next prior: where the latent says the target is, the prior while it is unseen"
+        outputs["next_prior"] = "the next prior: the azimuth the latent decodes to"
     return {
         "swimm.contract": json.dumps(
             {

@@ -1,10 +1,11 @@
-"""Whether a locating tracking CMVAE says when its target is hidden: its next prior held where the target shows
-no pixel, handed on where it shows.
+"""Does a locating tracking CMVAE's locator tell a target hidden behind a companion from one in view?
 
 Every frame of a pod dataset with masks (the target's pixels only, so an empty mask is a target hidden behind a
 companion) is read with the target's true azimuth as its prior, the prior of a loop that has kept its target.
-Prints, for hidden and for visible targets, the share of frames whose next prior the encoder held, and the theta
-error where it handed one on; writes every frame's reading to a CSV (docs/encoder.md, pods).
+Prints, for hidden and for visible targets, the quantiles of the locator's peak logit and of its summed cell
+probabilities, and how well each separates the two (ROC AUC: 0.5 is no better than chance); writes every frame's
+values to a CSV (docs/encoder.md, pods). If the locator told them apart, the loop could keep its last prior while
+the target is hidden.
 
     MUJOCO_GL=egl python docs/encoder/selection/hidden_target.py OUT.csv --dataset data/pod4-test \
         --checkpoint runs/track/e/best.pt
@@ -15,25 +16,39 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import torch
 
 from encoder_service.data import CMVAEDataset
-from encoder_service.inference import LatentEncoder
+from encoder_service.model import images_to_tensor, load_model, with_prior
 
-CHUNK = 256
+CHUNK = 250
+SCORES = ("peak_logit", "summed_probability")
 
 
-def readings(dataset: CMVAEDataset, encoder: LatentEncoder, count: int) -> pd.DataFrame:
-    rows = []
-    for start in range(0, count, CHUNK):
-        batch = dataset.read(np.arange(start, min(start + CHUNK, count)))
-        priors = batch.labels[:, 1].astype(np.float32)
-        _, _, next_priors = encoder.track(batch.images, priors)
-        for index, label, mask, prior, following in zip(batch.indices, batch.labels, batch.masks, priors,
-                                                        next_priors, strict=True):  # fmt: skip
-            rows.append({"row": int(index), "d_m": float(label[0]), "theta_deg": float(prior),
-                         "target_pixels": int(mask.sum()), "held": bool(following == prior),
-                         "next_prior_deg": float(following)})  # fmt: skip
-    return pd.DataFrame(rows)
+def locator_scores(dataset: CMVAEDataset, checkpoint: str) -> pd.DataFrame:
+    model, _ = load_model(checkpoint, "cpu")
+    if not (model.tracks and model.locates):
+        raise SystemExit(f"{checkpoint} is not a locating tracking CMVAE (swimm train-encoder --track --locate)")
+    parts = []
+    for start in range(0, len(dataset), CHUNK):
+        batch = dataset.read(np.arange(start, min(start + CHUNK, len(dataset))))
+        priors = torch.from_numpy(batch.labels[:, 1])
+        with torch.inference_mode():
+            cells = model.encoder.with_feature_map(with_prior(images_to_tensor(batch.images, "cpu"), priors))[3]
+        cells = cells.flatten(1)
+        parts.append(pd.DataFrame({
+            "row": batch.indices, "d_m": batch.labels[:, 0], "theta_deg": batch.labels[:, 1],
+            "target_pixels": batch.masks.reshape(len(batch.masks), -1).sum(axis=1),
+            "peak_logit": cells.amax(dim=1).numpy(), "summed_probability": torch.sigmoid(cells).sum(dim=1).numpy(),
+        }))  # fmt: skip
+    return pd.concat(parts, ignore_index=True)
+
+
+def auc(score: pd.Series, positive: pd.Series) -> float:
+    """The probability that a positive frame scores above a negative one (ties half), from the ranks."""
+    ranks = score.rank()
+    positives, negatives = int(positive.sum()), int((~positive).sum())
+    return float((ranks[positive].sum() - positives * (positives + 1) / 2) / (positives * negatives))
 
 
 def main() -> None:
@@ -41,21 +56,19 @@ def main() -> None:
     parser.add_argument("out", type=Path)
     parser.add_argument("--dataset", type=Path, required=True)
     parser.add_argument("--checkpoint", required=True)
-    parser.add_argument("--count", type=int, default=0, help="the first rows only (0: all)")
     args = parser.parse_args()
     dataset = CMVAEDataset(args.dataset)
     if not dataset.has_masks:
         raise SystemExit(f"{args.dataset} holds no masks: write it with `swimm dataset --masks`")
-    encoder = LatentEncoder(args.checkpoint)
-    frames = readings(dataset, encoder, min(args.count or len(dataset), len(dataset)))
+    frames = locator_scores(dataset, args.checkpoint)
     frames.to_csv(args.out, index=False)
-    hidden = frames.target_pixels == 0
-    for name, chosen in (("hidden", hidden), ("visible", ~hidden)):
-        part = frames[chosen]
-        handed = part[~part.held]
-        error = (handed.next_prior_deg - handed.theta_deg).abs()
-        print(f"{name}: {len(part)} frames, next prior held in {part.held.mean():.3f}; where handed on, theta MAE "
-              f"{error.mean():.2f} deg, median {error.median():.2f}")  # fmt: skip
+    visible = frames.target_pixels > 0
+    for score in SCORES:
+        quantiles = {name: frames[score][chosen].quantile([0.1, 0.5, 0.9]).round(2).tolist()
+                     for name, chosen in (("hidden", ~visible), ("visible", visible))}  # fmt: skip
+        print(f"{score}: 10/50/90% hidden {quantiles['hidden']}, visible {quantiles['visible']}; "
+              f"AUC visible over hidden {auc(frames[score], visible):.3f}")  # fmt: skip
+    print(f"{int((~visible).sum())} hidden and {int(visible.sum())} visible targets")
 
 
 if __name__ == "__main__":
