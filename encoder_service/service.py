@@ -234,8 +234,8 @@ class EncoderService(Service):
             priors = [0.0 if obs.prior is None else obs.prior for obs in observed]  # None: the image centre
             images = np.stack([obs.image for obs in observed])
             if self.encoder.tracks:
-                mu, logvar, held = self.encoder.track(images, np.asarray(priors))
-                next_priors = held.tolist()
+                mu, logvar, azimuths = self.encoder.track(images, np.asarray(priors))
+                next_priors = azimuths.tolist()
             else:
                 (mu, logvar), next_priors = self.encoder.encode(images), [None] * len(observed)
             self.metrics.record_batch(len(observed))
