@@ -34,7 +34,7 @@ def locator_scores(dataset: CMVAEDataset, checkpoint: str) -> pd.DataFrame:
         batch = dataset.read(np.arange(start, min(start + CHUNK, len(dataset))))
         priors = torch.from_numpy(batch.labels[:, 1])
         with torch.inference_mode():
-            cells = model.encoder.with_feature_map(with_prior(images_to_tensor(batch.images, "cpu"), priors))[3]
+            cells = model.encode_with_mask(with_prior(images_to_tensor(batch.images, "cpu"), priors))[2]
         cells = cells.flatten(1)
         parts.append(pd.DataFrame({
             "row": batch.indices, "d_m": batch.labels[:, 0], "theta_deg": batch.labels[:, 1],
