@@ -34,7 +34,7 @@ from learner_service.envs import BACKENDS, shared_encoder
 from learner_service.evaluation import Contender, play_episodes
 from learner_service.export import SHIPPED_POLICY
 from learner_service.identity import encoder_for
-from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TaskName, TrackerGains
+from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TaskName, TrackerGains, check_sim_config
 from learner_service.metrics import IDENTITY_COLUMNS, summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings, episode_seed
@@ -71,6 +71,7 @@ class EvaluationSettings:
     backend: Backend = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
     # --dolphin-pod-size, --dolphin-pod-crossing: the in-process world's pod (a live sim's is its own, same flags).
     pod: PodSettings = field(default_factory=PodSettings, metadata={"stem": "dolphin_pod"})
+    sim_config: str = ""  # in-process: the world of a `swimm sim` settings file (noise, scenery, render scale, pod)
     trajectory_episode: int = 1  # the episode drawn from above
     attach_timeout_s: float = 10.0  # how long to wait for a sim's eval env to answer
     step_timeout_s: float = 2.0
@@ -96,6 +97,10 @@ def check_evaluation(settings: EvaluationSettings) -> None:
     settings.pod.check()
     if settings.backend == "zenoh" and settings.pod != PodSettings():
         raise ValueError("--dolphin-pod-* build the in-process world's pod: start the live sim with them instead")
+    if settings.backend == "zenoh" and settings.sim_config:
+        raise ValueError(f"--sim-config {settings.sim_config} builds the in-process world: a live sim serves its own; "
+                         "start it with `swimm sim --config` instead")  # fmt: skip
+    check_sim_config(settings.sim_config)
     task_settings(settings)  # validates obs and reward
 
 
@@ -201,10 +206,14 @@ def evaluation_env(settings: EvaluationSettings, render: bool = False) -> Iterat
                                settings.step_timeout_s, settings.max_retries, encoder) as env:  # fmt: skip
             yield env
         return
-    from learner_service.inprocess_env import TrackingEnv, task_world  # MuJoCo: not in the torch image
+    # MuJoCo: not in the torch image
+    from learner_service.inprocess_env import TrackingEnv, sim_config_world, task_world
 
-    world = task_world(task, render)
-    world.dolphin = dataclasses.replace(world.dolphin, pod_size=settings.pod.size, pod_crossing=settings.pod.crossing)
+    world = task_world(task, render, sim_config_world(settings.sim_config) if settings.sim_config else None)
+    if settings.pod != PodSettings():  # the flags' pod over the settings file's
+        world.dolphin = dataclasses.replace(
+            world.dolphin, pod_size=settings.pod.size, pod_crossing=settings.pod.crossing
+        )
     encoder = shared_encoder(task, checkpoint=settings.encoder_checkpoint or None)
     env = TrackingEnv(task, world, base_seed=settings.seed, encoder=encoder)
     try:
@@ -310,7 +319,12 @@ def run_provenance(settings: EvaluationSettings, entries: list[Contender], cmvae
     if settings.obs == "cmvae" or cmvae_reads:
         models["cmvae"] = cmvae_in_use(settings)
     episode_seeds = [episode_seed(settings.seed, episode) for episode in range(1, settings.episodes + 1)]
-    return provenance(models, seeds=[settings.seed], episode_seeds=episode_seeds)
+    world_file = (
+        {"sim_config": {"path": settings.sim_config, "sha256": file_sha256(settings.sim_config)}}
+        if settings.sim_config
+        else {}
+    )
+    return provenance(models, seeds=[settings.seed], episode_seeds=episode_seeds, **world_file)
 
 
 def noise_option(choice: str) -> bool | dict[str, Any] | None:

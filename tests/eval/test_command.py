@@ -37,6 +37,7 @@ from learner_service.task import TaskSettings
 from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 from services.identity import IDENTITY_ROW_FIELDS, episode_identity
 from services.messages import InfoReply
+from services.results import file_sha256
 from services.settings import ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
@@ -420,6 +421,24 @@ def test_a_pod_is_the_in_process_worlds_a_live_sim_has_its_own(tmp_path) -> None
         command.check(settings(tmp_path, backend="zenoh", pod=PodSettings(size=4)))
     with pytest.raises(ValueError, match="--dolphin-pod-crossing needs a companion to cross"):
         command.check(settings(tmp_path, pod=PodSettings(crossing=True)))
+
+
+def test_a_sim_settings_file_builds_the_in_process_world_and_is_recorded(tmp_path) -> None:
+    world_file = tmp_path / "world.yaml"
+    world_file.write_text("render_scale: 2\ndolphin_pod_size: 3\nnoise_preset: murky\n")
+    given = settings(tmp_path, sim_config=str(world_file))
+    with engine.evaluation_env(given, render=True) as env:
+        env.reset(seed=113)
+        assert env.world.settings.render_scale == 2 and env.world.settings.dolphin.pod_size == 3
+        assert env.world.noise_settings.fog > 0  # the file's murky water, which --noise keep leaves
+    with engine.evaluation_env(replace(given, pod=PodSettings(size=2))) as env:
+        assert env.world.settings.dolphin.pod_size == 2  # the flags' pod over the file's
+    recorded = engine.run_provenance(given, [])["sim_config"]
+    assert recorded == {"path": str(world_file), "sha256": file_sha256(world_file)}
+    with pytest.raises(ValueError, match="--sim-config .* builds the in-process world: a live sim serves its own"):
+        command.check(replace(given, backend="zenoh"))
+    with pytest.raises(FileNotFoundError, match="--sim-config .*missing.yaml: no such settings file"):
+        command.check(settings(tmp_path, sim_config=str(tmp_path / "missing.yaml")))
 
 
 @pytest.mark.parametrize(
