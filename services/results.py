@@ -99,3 +99,12 @@ def write_result(path: str | Path, record: Mapping[str, Any], about: Mapping[str
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({PROVENANCE_KEY: dict(about), **record}, indent=2, default=str) + "\n")
     return path
+
+
+def write_provenance_beside(table: str | Path, about: Mapping[str, Any], append: bool = False) -> Path:
+    """Write a table's provenance ``about`` beside it, as ``<table>.provenance.json``, so that a CSV says what made
+    it; ``append`` adds ``about`` to the runs already recorded, for a table that grows a run at a time."""
+    path = Path(table).with_name(Path(table).name + ".provenance.json")
+    runs = json.loads(path.read_text())["runs"] if append and path.is_file() else []
+    path.write_text(json.dumps({"table": Path(table).name, "runs": [*runs, dict(about)]}, indent=2, default=str) + "\n")
+    return path

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from encoder_service.inference import LatentEncoder
+from services.results import provenance, write_provenance_beside
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -51,6 +52,7 @@ def main() -> None:
     table = pd.concat([sweep(encoder, scale, psi) for scale in args.scales for psi in (90.0, 30.0)])
     table.insert(0, "checkpoint", Path(args.checkpoint).name)
     table.to_csv(args.out, index=False)
+    write_provenance_beside(args.out, provenance({"cmvae": args.checkpoint}))
     for (scale, psi), part in table.groupby(["render_scale", "psi_deg"]):
         error = part.read_theta_deg - part.azimuth_deg
         backwards = int((np.diff(part.read_theta_deg) < 0).sum())

@@ -20,6 +20,7 @@ import torch
 
 from encoder_service.data import CMVAEDataset
 from encoder_service.model import images_to_tensor, load_model, with_prior
+from services.results import provenance, write_provenance_beside
 
 CHUNK = 250
 SCORES = ("peak_logit", "summed_probability")
@@ -62,6 +63,7 @@ def main() -> None:
         raise SystemExit(f"{args.dataset} holds no masks: write it with `swimm dataset --masks`")
     frames = locator_scores(dataset, args.checkpoint)
     frames.to_csv(args.out, index=False)
+    write_provenance_beside(args.out, provenance({"cmvae": args.checkpoint}, dataset=str(args.dataset)))
     visible = frames.target_pixels > 0
     for score in SCORES:
         quantiles = {name: frames[score][chosen].quantile([0.1, 0.5, 0.9]).round(2).tolist()

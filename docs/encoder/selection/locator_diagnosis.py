@@ -15,6 +15,7 @@ import torch
 
 from encoder_service.model import denormalise_labels, images_to_tensor, load_model, soft_argmax
 from learner_service.task import episode_seed
+from services.results import provenance, write_provenance_beside
 from sim_service.dataset import labels_and_pose
 from sim_service.settings import WorldSettings
 from sim_service.splits import SPLITS
@@ -56,6 +57,7 @@ def main(checkpoint: str, out: str) -> None:
         world.close()
     table = pd.DataFrame(rows)
     table.to_csv(out, index=False)
+    write_provenance_beside(out, provenance({"cmvae": checkpoint}, seeds=[211]))
     print(table.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
 
 

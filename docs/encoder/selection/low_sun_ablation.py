@@ -16,6 +16,7 @@ import pandas as pd
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import label_errors
 from learner_service.task import episode_seed
+from services.results import provenance, write_provenance_beside
 from sim_service.dataset import labels_and_pose
 from sim_service.scenery import PRESETS
 from sim_service.settings import WorldSettings
@@ -54,6 +55,7 @@ def main(out: str, checkpoints: list[str]) -> None:
     world.close()
     table = pd.DataFrame(rows)
     table.to_csv(out, index=False)
+    write_provenance_beside(out, provenance({Path(c).name: c for c in checkpoints}, seeds=[SEED]))
     print(table.to_string(index=False))
 
 

@@ -21,6 +21,7 @@ from encoder_service.inference import LatentEncoder
 from learner_service.inprocess_env import TrackingEnv, task_world
 from learner_service.scripted import ScriptedTracker
 from learner_service.task import TaskSettings
+from services.results import provenance, write_provenance_beside
 
 
 def tracked_frames(seed: int, episodes: int, steps: int, every: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,6 +69,7 @@ def main() -> None:
         writer = csv.DictWriter(file, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+    write_provenance_beside(args.out, provenance({Path(c).name: c for c in args.checkpoints}, seeds=[args.seed]))
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from learner_service.inprocess_env import sim_config_world
 from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
 from learner_service.task import TaskSettings, swimm2_elevation_penalty, swimm2_penalties
+from services.results import provenance, write_provenance_beside
 from sim_service.settings import WorldSettings
 
 
@@ -137,6 +138,8 @@ def main() -> None:
         out = out.with_suffix(".new.csv")
         print(f"{args.out} has other columns than these rows; writing them to {out}")
     table.to_csv(out, mode="a", header=not out.is_file(), index=False)
+    models = {"cmvae": args.checkpoint} if args.tracker == "camera" else {}
+    write_provenance_beside(out, provenance(models, seeds=[args.seed], sim_config=args.sim_config or None), append=True)
 
 
 if __name__ == "__main__":
