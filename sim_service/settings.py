@@ -5,15 +5,16 @@ from __future__ import annotations
 
 import typing
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
-from services.settings import NonNegInt, ZenohSettings
+from services.settings import NonNegInt, PosFloat, PosInt, ZenohSettings, at_least
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.scenery import SceneSettings
 
 Motion = Literal["planar", "3d"]
 MOTIONS: tuple[str, ...] = typing.get_args(Motion)
+MesaThreads = Annotated[int, at_least(-1)]  # -1: Mesa's own default
 MAX_POD_SIZE = 6  # the most dolphins a world holds: the target and its companions
 
 
@@ -52,12 +53,12 @@ class DolphinSettings:
 
 @dataclass
 class WorldSettings:
-    image_size: int = 64  # square RGB frames for the encoder
+    image_size: PosInt = 64  # square RGB frames for the encoder
     render: bool = True  # False: telemetry only (state observations, physics tests)
-    render_scale: int = 1  # render at image_size * scale and downscale with OpenCV (anti-aliasing)
+    render_scale: PosInt = 1  # render at image_size * scale and downscale with OpenCV (anti-aliasing)
     # The process's, not the World's: its entry point sets LP_NUM_THREADS from it (services/process.py).
-    render_threads: int = 0  # Mesa llvmpipe threads (LP_NUM_THREADS): 0 draws on the stepping thread, -1 Mesa default
-    physics_dt: float = 0.02  # seconds per step: one action per physics step (lock-step)
+    render_threads: MesaThreads = 0  # Mesa llvmpipe threads (LP_NUM_THREADS): 0 draws on the stepping thread
+    physics_dt: PosFloat = 0.02  # seconds per step: one action per physics step (lock-step)
     noise: NoiseSettings = field(default_factory=NoiseSettings)  # image noise, all off by default (--noise-* flags)
     latency: LatencySettings = field(default_factory=LatencySettings)  # camera and control delays (--latency-* flags)
     scene: SceneSettings = field(

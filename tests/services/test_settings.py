@@ -288,3 +288,24 @@ def test_a_messages_settings_keep_the_defaults_they_leave_out() -> None:
 
     got = settings_mod.from_message(LatencySettings, {"action_delay": 4, "randomise": True}, "latency")
     assert got == LatencySettings(action_delay=4, randomise=True)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "reason"),
+    [
+        ("render_scale", 0, "--render-scale 0: must be >= 1"),
+        ("image_size", 0, "--image-size 0: must be >= 1"),
+        ("physics_dt", 0.0, "--physics-dt 0.0: must be > 0"),
+        ("render_threads", -2, "--render-threads -2: must be >= -1"),
+    ],
+)
+def test_a_world_no_sim_can_render_is_refused_by_its_flag_in_a_file_and_in_code(tmp_path, field, value, reason):
+    from sim_service.responder import check
+    from sim_service.settings import SimSettings, WorldSettings
+
+    config = tmp_path / "world.yaml"
+    config.write_text(f"{field}: {value}\n")
+    with pytest.raises(ValueError, match=f"setting '{field}' got {value}"):
+        settings_mod.load(SimSettings, None, str(config), environ={})
+    with pytest.raises(ValueError, match=reason):
+        check(SimSettings(world=WorldSettings(**{field: value})))
