@@ -769,7 +769,12 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"CMVAE checkpoint {path} does not exist (make one with `swimm train-encoder`)")
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch has no one error for a file not its own (unpickling, zip, index, ...)
+        raise ValueError(
+            f"{path} is not a {CHECKPOINT_FORMAT} checkpoint: torch cannot read it ({type(exc).__name__})"
+        ) from exc
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
     if checkpoint.get("version") != CHECKPOINT_VERSION:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
+import pytest
 import torch
 
 from encoder_service.export import export_checkpoint
@@ -24,3 +27,23 @@ def test_export_halves_the_file_and_keeps_latents_and_metrics(tmp_path):
     mu_half, _ = LatentEncoder(shipped).encode(frames)
     spread = np.abs(mu_full).max()
     assert np.abs(mu_half - mu_full).max() < 1e-2 * spread
+
+
+@pytest.mark.parametrize(
+    ("content", "reason"),
+    [
+        (b"not a checkpoint", "is not a swimm-cmvae checkpoint: torch cannot read it \\(UnpicklingError\\)"),
+        (b"render_scale: 2\n", "is not a swimm-cmvae checkpoint: torch cannot read it"),
+        (None, "is not a swimm-cmvae checkpoint$"),  # a torch file holding something else
+    ],
+)
+def test_a_file_that_is_no_cmvae_checkpoint_is_refused_by_name(tmp_path, content, reason):
+    path = tmp_path / "model.pt"
+    if content is None:
+        torch.save({"weights": torch.zeros(2)}, path)
+    else:
+        path.write_bytes(content)
+    with pytest.raises(ValueError, match=f"{re.escape(str(path))} {reason}"):
+        read_checkpoint(path)
+    with pytest.raises(FileNotFoundError, match="does not exist \\(make one with `swimm train-encoder`\\)"):
+        read_checkpoint(tmp_path / "missing.pt")
