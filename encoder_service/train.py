@@ -601,6 +601,9 @@ def run(settings: TrainEncoderSettings) -> int:
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)
+    if not settings.resume and any((out / name).is_file() for name in ("last.pt", "best.pt")):
+        raise FileExistsError(f"{out} already holds a training run: --resume goes on with it; choose another --out "
+                              "for a new one")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     _seed_everything(settings.seed)
     if device.type == "cuda":

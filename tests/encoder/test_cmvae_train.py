@@ -92,13 +92,17 @@ def test_two_epochs_lower_the_validation_loss_and_write_safe_checkpoints(dataset
     assert any((out / "tb").iterdir())  # TensorBoard event file
 
 
-def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run(
+def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run_and_only_resume_reuses_a_folder(
     dataset_dir: Path, tmp_path: Path
 ) -> None:
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
     run(_settings(dataset_dir, straight))
     run(_settings(dataset_dir, resumed, epochs=1))
     assert torch.load(resumed / "last.pt", weights_only=True)["epoch"] == 1
+    before = (resumed / "train_summary.json").read_bytes()
+    with pytest.raises(FileExistsError, match="already holds a training run: --resume goes on with it"):
+        run(_settings(dataset_dir, resumed, epochs=2))  # a new run would overwrite the first one's files
+    assert (resumed / "train_summary.json").read_bytes() == before
     run(_settings(dataset_dir, resumed, epochs=2, resume=True))
     summary = _summary(resumed)
     assert summary["start_epoch"] == 2 and summary["epochs_run"] == 1 and summary["last_epoch"] == 2
