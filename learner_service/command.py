@@ -138,6 +138,9 @@ def check(settings: LearnCommandSettings) -> None:
     episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
     if settings.resume and not Path(settings.resume).is_file():
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
+    if settings.run_dir and not settings.resume and (Path(settings.run_dir) / SETTINGS_FILE).is_file():
+        raise FileExistsError(f"--run-dir {settings.run_dir} already holds a run: --resume one of its models to go on "
+                              "with it, or choose another --run-dir for a new one")  # fmt: skip
     if settings.sim_config and settings.backend == "zenoh":
         raise ValueError(
             f"--sim-config {settings.sim_config}: a running sim serves its own world; start it with `swimm sim "

@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         # Process-wide settings (switch interval, ZENOH_RUNTIME, LP_NUM_THREADS): here, once, never in library code.
         level = logging.DEBUG if spec.answers else logging.INFO
         configure_process(ProcessSettings.of(settings, renders=spec.renders), role=args.command, level=level)
-    except (ValueError, FileNotFoundError) as exc:  # the user's to change: said once, and never retried
+    except (ValueError, FileNotFoundError, FileExistsError) as exc:  # the user's to change: said once, never retried
         log.error("%s refused its settings: %s", args.command, exc)
         return settings_mod.SETTINGS_EXIT_CODE
     try:

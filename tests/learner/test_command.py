@@ -104,6 +104,9 @@ def test_resume_continues_the_step_count_with_the_replay_buffer(first_run) -> No
     assert reloaded.replay_buffer.size() == first.num_timesteps  # every transition so far (buffer holds 2000)
     env.close()
 
+    with pytest.raises(FileExistsError, match="already holds a run: --resume one of its models to go on with it"):
+        check(tiny_settings(run_dir, steps=60))  # a new run there would overwrite the first one's files
+    check(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60))
     resumed = Training(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60)).run()
     assert resumed.num_timesteps == first.num_timesteps + resumed.trained_steps
     assert resumed.trained_steps >= 60
