@@ -57,7 +57,7 @@ class WorldSettings:
     render: bool = True  # False: telemetry only (state observations, physics tests)
     render_scale: PosInt = 1  # render at image_size * scale and downscale with OpenCV (anti-aliasing)
     # The process's, not the World's: its entry point sets LP_NUM_THREADS from it (services/process.py).
-    render_threads: MesaThreads = 0  # Mesa llvmpipe threads (LP_NUM_THREADS): 0 draws on the stepping thread
+    render_threads: MesaThreads = 0  # llvmpipe threads (LP_NUM_THREADS): 0 draws on the stepping thread, -1 Mesa picks
     physics_dt: PosFloat = 0.02  # seconds per step: one action per physics step (lock-step)
     noise: NoiseSettings = field(default_factory=NoiseSettings)  # image noise, all off by default (--noise-* flags)
     latency: LatencySettings = field(default_factory=LatencySettings)  # camera and control delays (--latency-* flags)
