@@ -38,7 +38,7 @@ from learner_service.learn_settings import Backend, ObsMode, RewardVersion, Task
 from learner_service.metrics import IDENTITY_COLUMNS, summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings, episode_seed
-from services.results import file_sha256, provenance
+from services.results import file_record, file_sha256, provenance
 from services.settings import ZenohSettings, to_dict
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
@@ -319,11 +319,7 @@ def run_provenance(settings: EvaluationSettings, entries: list[Contender], cmvae
     if settings.obs == "cmvae" or cmvae_reads:
         models["cmvae"] = cmvae_in_use(settings)
     episode_seeds = [episode_seed(settings.seed, episode) for episode in range(1, settings.episodes + 1)]
-    world_file = (
-        {"sim_config": {"path": settings.sim_config, "sha256": file_sha256(settings.sim_config)}}
-        if settings.sim_config
-        else {}
-    )
+    world_file = {"sim_config": file_record(settings.sim_config)} if settings.sim_config else {}
     return provenance(models, seeds=[settings.seed], episode_seeds=episode_seeds, **world_file)
 
 

@@ -64,16 +64,17 @@ def _cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def file_record(path: str | Path) -> dict[str, Any]:
+    """A file as a result names it: its path and sha256 (None when it is not there)."""
+    return {"path": str(path), "sha256": file_sha256(path) if Path(path).is_file() else None}
+
+
 def provenance(
     models: Mapping[str, str | Path | None] | None = None, seeds: Iterable[int] = (), **extra: Any
 ) -> dict[str, Any]:
     """Command line, code, model hashes, seeds and host of a result; ``extra`` adds run-specific facts
     (a benchmark's in-process World steps/s, for one)."""
-    hashed = {
-        label: {"path": str(path), "sha256": file_sha256(path) if Path(path).is_file() else None}
-        for label, path in (models or {}).items()
-        if path
-    }
+    hashed = {label: file_record(path) for label, path in (models or {}).items() if path}
     return {
         "command": shlex.join(["swimm", *sys.argv[1:]]) if _run_as_swimm() else shlex.join(sys.argv),
         "git": git_state(),
