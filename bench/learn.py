@@ -269,8 +269,7 @@ def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, An
         return write_results(Path(settings.out), *merge(settings))
     layout.check()
     for algo in settings.algos:  # a learner's mistake (hyperparams, smoothing) refused before the first run
-        # without its folder: whether a run there is kept, evaluated or restarted is this benchmark's to say
-        check_learner(dataclasses.replace(learn_settings(settings, algo, settings.seeds[0], layout), run_dir=""))
+        check_learner(learn_settings(settings, algo, settings.seeds[0], layout))
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     finals: dict[tuple[str, int], dict] = {}

@@ -36,7 +36,7 @@ from eval_service.publish import ResultPublisher
 from eval_service.report import PAPER_LABEL, PAPER_SAC, RunFolder
 from eval_service.suite import SuiteSettings, check_suite, run_suite
 from eval_service.sweep import SweepSettings, check_sweep, sweep
-from eval_service.watch import watch
+from eval_service.watch import WATCH_TABLE, watch
 from learner_service.metrics import summarise
 from services.results import provenance
 from services.settings import to_dict
@@ -48,6 +48,7 @@ class EvalCommandSettings(EvaluationSettings):
     or a recording scored offline, each with its own group of flags."""
 
     out: str = ""  # run folder; default runs/eval-<UTC time>
+    overwrite: bool = False  # replace the evaluation an --out folder already holds instead of refusing it
     live: LiveSettings = field(default_factory=LiveSettings)  # --live-*: the live view while episodes run
     watch: str = ""  # a `swimm learn` run folder: evaluate each new best_model.zip it saves, until it finishes
     watch_interval_s: float = 5.0  # how often the watched folder is checked
@@ -58,9 +59,22 @@ class EvalCommandSettings(EvaluationSettings):
     suite_plan: SuiteSettings = field(default_factory=SuiteSettings, metadata={"stem": "suite"})  # --suite-*
 
 
+# What any of the runs below leaves in its folder: a folder holding one holds an earlier evaluation.
+RESULT_FILES = ("summary.json", "steps.csv", "episodes.csv", "sweep.json", "suite.json", WATCH_TABLE)
+
+
+def check_out(out: str, overwrite: bool) -> None:
+    """Refuse an --out folder whose earlier evaluation this one would overwrite, unless told to."""
+    held = [name for name in RESULT_FILES if out and (Path(out) / name).is_file()]
+    if held and not overwrite:
+        raise FileExistsError(f"--out {out} already holds an evaluation ({', '.join(held)}): choose another --out, "
+                              "or give --overwrite to replace it")  # fmt: skip
+
+
 def check(settings: EvalCommandSettings) -> None:
     """Refuse settings that could only fail later, saying what to change."""
     check_evaluation(settings)
+    check_out(settings.out, settings.overwrite)
     if settings.recording:
         if settings.sweep or settings.watch or settings.live.port >= 0:
             raise ValueError("--recording scores a file offline: it takes no --sweep, --watch or --live-port")

@@ -138,9 +138,6 @@ def check(settings: LearnCommandSettings) -> None:
     episodic_schedule(merge_overrides(defaults, parse_hyperparams(settings.hyperparams)), settings.envs)  # refuses -1
     if settings.resume and not Path(settings.resume).is_file():
         raise FileNotFoundError(f"cannot resume: {settings.resume} does not exist")
-    if settings.run_dir and not settings.resume and (Path(settings.run_dir) / SETTINGS_FILE).is_file():
-        raise FileExistsError(f"--run-dir {settings.run_dir} already holds a run: --resume one of its models to go on "
-                              "with it, or choose another --run-dir for a new one")  # fmt: skip
     if settings.sim_config and settings.backend == "zenoh":
         raise ValueError(
             f"--sim-config {settings.sim_config}: a running sim serves its own world; start it with `swimm sim "
@@ -379,6 +376,19 @@ class Training:
         evaluations_csv = self.run_dir / EVALUATIONS_CSV
         evaluations = pd.read_csv(evaluations_csv) if evaluations_csv.is_file() else None
         plot_training(episodes, self.run_dir / SUMMARY_PLOT, evaluations=evaluations)
+
+
+def check_run_dir(run_dir: str, resume: str) -> None:
+    """Refuse to start a new run in a folder that holds one (its settings.json), whose files it would overwrite."""
+    if run_dir and not resume and (Path(run_dir) / SETTINGS_FILE).is_file():
+        raise FileExistsError(f"--run-dir {run_dir} already holds a run: --resume one of its models to go on "
+                              "with it, or choose another --run-dir for a new one")  # fmt: skip
+
+
+def check_new_run(settings: LearnCommandSettings) -> None:
+    """The command's check: its settings, and a --run-dir free for a new run unless it resumes one there."""
+    check(settings)
+    check_run_dir(settings.run_dir, settings.resume)
 
 
 def run(settings: LearnCommandSettings) -> int:

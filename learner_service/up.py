@@ -340,8 +340,10 @@ def check(settings: UpSettings) -> UpSettings:
         except (ValueError, FileNotFoundError) as exc:
             raise SettingsError(f"the {name} it would start refuses its settings: {exc}") from None
     from learner_service.command import check as check_learner  # stable-baselines3: only once the rest passed
+    from learner_service.command import check_run_dir
 
     check_learner(learner_settings(settings, endpoint, Path(".")))
+    check_run_dir(learn.run_dir, learn.resume)  # the learner it starts would refuse it, after the services started
     return settings
 
 

@@ -49,9 +49,9 @@ def _encoder() -> Entry:
 
 
 def _learn() -> Entry:
-    from learner_service.command import LearnCommandSettings, check, run
+    from learner_service.command import LearnCommandSettings, check_new_run, run
 
-    return Entry(LearnCommandSettings, run, check)
+    return Entry(LearnCommandSettings, run, check_new_run)
 
 
 def _eval() -> Entry:

@@ -38,6 +38,7 @@ from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 from services.identity import IDENTITY_ROW_FIELDS, episode_identity
 from services.messages import InfoReply
 from services.results import file_sha256
+from services import settings as settings_mod
 from services.settings import ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
@@ -180,6 +181,14 @@ def test_cli_prints_the_table_beside_the_paper(tmp_path, capsys) -> None:
     summary = json.loads((out / "summary.json").read_text())["labels"]["scripted"]
     assert f"{summary['mean_return']:11.3g}" in printed.splitlines()[1]
     assert printed.splitlines()[2].startswith("paper SAC")
+
+    first = (out / "summary.json").read_bytes()
+    again = ["eval", "--backend", "inprocess", "--obs", "state", "--algo", "scripted", "--episodes", "1", "--steps",
+             "7", "--out", str(out), "--no-progress-bar", "--no-figures"]  # fmt: skip
+    assert swimm(again) == settings_mod.SETTINGS_EXIT_CODE  # refused: it would overwrite the first evaluation
+    assert (out / "summary.json").read_bytes() == first
+    assert swimm([*again, "--overwrite"]) == 0
+    assert len(pd.read_csv(out / "steps.csv")) == 7
 
 
 def test_a_3d_evaluation_reports_the_elevation_error_and_heave_beside_table_12(tmp_path, capsys) -> None:

@@ -16,7 +16,7 @@ from stable_baselines3 import SAC
 
 from encoder_service.model import CMVAE, make_checkpoint
 from learner_service.checkpoints import load_for_resume, replay_buffer_path
-from learner_service.command import LearnCommandSettings, RunResult, Training, check
+from learner_service.command import LearnCommandSettings, RunResult, Training, check, check_new_run
 from learner_service.envs import make_vec_env
 from learner_service.identity import read_identity
 from learner_service.learn_settings import DemoSettings, EvalSettings
@@ -105,8 +105,8 @@ def test_resume_continues_the_step_count_with_the_replay_buffer(first_run) -> No
     env.close()
 
     with pytest.raises(FileExistsError, match="already holds a run: --resume one of its models to go on with it"):
-        check(tiny_settings(run_dir, steps=60))  # a new run there would overwrite the first one's files
-    check(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60))
+        check_new_run(tiny_settings(run_dir, steps=60))  # a new run there would overwrite the first one's files
+    check_new_run(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60))
     resumed = Training(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60)).run()
     assert resumed.num_timesteps == first.num_timesteps + resumed.trained_steps
     assert resumed.trained_steps >= 60

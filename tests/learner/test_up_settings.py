@@ -101,3 +101,12 @@ def test_the_sims_swim_the_dolphin_of_the_learners_task(task: str) -> None:
     for _, command, arguments in child_commands(settings, "tcp/127.0.0.1:7447", None):
         assert command == "sim"
         assert from_command_line(SimSettings, arguments, environ={}).world.dolphin.motion == task
+
+
+def test_a_run_folder_holding_a_run_is_refused_before_any_service_starts(tmp_path: Path) -> None:
+    (tmp_path / "settings.json").write_text("{}")  # an earlier run's: a new one would overwrite its files
+    for command in ("learn", "up"):
+        result = swimm(command, "--run-dir", str(tmp_path), "--steps", "10")
+        assert result.returncode == SETTINGS_EXIT_CODE, result.stderr
+        assert f"--run-dir {tmp_path} already holds a run: --resume one of its models" in result.stderr
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["settings.json"]  # no logs: nothing started
