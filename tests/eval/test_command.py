@@ -38,8 +38,7 @@ from services.geometry import ALPHA_DEG, BETA_DEG, MAX_D, OPT_D
 from services.identity import IDENTITY_ROW_FIELDS, episode_identity
 from services.messages import InfoReply
 from services.results import file_sha256
-from services import settings as settings_mod
-from services.settings import ZenohSettings
+from services.settings import SETTINGS_EXIT_CODE, ZenohSettings
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
 from sim_service.pod import PodParams
@@ -185,7 +184,7 @@ def test_cli_prints_the_table_beside_the_paper(tmp_path, capsys) -> None:
     first = (out / "summary.json").read_bytes()
     again = ["eval", "--backend", "inprocess", "--obs", "state", "--algo", "scripted", "--episodes", "1", "--steps",
              "7", "--out", str(out), "--no-progress-bar", "--no-figures"]  # fmt: skip
-    assert swimm(again) == settings_mod.SETTINGS_EXIT_CODE  # refused: it would overwrite the first evaluation
+    assert swimm(again) == SETTINGS_EXIT_CODE  # refused: it would overwrite the first evaluation
     assert (out / "summary.json").read_bytes() == first
     assert swimm([*again, "--overwrite"]) == 0
     assert len(pd.read_csv(out / "steps.csv")) == 7
