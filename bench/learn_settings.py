@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from learner_service.learn_settings import SmoothSettings
+from services.settings import FilePath
 
 SUMMARY = "summary.json"  # a results folder's summary, which --merge reads back (bench.learn_merge)
 
@@ -25,7 +26,7 @@ class LearnBenchSettings:
     thresholds: list[float] = field(default_factory=lambda: [2000.0, 2400.0])  # returns to time ("minutes_to")
     out: str = "runs/bench-learn"  # the results folder
     resume: bool = True  # skip runs that already finished in ``out``
-    encoder_checkpoint: str = ""  # the CMVAE (default: the shipped one)
+    encoder_checkpoint: FilePath = ""  # the CMVAE (default: the shipped one)
     smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS action smoothness
     actor_average: int = 0  # evaluate and keep the actor's weights averaged over ~N updates (swimm learn's flag)
     hyperparams: str = ""  # YAML mapping or file over each algorithm's shipped values: "{learning_rate: lin_7.3e-4}"

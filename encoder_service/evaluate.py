@@ -38,6 +38,7 @@ from encoder_service.model import (
 from encoder_service.train import resolve_device
 from services.geometry import camera_centred
 from services.results import provenance, write_result
+from services.settings import FilePath
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +49,7 @@ SWEEP = np.linspace(-3.0, 3.0, 9)  # the prior's +-3 sigma, for the per-dimensio
 
 @dataclass
 class EvalEncoderSettings:
-    checkpoint: str = ""  # default: the shipped model, encoder_service/models/cmvae.pt
+    checkpoint: FilePath = ""  # default: the shipped model, encoder_service/models/cmvae.pt
     dataset: str = ""  # held-out frames written by `swimm dataset` (a seed the encoder was not trained on)
     out: str = "runs/cmvae-eval"
     noisy_dataset: str = ""  # optional: the same seed rendered with noise on

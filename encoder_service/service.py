@@ -41,7 +41,7 @@ from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce, declare_about
 from services.results import file_sha256
 from services.session import open_session
-from services.settings import NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings
+from services.settings import FilePath, NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class EncoderSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
-    checkpoint: str = ""  # a CMVAE checkpoint; default: the shipped model
+    checkpoint: FilePath = ""  # a CMVAE checkpoint; default: the shipped model
     max_batch: PosInt = 32  # frames per forward pass
     max_wait_ms: NonNegFloat = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
     device: str = "cpu"

@@ -61,6 +61,7 @@ from encoder_service.model import (
 from services.geometry import ALPHA_DEG
 from services.lifecycle import sigterm_as_ctrl_c
 from services.results import provenance, write_result
+from services.settings import FilePath
 
 log = logging.getLogger(__name__)
 
@@ -79,14 +80,14 @@ class TrainEncoderSettings:
     val_fraction: float = 0.1
     seed: int = 0
     resume: bool = False  # continue from <out>/last.pt
-    init: str = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
+    init: FilePath = ""  # start from this checkpoint's weights (fresh optimiser, epochs from 1): fine-tuning
     mirror: float = 0.5  # share of training frames flipped left-right (theta and psi change sign); 0 = off
     # training frames moved sideways by up to this many pixels, as if the camera had turned (theta and psi turn
     # with them): what a sub-pixel read near the image centre learns from; 0 = off
     shift_pixels: int = 0
     psi_loss: Literal["mse", "l1"] = "mse"  # mse: the SPEC's; l1: psi's absolute error, least at the likelier view
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
-    teacher: str = ""  # paired datasets: a CMVAE whose latent of each clean frame the model learns to give both twins
+    teacher: FilePath = ""  # paired datasets: a CMVAE whose latent of each clean frame the model gives both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
     # of d, theta, psi (and the elevation, for a --vertical dataset) in the state error
     state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])

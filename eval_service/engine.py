@@ -39,7 +39,7 @@ from learner_service.metrics import IDENTITY_COLUMNS, summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
 from learner_service.task import TaskSettings, episode_seed
 from services.results import file_record, file_sha256, provenance
-from services.settings import ZenohSettings, to_dict
+from services.settings import FilePath, ZenohSettings, to_dict
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
 from sim_service.settings import PodSettings
@@ -56,7 +56,7 @@ VERTICAL_COLUMNS = ("E", "S_H")  # what the 3d task's summaries add to the table
 @dataclass
 class EvaluationSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
-    checkpoint: list[str] = field(default_factory=list)  # saved models (.zip), one per non-scripted --algo
+    checkpoint: list[FilePath] = field(default_factory=list)  # saved models (.zip), one per non-scripted --algo
     algo: list[str] = field(default_factory=list)  # sac | ppo | td3 | scripted | package.module:Class
     label: list[str] = field(default_factory=list)  # names in tables and figures (default from algo/checkpoint)
     episodes: int = 5  # deterministic evaluation episodes per contender
@@ -71,12 +71,12 @@ class EvaluationSettings:
     backend: Backend = "zenoh"  # zenoh (attach to a live sim) | inprocess (a World in this process)
     # --dolphin-pod-size, --dolphin-pod-crossing: the in-process world's pod (a live sim's is its own, same flags).
     pod: PodSettings = field(default_factory=PodSettings, metadata={"stem": "dolphin_pod"})
-    sim_config: str = ""  # in-process: the world of a `swimm sim` settings file (noise, scenery, render scale, pod)
+    sim_config: FilePath = ""  # in-process: the world of a `swimm sim` settings file (noise, scenery, render, pod)
     trajectory_episode: int = 1  # the episode drawn from above
     attach_timeout_s: float = 10.0  # how long to wait for a sim's eval env to answer
     step_timeout_s: float = 2.0
     max_retries: int = 10
-    encoder_checkpoint: str = ""  # in-process cmvae: the CMVAE (default: the shipped one)
+    encoder_checkpoint: FilePath = ""  # in-process cmvae: the CMVAE (default: the shipped one)
     device: str = "auto"  # torch device of the policies
     threads: int = 1  # torch CPU threads; 1 keeps an idle-spinning pool off the sim's core; 0 = torch's default
     figures: bool = True  # returns, metrics and trajectory PNGs in the run folder (CSV and JSON always)
@@ -101,6 +101,12 @@ def check_evaluation(settings: EvaluationSettings) -> None:
         raise ValueError(f"--sim-config {settings.sim_config} builds the in-process world: a live sim serves its own; "
                          "start it with `swimm sim --config` instead")  # fmt: skip
     check_sim_config(settings.sim_config)
+    given = [("--checkpoint", path) for path in settings.checkpoint] + [
+        ("--encoder-checkpoint", settings.encoder_checkpoint)
+    ]
+    for flag, path in given:  # before any wait for a live sim
+        if path and not Path(path).is_file():
+            raise FileNotFoundError(f"{flag} {path}: no such file")
     task_settings(settings)  # validates obs and reward
 
 

@@ -115,7 +115,13 @@ def parse_hyperparams(text: str) -> dict[str, Any]:
         is_file = path.is_file()
     except OSError:  # an inline mapping longer than a file name may be (a recipe's block of hyperparameters)
         is_file = False
-    loaded = yaml.safe_load(path.read_text() if is_file else text)
+    try:
+        loaded = yaml.safe_load(path.read_text() if is_file else text)
+    except yaml.YAMLError as exc:
+        where = f"file {text}" if is_file else repr(text)
+        mark = getattr(exc, "problem_mark", None)
+        at = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        raise ValueError(f"--hyperparams {where} is not YAML: {getattr(exc, 'problem', None) or exc}{at}") from None
     if not isinstance(loaded, dict):
         raise ValueError(f"--hyperparams must be a YAML mapping (inline or a file), got {text!r}")
     return loaded

@@ -38,6 +38,7 @@ from learner_service.identity import encoder_for, policy_task
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
 from services.results import file_sha256
+from services.settings import FilePath
 from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
@@ -57,8 +58,8 @@ OPSET = 17
 @dataclass
 class ExportSettings:
     algo: str = "sac"  # the algorithm that saved the checkpoint
-    checkpoint: str = ""  # a saved cmvae-observation model (.zip); default: the shipped policy
-    encoder_checkpoint: str = ""  # the CMVAE the policy was trained on; default: the one the policy records
+    checkpoint: FilePath = ""  # a saved cmvae-observation model (.zip); default: the shipped policy
+    encoder_checkpoint: FilePath = ""  # the CMVAE the policy was trained on; default: the one the policy records
     out: str = "runs/export/policy.onnx"
     check_frames: int = 1000  # frames of a real in-process episode both paths must agree on
     check_seed: int = 9001  # the episode's seed

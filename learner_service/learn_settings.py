@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from services.settings import NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings, check_ranges
+from services.settings import FilePath, NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings, check_ranges
 
 #: The choices of the learner's settings, typed so that the settings loader checks them wherever they come from.
 ObsMode = Literal["cmvae", "image", "state"]
@@ -115,7 +115,7 @@ class LearnCommandSettings:
     seed: int = 97  # model seed and base seed of env 0 (env i: seed + i)
     backend: Backend = "zenoh"  # zenoh (a running sim/encoder) | inprocess (World in this process)
     run_dir: str = ""  # default runs/<algo>-<obs>-<UTC time>
-    resume: str = ""  # a saved model (.zip) to go on training; its replay buffer is loaded if beside it
+    resume: FilePath = ""  # a saved model (.zip) to go on training; its replay buffer is loaded if beside it
     hyperparams: str = ""  # YAML mapping or file over the algorithm's defaults, e.g. "{gradient_steps: 32}"
     checkpoint_every: NonNegInt = 50_000  # env steps between checkpoints; 0 = none
     save_replay_buffer: bool = True  # with checkpoints (newest only) and the final model, so resume keeps it
@@ -124,8 +124,8 @@ class LearnCommandSettings:
     smooth: SmoothSettings = field(default_factory=SmoothSettings)  # flags --smooth-*: CAPS action smoothness
     scripted: TrackerGains = field(default_factory=TrackerGains)  # flags --scripted-*: the demonstrations' tracker
     actor_average: NonNegInt = 0  # evaluate and deliver the actor's weights averaged over ~N updates; 0 = live weights
-    encoder_checkpoint: str = ""  # the CMVAE of in-process cmvae runs and of `swimm up`'s encoders; default: shipped
-    sim_config: str = ""  # a `swimm sim` settings file (noise, scenery): the in-process envs' or `swimm up`'s sim's
+    encoder_checkpoint: FilePath = ""  # the CMVAE of in-process cmvae runs and `swimm up`'s encoders (default: shipped)
+    sim_config: FilePath = ""  # a `swimm sim` settings file (noise, scenery): the in-process envs' or `swimm up`'s sim
     step_timeout_s: PosFloat = 2.0  # distributed: wait per try before re-sending a step
     max_retries: NonNegInt = 10  # distributed: re-sends before a step fails naming the missing service
     device: str = "auto"  # torch device of the learner

@@ -31,7 +31,7 @@ from services.geometry import ALPHA_DEG
 from services.keys import check_chunk
 from services.lifecycle import stop_on_signals
 from services.record import McapRecorder
-from services.settings import ZenohSettings
+from services.settings import FilePath, ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ CONTROL_SCHEMA = {
 @dataclass
 class PilotSettings:
     policy: str = "runs/export/policy.onnx"  # the ONNX file `swimm export` wrote
-    source: str = "rtp://@:5600"  # a video file, a camera number, or a stream (the BlueROV2's: rtp://@:5600)
+    source: FilePath = "rtp://@:5600"  # a video file, a camera number, or a stream (the BlueROV2's: rtp://@:5600)
     camera_hfov_deg: float = 80.0  # the real camera's horizontal field of view (the BlueROV2 low-light camera's)
     mavlink: str = "udpin:0.0.0.0:14550"  # the vehicle's MAVLink endpoint (BlueOS sends to the GCS on UDP 14550)
     source_system: int = 255  # our MAVLink system id: ArduSub takes control from its SYSID_MYGCS (255)

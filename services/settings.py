@@ -39,6 +39,8 @@ from typing import Annotated, Any, Literal, TypeVar
 import pydantic
 import yaml
 
+from services.results import REPO_ROOT
+
 T = TypeVar("T")
 ENV_PREFIX = "SWIMM_"
 SETTINGS_EXIT_CODE = 2  # a command that refused its settings exits with this (as argparse does): never retry it
@@ -68,6 +70,18 @@ NonNegInt = Annotated[int, at_least(0)]
 PosInt = Annotated[int, at_least(1)]
 NonNegFloat = Annotated[float, at_least(0)]
 PosFloat = Annotated[float, above(0)]
+
+
+def here_or_shipped(path: str) -> str:
+    """``path`` as given, unless it is relative, names nothing from the current folder and names one of swimm's own
+    files (a recipe's ``encoder_service/models/cmvae_wide.pt``): then that file, so a command runs from any folder."""
+    if path and not Path(path).is_absolute() and not Path(path).exists() and (REPO_ROOT / path).exists():
+        return str(REPO_ROOT / path)
+    return path
+
+
+#: A file a setting names: read from the current folder, or else among swimm's shipped files (``here_or_shipped``).
+FilePath = Annotated[str, pydantic.AfterValidator(here_or_shipped)]
 
 
 def flag(name: str) -> str:
@@ -317,7 +331,7 @@ def from_message(cls: type[T], values: typing.Mapping[str, Any], source: str) ->
 def read_tree(config_file: str | Path, cls: type) -> dict[str, Any]:
     """A settings file's YAML mapping, every key checked against the fields of ``cls``."""
     try:
-        loaded = yaml.safe_load(Path(config_file).read_text()) or {}
+        loaded = yaml.safe_load(Path(here_or_shipped(str(config_file))).read_text()) or {}
     except OSError as exc:
         raise SettingsError(f"--config {config_file}: {exc.strerror}") from None
     if not isinstance(loaded, dict):

@@ -60,6 +60,7 @@ from services.geometry import (
     relative_geometry,
     vertical_geometry,
 )
+from services.settings import PosInt
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -104,10 +105,10 @@ VERTICAL_RANGES = SamplingRanges(elevation_deg=BETA_DEG)
 @dataclass
 class DatasetSettings:
     out: str = "data/cmvae-train"
-    count: int = 1000
+    count: PosInt = 1000
     seed: int = 3  # the paper: train seed 3, test seed 5
-    shard_size: int = 4096
-    workers: int = 1  # processes rendering shards in parallel; the bytes do not depend on it
+    shard_size: PosInt = 4096
+    workers: PosInt = 1  # processes rendering shards in parallel; the bytes do not depend on it
     paired: bool = False  # also keep each noisy frame's clean render (needs noise on, e.g. --noise-preset harsh)
     masks: bool = False  # also write which pixels show the dolphin, for the encoder's mask head (train --mask-weight)
     vertical: bool = False  # the target anywhere in the vertical field of view too, labelled with its elevation

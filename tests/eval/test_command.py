@@ -106,6 +106,12 @@ def test_settings_are_checked_before_anything_starts(tmp_path) -> None:
     for bad in ({"noise": "maybe"}, {"backend": "carrier-pigeon"}, {"obs": "sonar"}, {"episodes": 0}):
         with pytest.raises(ValueError):
             command.check(settings(tmp_path, **bad))
+    missing = {"checkpoint": [str(tmp_path / "gone.zip")]}, {"encoder_checkpoint": "gone.pt", "backend": "zenoh"}
+    for bad, message in zip(
+        missing, ("--checkpoint .*gone.zip: no such file", "--encoder-checkpoint gone.pt"), strict=True
+    ):
+        with pytest.raises(FileNotFoundError, match=message):  # at once, not after a wait for a live sim
+            command.check(settings(tmp_path, algo=["sac"], **bad))
 
 
 def eval_env(env: str, holder: str | None) -> InfoReply:

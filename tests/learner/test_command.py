@@ -190,6 +190,11 @@ def test_hyperparams_come_inline_of_any_length_or_from_a_file(tmp_path: Path) ->
     assert parse_hyperparams(str(tmp_path / "h.yaml")) == {"gradient_steps": 32}
     with pytest.raises(ValueError, match="YAML mapping"):
         parse_hyperparams(str(tmp_path / "missing.yaml"))  # neither a file nor a mapping: named
+    with pytest.raises(ValueError, match=r"--hyperparams '\{bad' is not YAML: expected ',' or '\}'.* column 5"):
+        parse_hyperparams("{bad")
+    (tmp_path / "bad.yaml").write_text("a: [1\n")
+    with pytest.raises(ValueError, match=f"--hyperparams file {tmp_path / 'bad.yaml'} is not YAML: .* line 2"):
+        parse_hyperparams(str(tmp_path / "bad.yaml"))
 
 
 def test_refusals_name_what_to_change(tmp_path: Path) -> None:

@@ -17,8 +17,8 @@ from services.settings import SETTINGS_EXIT_CODE, from_command_line
 from sim_service.settings import SimSettings
 
 
-def swimm(*argv: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "swimm", *argv], capture_output=True, text=True, timeout=60)
+def swimm(*argv: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "swimm", *argv], capture_output=True, text=True, timeout=60, cwd=cwd)
 
 
 @pytest.mark.parametrize(
@@ -30,6 +30,7 @@ def swimm(*argv: str) -> subprocess.CompletedProcess:
         (("status", "--window-s", "0"), "status refused its settings: --window-s 0.0: must be > 0"),
         (("encoder", "--max-batch", "0"), "encoder refused its settings: --max-batch 0: must be >= 1"),
         (("router", "--zenoh-threads", "-1"), "router refused its settings: --zenoh-threads -1: must be >= 0"),
+        (("dataset", "--count", "0"), "dataset refused its settings: --count 0: must be >= 1"),
     ],
 )
 def test_each_command_refuses_a_value_by_its_flag_and_range(argv, message) -> None:
@@ -104,9 +105,15 @@ def test_the_sims_swim_the_dolphin_of_the_learners_task(task: str) -> None:
 
 
 def test_a_run_folder_holding_a_run_is_refused_before_any_service_starts(tmp_path: Path) -> None:
-    (tmp_path / "settings.json").write_text("{}")  # an earlier run's: a new one would overwrite its files
+    """Refused last, after every other check, so `swimm up` from another folder got past its recipe's
+    repo-relative encoder and sim settings file (found among swimm's own files) too."""
+    run_dir, elsewhere = tmp_path / "run", tmp_path / "elsewhere"
+    run_dir.mkdir()
+    elsewhere.mkdir()
+    (run_dir / "settings.json").write_text("{}")  # an earlier run's: a new one would overwrite its files
     for command in ("learn", "up"):
-        result = swimm(command, "--run-dir", str(tmp_path), "--steps", "10")
+        result = swimm(command, "--run-dir", str(run_dir), "--steps", "10", cwd=elsewhere)
         assert result.returncode == SETTINGS_EXIT_CODE, result.stderr
-        assert f"--run-dir {tmp_path} already holds a run: --resume one of its models" in result.stderr
-    assert sorted(path.name for path in tmp_path.iterdir()) == ["settings.json"]  # no logs: nothing started
+        assert f"--run-dir {run_dir} already holds a run: --resume one of its models" in result.stderr
+    assert [path.name for path in run_dir.iterdir()] == ["settings.json"]  # no logs: nothing started
+    assert not any(elsewhere.iterdir())

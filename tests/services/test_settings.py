@@ -4,7 +4,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -309,3 +313,26 @@ def test_a_world_no_sim_can_render_is_refused_by_its_flag_in_a_file_and_in_code(
         settings_mod.load(SimSettings, None, str(config), environ={})
     with pytest.raises(ValueError, match=reason):
         check(SimSettings(world=WorldSettings(**{field: value})))
+
+
+def test_a_file_a_setting_names_is_read_here_or_else_from_swimms_own_files(tmp_path):
+    """Run from another folder, a recipe and the repo-relative paths in it name swimm's shipped files; a file of
+    that name in the current folder is taken first."""
+    reader = (
+        "from learner_service.learn_settings import LearnCommandSettings\n"
+        "from services.settings import from_command_line\n"
+        "recipe = 'learner_service/models/sac_cmvae_wide.yaml'\n"
+        "settings = from_command_line(LearnCommandSettings, ['--config', recipe])\n"
+        "print(settings.encoder_checkpoint); print(settings.sim_config)\n"
+    )
+    root = Path(settings_mod.__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    shipped = subprocess.run([sys.executable, "-c", reader], cwd=tmp_path, env=env, capture_output=True, text=True,
+                             timeout=120, check=True).stdout.split()  # fmt: skip
+    assert shipped == [str(root / "encoder_service/models/cmvae_wide.pt"),
+                       str(root / "sim_service/configs/randomised_noise_latency.yaml")]  # fmt: skip
+    (tmp_path / "encoder_service/models").mkdir(parents=True)
+    (tmp_path / "encoder_service/models/cmvae_wide.pt").write_bytes(b"mine")
+    local = subprocess.run([sys.executable, "-c", reader], cwd=tmp_path, env=env, capture_output=True, text=True,
+                           timeout=120, check=True).stdout.split()  # fmt: skip
+    assert local == ["encoder_service/models/cmvae_wide.pt", shipped[1]]
