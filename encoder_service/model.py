@@ -122,6 +122,15 @@ class ResidualBlock(nn.Module):
 REFERENCE_MEAN = (0.1043, 0.2862, 0.3415)
 
 
+def frame_mean(images: torch.Tensor) -> torch.Tensor:
+    """Each frame's channel means, (N, C, 1, 1). An exported graph takes the mean of the row means: onnxruntime's
+    one-pass mean of a whole frame errs enough that a dark frame's white-balance gain carries it into the actions
+    (docs/real.md); torch's own mean stays as it was, so its readings do too."""
+    if torch.onnx.is_in_onnx_export():
+        return images.mean(dim=3, keepdim=True).mean(dim=2, keepdim=True)
+    return images.mean(dim=(2, 3), keepdim=True)
+
+
 class WhiteBalance(nn.Module):
     """Each frame's channels scaled to the clean world's mean intensity (part of the ONNX graph)."""
 
@@ -134,7 +143,7 @@ class WhiteBalance(nn.Module):
 
     def balanced(self, images: torch.Tensor, by: torch.Tensor) -> torch.Tensor:
         """``images`` scaled by the gain that brings ``by``'s channel means to the target."""
-        mean = (by.mean(dim=(2, 3), keepdim=True) + 1.0) * 0.5  # [-1, 1] -> [0, 1]
+        mean = (frame_mean(by) + 1.0) * 0.5  # [-1, 1] -> [0, 1]
         # a black frame stays black, not NaN
         return (images + 1.0) * 0.5 * (self.target / mean.clamp_min(1e-3)) * 2.0 - 1.0
 
@@ -158,7 +167,7 @@ class LocalContrast(WhiteBalance):
         padded = F.pad(images, (pad, pad, pad, pad), mode="replicate")
         # A box mean is separable: a row pass and a column pass cost 2k, not k^2, per pixel.
         local = F.avg_pool2d(F.avg_pool2d(padded, (1, LOCAL_WINDOW), stride=1), (LOCAL_WINDOW, 1), stride=1)
-        return images - local + images.mean(dim=(2, 3), keepdim=True), local
+        return images - local + frame_mean(images), local
 
 
 class LocalContrastAndLight(LocalContrast):

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 
 import cv2
 import numpy as np
+import onnxruntime
 import pytest
 import torch
 
@@ -16,6 +18,7 @@ from encoder_service.model import (
     CMVAE,
     LOCAL_WINDOW,
     REFERENCE_MEAN,
+    frame_mean,
     images_to_tensor,
     load_model,
     make_checkpoint,
@@ -100,6 +103,25 @@ def test_a_local_or_light_norm_encoder_runs_the_same_in_onnx(tmp_path: Path, inp
     torch_mu, _ = LatentEncoder(path, threads=1).encode(frames)
     onnx_mu, _ = LatentEncoder(path, engine="onnx").encode(frames)
     np.testing.assert_allclose(onnx_mu, torch_mu, atol=1e-4)
+
+
+@pytest.mark.parametrize("input_norm", ["channel", "local", "light"])
+def test_the_exported_norm_equals_torchs_in_dark_water(input_norm: str) -> None:
+    """A dark frame's white-balance gain is large, so the frame mean's error is multiplied into every pixel: the
+    exported norm keeps to float rounding of torch's (a one-pass ONNX mean of the frame erred 2e-5 here), and
+    torch's own path is the plain mean it always was."""
+    rng = np.random.default_rng(5)
+    frames = rng.integers(0, 40, (8, 64, 64, 3), dtype=np.uint8)
+    frames[:, 24:40, 20:44] = rng.integers(60, 120, (8, 16, 24, 3))  # something brighter in the dark water
+    images = images_to_tensor(frames)
+    assert torch.equal(frame_mean(images), images.mean(dim=(2, 3), keepdim=True))
+    normalise = CMVAE(input_norm=input_norm).encoder.normalise.eval()
+    graph = io.BytesIO()
+    torch.onnx.export(normalise, (images[:1],), graph, input_names=["x"], output_names=["y"], dynamo=False,
+                      dynamic_axes={"x": {0: "n"}, "y": {0: "n"}})  # fmt: skip
+    exported = onnxruntime.InferenceSession(graph.getvalue(), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        np.testing.assert_allclose(exported.run(None, {"x": images.numpy()})[0], normalise(images).numpy(), atol=5e-6)
 
 
 def test_the_input_norm_travels_in_the_checkpoint(tmp_path: Path) -> None:
