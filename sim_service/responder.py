@@ -101,6 +101,7 @@ def check_fits_low_latency(settings: SimSettings) -> None:
 def check(settings: SimSettings) -> None:
     """Refuse, before any world is built, settings no sim can serve (`swimm up` runs it before it starts one)."""
     check_ranges(settings)
+    settings.world.check()
     check_fits_low_latency(settings)
 
 
@@ -117,6 +118,7 @@ class SimResponder(Service):
         self._envs: list[LockstepEnv] = []
         self._unprepared: set[LockstepEnv] = set()  # answered since they last prepared their next step
         self._ready = threading.Event()
+        self._build_error: Exception | None = None
         self._worker = threading.Thread(target=self._work, name="sim-worker", daemon=True)
 
     # --- set-up -------------------------------------------------------------------------------
@@ -124,6 +126,8 @@ class SimResponder(Service):
         self._worker.start()  # creates the Worlds (and their GL contexts) on its own thread
         if not self._ready.wait(timeout=120):
             raise RuntimeError("the sim worker did not build its worlds within 120 s")
+        if self._build_error is not None:
+            raise RuntimeError(f"the sim could not build its worlds: {self._build_error}") from self._build_error
         own = self.resources.enter_context
         self.session = own(open_session(self.settings.zenoh, role="sim"))
         for role in CLAIMANT_ROLES:
@@ -189,8 +193,13 @@ class SimResponder(Service):
         self._by_name = {(env.channel, env.env): env for env in self._envs}
 
     def _work(self) -> None:
-        self._build_envs()
-        self._ready.set()
+        try:
+            self._build_envs()
+        except Exception as exc:  # start() raises it: the worker has nothing to serve
+            self._build_error = exc
+            return
+        finally:
+            self._ready.set()
         period = self.settings.world.physics_dt
         next_tick = time.perf_counter()
         while True:

@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 
 from services.settings import NonNegInt, PosFloat, PosInt, ZenohSettings, at_least
 from sim_service.latency import LatencySettings
-from sim_service.noise import NoiseSettings
+from sim_service.noise import ImageNoise, NoiseSettings
 from sim_service.scenery import SceneSettings
 
 Motion = Literal["planar", "3d"]
@@ -65,6 +65,13 @@ class WorldSettings:
         default_factory=SceneSettings
     )  # the world's scenery, plain by default (--scene-* flags)
     dolphin: DolphinSettings = field(default_factory=DolphinSettings)  # how the target swims (--dolphin-* flags)
+
+    def check(self) -> None:
+        """Refuse what building a World would refuse (a noise or scene preset, a range), before any is built."""
+        ImageNoise(self.noise)
+        self.latency.check()
+        self.scene.resolved()
+        self.dolphin.check()
 
 
 @dataclass

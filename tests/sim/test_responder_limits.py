@@ -1,13 +1,18 @@
-"""What `swimm sim` refuses before it serves: observations too large for a low-latency session."""
+"""What `swimm sim` refuses before it serves (observations too large for a low-latency session, worlds it could
+not build), and a world that fails as it is built."""
 
 from __future__ import annotations
+
+import os
+import subprocess
+import sys
 
 import pytest
 
 from services.low_latency import OBSERVATION_OVERHEAD_BYTES
 from services.messages import BatchItem, BatchMsg, ObservationMsg
 from services.session import LOW_LATENCY_MAX_MESSAGE_BYTES
-from services.settings import ZenohSettings
+from services.settings import SETTINGS_EXIT_CODE, ZenohSettings
 from sim_service.responder import check_fits_low_latency
 from sim_service.settings import SimSettings, WorldSettings
 from sim_service.world import World
@@ -37,3 +42,23 @@ def test_the_overhead_allowed_for_covers_a_real_observation_with_the_longest_sta
         world.close()
     assert len(payload) - image.nbytes <= OBSERVATION_OVERHEAD_BYTES
     assert OBSERVATION_OVERHEAD_BYTES < LOW_LATENCY_MAX_MESSAGE_BYTES
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (("--noise-preset", "fogbank"), "unknown noise preset 'fogbank'; choose one of off, murky, harsh"),
+        (("--scene-preset", "reef"), "unknown scene preset 'reef'; choose one of plain, varied, wide"),
+    ],
+)
+def test_a_world_no_sim_could_build_is_refused_by_name_before_any_is_built(flags, message):
+    result = subprocess.run([sys.executable, "-m", "swimm", "sim", *flags], capture_output=True, text=True, timeout=60)
+    assert result.returncode == SETTINGS_EXIT_CODE and f"sim refused its settings: {message}" in result.stderr
+
+
+def test_a_world_that_cannot_render_ends_the_sim_at_once_saying_why():
+    """No GL context can be made (GLX without a display): the sim says so as soon as its worker fails, not after
+    the 120 s it allows a worker to build its worlds (the run's 60 s timeout)."""
+    env = {key: value for key, value in os.environ.items() if key != "DISPLAY"} | {"MUJOCO_GL": "glx"}
+    result = subprocess.run([sys.executable, "-m", "swimm", "sim"], capture_output=True, text=True, timeout=60, env=env)
+    assert result.returncode != 0 and "the sim could not build its worlds: " in result.stderr
