@@ -184,7 +184,6 @@ class Training:
     def run(self) -> RunResult:
         s = self.settings
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        self.write_settings()
         log.info(
             "run folder %s: %s %s, %d steps on %d %s env(s)", self.run_dir, s.algo, s.obs, self.steps, s.envs, s.backend
         )
@@ -239,6 +238,8 @@ class Training:
                     world=world,
                 )
                 stack.callback(eval_env.close)
+            # Only now does the folder hold a run (check_run_dir): a start that failed before leaves it free to retry.
+            self.write_settings()
             return self.train(env, eval_env)
 
     def inprocess_world(self) -> Any:

@@ -14,7 +14,8 @@ A field marked ``metadata={"positional": True}`` is an optional positional
 argument instead of a flag (``swimm bench sim``). ``--help`` describes a flag by
 ``metadata={"help": ...}`` or else by the comment at the end of the field's line, so the comment
 that documents a field in the source is also what the user reads.
-A YAML file (``--config FILE``) holds the same names as nested maps.
+A YAML file (``--config FILE``) holds the same names, flat (``noise_preset: murky``) or as nested maps, keyed as
+the flags are (``noise: {preset: murky}`` for ``--noise-preset``) or by the attributes' path.
 
 Every value, whatever layer it comes from, is validated against its field's type by pydantic (lax mode: the
 YAML ``5`` fills a float, the text ``"5"`` an int; ``"yes please"`` fills no bool), and a YAML key that names no
@@ -112,9 +113,12 @@ class _Leaf:
     name: str  # flag/variable stem, e.g. "noise_fog"
     kind: Any  # resolved type hint
     default: Any
+    sections: tuple[
+        str, ...
+    ] = ()  # nested YAML keys as the flags name them: ("noise", "fog"), flattened parts left out
 
 
-def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "") -> list[_Leaf]:
+def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "", sections: tuple[str, ...] = ()) -> list[_Leaf]:
     hints = typing.get_type_hints(cls, include_extras=True)  # extras: the Annotated ranges
     instance_defaults = cls()
     leaves: list[_Leaf] = []
@@ -122,10 +126,13 @@ def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "") -> list[_Leaf
         kind = hints[f.name]
         name = f"{stem}{f.name}"
         if dataclasses.is_dataclass(kind):
-            sub_stem = stem if f.metadata.get("flatten") else f"{stem}{f.metadata.get('stem', f.name)}_"
-            leaves.extend(_leaves(kind, (*path, f.name), sub_stem))
+            flatten = f.metadata.get("flatten")
+            section = f.metadata.get("stem", f.name)
+            sub_stem = stem if flatten else f"{stem}{section}_"
+            leaves.extend(_leaves(kind, (*path, f.name), sub_stem, sections if flatten else (*sections, section)))
         else:
-            leaves.append(_Leaf((*path, f.name), name, kind, getattr(instance_defaults, f.name)))
+            default = getattr(instance_defaults, f.name)
+            leaves.append(_Leaf((*path, f.name), name, kind, default, (*sections, f.name)))
     return leaves
 
 
@@ -237,23 +244,26 @@ def _set(target: Any, path: tuple[str, ...], value: Any) -> None:
 
 
 def _from_file(tree: dict[str, Any], leaf: _Leaf, cls: type) -> tuple[bool, Any]:
-    """Find a leaf in a YAML tree either by its nested path or by its flat name."""
+    """Find a leaf in a YAML tree by its flat name, its nested attribute path or its nested flag sections."""
     if leaf.name in tree:
         return True, tree[leaf.name]
-    node: Any = tree
-    for attr in leaf.path:
-        if not isinstance(node, dict) or attr not in node:
-            return False, None
-        node = node[attr]
-    return True, node
+    for keys in (leaf.path, leaf.sections):
+        node: Any = tree
+        for key in keys:
+            if not isinstance(node, dict) or key not in node:
+                break
+            node = node[key]
+        else:
+            return True, node
+    return False, None
 
 
 def check_keys(tree: dict[str, Any], cls: type, source: str) -> None:
     """Refuse a YAML key that names no field of ``cls`` (by flat name, or by nested path), suggesting close names."""
     leaves = _leaves(cls)
     flat = {leaf.name for leaf in leaves}
-    paths = {leaf.path for leaf in leaves}
-    sections = {leaf.path[:end] for leaf in leaves for end in range(1, len(leaf.path))}
+    paths = {leaf.path for leaf in leaves} | {leaf.sections for leaf in leaves}
+    sections = {keys[:end] for keys in paths for end in range(1, len(keys))}
 
     def walk(node: dict[str, Any], path: tuple[str, ...]) -> None:
         for key, value in node.items():
@@ -263,7 +273,7 @@ def check_keys(tree: dict[str, Any], cls: type, source: str) -> None:
             if here in sections and isinstance(value, dict):
                 walk(value, here)
                 continue
-            known = sorted(flat) if not path else [leaf.path[-1] for leaf in leaves if leaf.path[:-1] == path]
+            known = sorted(flat) if not path else sorted({keys[-1] for keys in paths if keys[:-1] == path})
             close = difflib.get_close_matches(str(key), known, n=3)
             hint = f"; did you mean {' or '.join(close)}?" if close else f"; known: {', '.join(known)}"
             raise SettingsError(f"{source}: unknown setting {'.'.join(here)!r}{hint}")

@@ -296,3 +296,18 @@ def test_the_bar_names_each_phase_in_order_with_its_own_count(tmp_path: Path, mo
     # every phase entered stays in progress.json, so a launcher polling less often than phases change misses none
     entered = progress["phases_entered"]
     assert [phase for index, phase in enumerate(entered) if index == 0 or entered[index - 1] != phase] == order
+
+
+def test_a_start_that_fails_before_training_leaves_the_run_folder_free_to_try_again(tmp_path: Path, capfd) -> None:
+    """A world that cannot be built (a sim settings file with a misspelt key) fails the run before it trains; its
+    folder holds no run, so the same --run-dir takes the next attempt."""
+    bad = tmp_path / "sim.yaml"
+    bad.write_text("noise:\n  presett: murky\n")
+    run_dir = tmp_path / "run"
+    argv = ["learn", "--backend", "inprocess", "--obs", "state", "--steps", "50", "--run-dir", str(run_dir),
+            "--no-progress-bar"]  # fmt: skip
+    assert cli.main([*argv, "--sim-config", str(bad)]) == 1  # failed: the world is built once the run starts
+    assert "unknown setting 'noise.presett'; did you mean preset?" in capfd.readouterr().err
+    assert not (run_dir / "settings.json").exists()
+    assert cli.main(argv) == 0
+    assert (run_dir / "settings.json").is_file() and (run_dir / FINAL_MODEL).is_file()

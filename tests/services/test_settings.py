@@ -336,3 +336,17 @@ def test_a_file_a_setting_names_is_read_here_or_else_from_swimms_own_files(tmp_p
     local = subprocess.run([sys.executable, "-c", reader], cwd=tmp_path, env=env, capture_output=True, text=True,
                            timeout=120, check=True).stdout.split()  # fmt: skip
     assert local == ["encoder_service/models/cmvae_wide.pt", shipped[1]]
+
+
+def test_a_yaml_section_may_be_keyed_as_its_flags_are_below_a_flattened_group(tmp_path):
+    """SimSettings flattens its world: ``--noise-preset`` is ``noise: {preset: ...}`` in YAML, as well as
+    ``noise_preset`` and the attribute path ``world: {noise: {preset: ...}}``; a misspelt key names the close one."""
+    from sim_service.settings import SimSettings
+
+    for text in ("noise_preset: murky\n", "noise:\n  preset: murky\n", "world:\n  noise:\n    preset: murky\n"):
+        config = tmp_path / "sim.yaml"
+        config.write_text(text)
+        assert settings_mod.load(SimSettings, None, config, {}).world.noise.preset == "murky", text
+    config.write_text("noise:\n  presett: murky\n")
+    with pytest.raises(settings_mod.SettingsError, match=r"unknown setting 'noise.presett'; did you mean preset\?"):
+        settings_mod.load(SimSettings, None, config, {})
