@@ -113,9 +113,7 @@ class _Leaf:
     name: str  # flag/variable stem, e.g. "noise_fog"
     kind: Any  # resolved type hint
     default: Any
-    sections: tuple[
-        str, ...
-    ] = ()  # nested YAML keys as the flags name them: ("noise", "fog"), flattened parts left out
+    sections: tuple[str, ...] = ()  # its nested YAML keys as its flag names them: ("noise", "fog")
 
 
 def _leaves(cls: type, path: tuple[str, ...] = (), stem: str = "", sections: tuple[str, ...] = ()) -> list[_Leaf]:
@@ -259,7 +257,8 @@ def _from_file(tree: dict[str, Any], leaf: _Leaf, cls: type) -> tuple[bool, Any]
 
 
 def check_keys(tree: dict[str, Any], cls: type, source: str) -> None:
-    """Refuse a YAML key that names no field of ``cls`` (by flat name, or by nested path), suggesting close names."""
+    """Refuse a YAML key that names no field of ``cls`` (by flat name, nested path or flag sections), suggesting close
+    names."""
     leaves = _leaves(cls)
     flat = {leaf.name for leaf in leaves}
     paths = {leaf.path for leaf in leaves} | {leaf.sections for leaf in leaves}
