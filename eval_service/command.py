@@ -65,8 +65,10 @@ RESULT_FILES = ("summary.json", "steps.csv", "episodes.csv", "sweep.json", "suit
 
 def check_out(out: str, overwrite: bool) -> None:
     """Refuse an --out folder whose earlier evaluation this one would overwrite, unless told to."""
-    held = [name for name in RESULT_FILES if out and (Path(out) / name).is_file()]
-    if held and not overwrite:
+    if not out or overwrite:
+        return
+    held = [name for name in RESULT_FILES if (Path(out) / name).is_file()]
+    if held:
         raise FileExistsError(f"--out {out} already holds an evaluation ({', '.join(held)}): choose another --out, "
                               "or give --overwrite to replace it")  # fmt: skip
 

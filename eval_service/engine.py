@@ -101,10 +101,9 @@ def check_evaluation(settings: EvaluationSettings) -> None:
         raise ValueError(f"--sim-config {settings.sim_config} builds the in-process world: a live sim serves its own; "
                          "start it with `swimm sim --config` instead")  # fmt: skip
     check_sim_config(settings.sim_config)
-    given = [("--checkpoint", path) for path in settings.checkpoint] + [
-        ("--encoder-checkpoint", settings.encoder_checkpoint)
-    ]
-    for flag, path in given:  # before any wait for a live sim
+    named = [("--checkpoint", path) for path in settings.checkpoint]
+    named.append(("--encoder-checkpoint", settings.encoder_checkpoint))
+    for flag, path in named:  # before any wait for a live sim
         if path and not Path(path).is_file():
             raise FileNotFoundError(f"{flag} {path}: no such file")
     task_settings(settings)  # validates obs and reward
