@@ -17,11 +17,13 @@ import statistics
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 from bench.host import with_host_figure
 from bench.learn_settings import LearnBenchSettings
-from encoder_service import check_engine
+from encoder_service import Engine
 from services.results import PROVENANCE_KEY, provenance
+from services.settings import NonNegInt, PosInt, check_ranges
 
 log = logging.getLogger(__name__)
 
@@ -32,31 +34,32 @@ BENCHMARKS = {"sim": "bench.sim", "encoder": "bench.encoder", "train": "bench.tr
 class BenchSettings:
     target: str = field(default="sim", metadata={"positional": True})  # sim | encoder | train | learn
     json: bool = False  # print one JSON object instead of a table
-    steps: int = 0  # work per measurement; 0 = the benchmark's default
+    steps: NonNegInt = 0  # work per measurement; 0 = the benchmark's default
     algo: str = "sac"  # train: the learner
-    envs: int = 0  # encoder: batched half's envs (16); train: distributed envs (1); sim: grouped envs; learn: per run
+    envs: NonNegInt = 0  # encoder: batched half's (16); train: distributed (1); sim: grouped; learn: per run
     group_size: int = -1  # train: envs stepped as one message each way; -1 = one group per sim (from 4 envs)
-    engine: str = "torch"  # train: the encoders' CMVAE inference, torch | onnx (onnxruntime), in both halves
+    engine: Engine = "torch"  # train: the encoders' CMVAE inference, torch | onnx (onnxruntime), in both halves
     policy: str = "auto"  # train: auto (sac: sac_cmvae.zip, steady state; else scratch) | scratch | a model zip
-    sims: int = 0  # train: sim processes sharing the envs; 0 = two from 4 envs (an even number), else one; learn: 1
-    encoders: int = 1  # train: encoder processes, the learner's groups spread evenly over them
-    mode: str = "peer"  # train: the distributed half's processes join Zenoh as peers (as `swimm up`) or clients
+    sims: NonNegInt = 0  # train: sims sharing the envs; 0 = two from 4 envs (an even number), else one; learn: 1
+    encoders: PosInt = 1  # train: encoder processes, the learner's groups spread evenly over them
+    mode: Literal["peer", "client"] = "peer"  # train: the distributed half joins as peers (as `swimm up`) or clients
     low_latency: bool = False  # train: the distributed half's processes use Zenoh's low-latency setting
-    zenoh_threads: int = 1  # train: Zenoh worker threads of the sims, encoders, learner; 0: Zenoh's pool per runtime
+    zenoh_threads: NonNegInt = 1  # train: Zenoh threads of sims, encoders, learner; 0: Zenoh's pool per runtime
     profile: str = ""  # train: write a cProfile of the distributed half's learner (CPU time) to this file
     ceiling: bool = False  # train: also run the in-process half twice at once (what two cores give it)
-    repeat: int = 1  # run it this many times and report each number's median (every run under "runs")
+    repeat: PosInt = 1  # run it this many times and report each number's median (every run under "runs")
     learn: LearnBenchSettings = field(default_factory=LearnBenchSettings, metadata={"flatten": True})  # learn only
 
 
-def run(settings: BenchSettings) -> int:
+def check(settings: BenchSettings) -> None:
+    """Refuse a benchmark's settings before it measures anything (exit 2, "refused its settings")."""
+    check_ranges(settings)
     if settings.target not in BENCHMARKS:
         raise ValueError(f"unknown benchmark {settings.target!r}; choose one of {', '.join(BENCHMARKS)}")
-    if settings.mode not in ("peer", "client"):
-        raise ValueError(f"--mode must be peer or client, got {settings.mode!r}")
-    check_engine(settings.engine, "--engine")
-    if settings.repeat < 1:
-        raise ValueError(f"--repeat must be at least 1, got {settings.repeat}")
+    if settings.target == "train":
+        from learner_service.registry import resolve_algorithm  # torch and SB3: only for the benchmark that trains
+
+        resolve_algorithm(settings.algo)  # an unknown name, a bad import path
     if settings.ceiling and settings.target != "train":
         raise ValueError("--ceiling is for `swimm bench train`")
     if settings.profile:
@@ -65,9 +68,12 @@ def run(settings: BenchSettings) -> int:
             raise ValueError("--profile is for one run of `swimm bench train` (without --repeat)")
         if not folder.is_dir():
             raise ValueError(f"--profile {settings.profile}: no folder {folder} to write it in")
+    if settings.target == "learn" and settings.repeat != 1:
+        raise ValueError("bench learn repeats over seeds (--seeds), not --repeat")
+
+
+def run(settings: BenchSettings) -> int:
     if settings.target == "learn":
-        if settings.repeat != 1:
-            raise ValueError("bench learn repeats over seeds (--seeds), not --repeat")
         learn = importlib.import_module(BENCHMARKS["learn"])
         layout = learn.Layout(envs=settings.envs or 1, sims=settings.sims or 1)
         return report(learn.run(settings.learn, layout), settings.json)

@@ -219,12 +219,6 @@ def run(
     same in both halves; ``profile``: a file for the cProfile of the distributed half's learner (see
     :func:`train`), empty for none; ``ceiling``: also time :func:`two_inprocess_at_once` (the ``ceiling_*``
     keys)."""
-    if envs < 1:
-        raise ValueError(f"--envs must be at least 1, got {envs}")
-    if encoders < 1:
-        raise ValueError(f"--encoders must be at least 1, got {encoders}")
-    if zenoh_threads < 0:
-        raise ValueError(f"--zenoh-threads must be at least 0 (0: Zenoh's pool per runtime), got {zenoh_threads}")
     sims, group_size = default_layout(envs, sims, group_size, low_latency)
     start = starting_policy(algo, policy)
     steps = steps or default_steps(envs, start)

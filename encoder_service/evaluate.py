@@ -33,6 +33,7 @@ from encoder_service.model import (
     label_errors,
     label_ranges,
     load_model,
+    read_checkpoint,
     tensor_to_images,
 )
 from encoder_service.train import resolve_device
@@ -292,9 +293,17 @@ def _noise_report(
     return report, [str(path) for path in paths]
 
 
-def run(settings: EvalEncoderSettings) -> int:
+def check(settings: EvalEncoderSettings) -> None:
+    """Refuse the settings, the model and the datasets before anything is read in full or written."""
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR (held-out frames from `swimm dataset`)")
+    read_checkpoint(settings.checkpoint or DEFAULT_CHECKPOINT)
+    for root in filter(None, (settings.dataset, settings.noisy_dataset)):
+        CMVAEDataset(root)  # a folder this code reads
+
+
+def run(settings: EvalEncoderSettings) -> int:
+    check(settings)
     device = resolve_device(settings.device)
     checkpoint = Path(settings.checkpoint) if settings.checkpoint else DEFAULT_CHECKPOINT
     model, checkpoint_dict = load_model(checkpoint, device)

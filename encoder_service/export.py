@@ -27,6 +27,7 @@ class ExportEncoderSettings:
     out: str = str(DEFAULT_CHECKPOINT)
     # read each frame averaged with its mirror image (encoder_service.model.mirror_signs); unset keeps the source's
     mirror_average: bool | None = None
+    overwrite: bool = False  # replace an existing --out (the default --out is the shipped model)
 
 
 def export_checkpoint(source: str | Path, destination: str | Path, mirror_average: bool | None = None) -> Path:
@@ -51,5 +52,13 @@ def export_checkpoint(source: str | Path, destination: str | Path, mirror_averag
     return destination
 
 
+def check(settings: ExportEncoderSettings) -> None:
+    """Refuse a source that is no CMVAE checkpoint, and an --out that would replace a model, before writing."""
+    read_checkpoint(settings.checkpoint)
+    if Path(settings.out).exists() and not settings.overwrite:
+        raise FileExistsError(f"--out {settings.out} exists: give --overwrite to replace it, or choose another --out")
+
+
 def run(settings: ExportEncoderSettings) -> None:
+    check(settings)
     export_checkpoint(settings.checkpoint, settings.out, settings.mirror_average)

@@ -90,6 +90,13 @@ def _onnx_runtime(model: CMVAE, threads: int | None) -> Encoder:
     return encode
 
 
+def check_engine(engine: str, device: str) -> None:
+    """Refuse an engine this code has not, or one that cannot run on ``device``."""
+    if engine not in ENGINES or (engine == "onnx" and device != "cpu"):
+        raise ValueError(f"encoder engine must be one of {', '.join(ENGINES)} (onnx on the cpu device only), "
+                         f"got {engine!r} on {device!r}")  # fmt: skip
+
+
 class LatentEncoder:
     """Loads a CMVAE checkpoint and encodes uint8 frames (N, 64, 64, 3) into (mu, logvar), each (N, n_z) float32."""
 
@@ -100,9 +107,7 @@ class LatentEncoder:
         threads: int | None = None,
         engine: str = "torch",
     ) -> None:
-        if engine not in ENGINES or (engine == "onnx" and device != "cpu"):
-            raise ValueError(f"encoder engine must be one of {', '.join(ENGINES)} (onnx on the cpu device only), "
-                             f"got {engine!r} on {device!r}")  # fmt: skip
+        check_engine(engine, device)
         path = Path(checkpoint)
         if not path.is_file():
             raise FileNotFoundError(

@@ -33,7 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import zenoh
 
-from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
+from encoder_service import Engine
+from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, check_engine
+from encoder_service.model import read_checkpoint
 from services.keys import Keys
 from services.lifecycle import Service, serve_until_signalled
 from services.messages import IMAGE_SHAPE, BadMessage, BatchItem, BatchMsg, LatentMsg, ObservationMsg
@@ -54,7 +56,7 @@ class EncoderSettings:
     max_wait_ms: NonNegFloat = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
     device: str = "cpu"
     threads: NonNegInt = 0  # torch threads; 0 = torch's default (onnx: one)
-    engine: str = "torch"  # torch (a frozen TorchScript trace) | onnx (onnxruntime, CPU; faster, batch-invariant)
+    engine: Engine = "torch"  # torch (a frozen TorchScript trace) | onnx (onnxruntime, CPU; faster, batch-invariant)
     ident: str = ""  # this encoder's id in routing keys and liveliness; default enc-<pid>
     metrics_period_s: PosFloat = 2.0  # how often counters go out on <ns>/metrics/encoder/<id>
 
@@ -273,6 +275,13 @@ class EncoderService(Service):
     def close(self) -> None:
         super().close()
         log.info("encoder %s stopped: %s", self.ident, self.metrics.snapshot())
+
+
+def check(settings: EncoderSettings) -> None:
+    """`swimm encoder`'s check: the engine on its device and the checkpoint, before a model loads or a session
+    opens."""
+    check_engine(settings.engine, settings.device)
+    read_checkpoint(settings.checkpoint or DEFAULT_CHECKPOINT)
 
 
 def run(settings: EncoderSettings) -> None:

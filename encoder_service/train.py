@@ -60,7 +60,7 @@ from encoder_service.model import (
 )
 from services.geometry import ALPHA_DEG
 from services.lifecycle import sigterm_as_ctrl_c
-from services.results import provenance, write_result
+from services.results import provenance, refuse_held_folder, write_result
 from services.settings import FilePath
 
 log = logging.getLogger(__name__)
@@ -584,7 +584,8 @@ def _seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def run(settings: TrainEncoderSettings) -> int:
+def check(settings: TrainEncoderSettings) -> None:
+    """Refuse a training run's settings, datasets and folder before anything is trained or written."""
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR [DIR ...] (folders written by `swimm dataset`)")
     settings.state_loss()  # checked before the dataset is read, not at the first batch
@@ -599,12 +600,25 @@ def run(settings: TrainEncoderSettings) -> int:
         raise ValueError(f"--shift-pixels must be 0 (off) to {MAX_SHIFT_PIXELS}, got {settings.shift_pixels}")
     if not (math.isfinite(settings.mask_weight) and settings.mask_weight >= 0):
         raise ValueError(f"--mask-weight must be a finite weight >= 0 (0 = no mask head), got {settings.mask_weight}")
+    if settings.locate and settings.mask_weight <= 0:
+        raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
+    if not settings.resume:
+        refuse_held_folder("--out", settings.out, ("last.pt", "best.pt"), "a training run",
+                           "--resume goes on with it; choose another --out for a new one")  # fmt: skip
+    for flag, path in (("--init", settings.init), ("--teacher", settings.teacher)):
+        if path:
+            try:
+                read_checkpoint(path)
+            except (ValueError, FileNotFoundError) as exc:
+                raise type(exc)(f"{flag} {exc}") from None
+    open_datasets(settings.dataset)  # each folder a dataset this code reads
+
+
+def run(settings: TrainEncoderSettings) -> int:
+    check(settings)
     started = time.perf_counter()
     device = resolve_device(settings.device)
     out = Path(settings.out)
-    if not settings.resume and any((out / name).is_file() for name in ("last.pt", "best.pt")):
-        raise FileExistsError(f"{out} already holds a training run: --resume goes on with it; choose another --out "
-                              "for a new one")  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     _seed_everything(settings.seed)
     if device.type == "cuda":
@@ -629,8 +643,6 @@ def run(settings: TrainEncoderSettings) -> int:
         device,
     )
 
-    if settings.locate and settings.mask_weight <= 0:
-        raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
     mask_head = settings.mask_weight > 0 and not settings.locate  # a locator learns the masks itself
     model = CMVAE(
         settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate, settings.track,

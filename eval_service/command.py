@@ -38,7 +38,7 @@ from eval_service.suite import SuiteSettings, check_suite, run_suite
 from eval_service.sweep import SweepSettings, check_sweep, sweep
 from eval_service.watch import WATCH_TABLE, watch
 from learner_service.metrics import summarise
-from services.results import provenance
+from services.results import provenance, refuse_held_folder
 from services.settings import to_dict
 
 
@@ -65,12 +65,9 @@ RESULT_FILES = ("summary.json", "steps.csv", "episodes.csv", "sweep.json", "suit
 
 def check_out(out: str, overwrite: bool) -> None:
     """Refuse an --out folder whose earlier evaluation this one would overwrite, unless told to."""
-    if not out or overwrite:
-        return
-    held = [name for name in RESULT_FILES if (Path(out) / name).is_file()]
-    if held:
-        raise FileExistsError(f"--out {out} already holds an evaluation ({', '.join(held)}): choose another --out, "
-                              "or give --overwrite to replace it")  # fmt: skip
+    if out and not overwrite:
+        refuse_held_folder("--out", out, RESULT_FILES, "an evaluation",
+                           "choose another --out, or give --overwrite to replace it")  # fmt: skip
 
 
 def check(settings: EvalCommandSettings) -> None:

@@ -33,7 +33,7 @@ from eval_service.report import RunFolder
 from learner_service.envs import BACKENDS, shared_encoder
 from learner_service.evaluation import Contender, play_episodes
 from learner_service.export import SHIPPED_POLICY
-from learner_service.identity import encoder_for
+from learner_service.identity import encoder_for, read_identity
 from learner_service.learn_settings import Backend, ObsMode, RewardVersion, TaskName, TrackerGains, check_sim_config
 from learner_service.metrics import IDENTITY_COLUMNS, summarise
 from learner_service.registry import LATENT_SCRIPTED, SCRIPTED, SCRIPTED_NAMES, Policy, load_policy, resolve_algorithm
@@ -42,7 +42,7 @@ from services.results import file_record, file_sha256, provenance
 from services.settings import FilePath, ZenohSettings, to_dict
 from sim_service.latency import LatencySettings
 from sim_service.noise import PRESETS
-from sim_service.settings import PodSettings
+from sim_service.settings import PodSettings, world_of_file
 
 log = logging.getLogger(__name__)
 S = TypeVar("S", bound="EvaluationSettings")
@@ -106,7 +106,11 @@ def check_evaluation(settings: EvaluationSettings) -> None:
     for flag, path in named:  # before any wait for a live sim
         if path and not Path(path).is_file():
             raise FileNotFoundError(f"{flag} {path}: no such file")
+    for path in settings.checkpoint:
+        read_identity(path)  # a file that is no policy checkpoint
     task_settings(settings)  # validates obs and reward
+    if settings.obs == "cmvae":
+        policies_encoder(settings)  # a policy and an encoder that are no pair
 
 
 def task_settings(settings: EvaluationSettings) -> TaskSettings:
@@ -146,13 +150,23 @@ def contenders(settings: EvaluationSettings) -> list[Contender]:
 
 
 def with_policy_encoder(settings: S) -> S:
-    """``settings`` with the encoder the policies record (learner_service.identity) as ``--encoder-checkpoint``.
-
-    A given encoder that is not the one a policy records is refused naming both; so are contenders trained on
-    different encoders, since one run reads one encoder's latents.
-    """
+    """``settings`` with the encoder the policies record (learner_service.identity) as ``--encoder-checkpoint``,
+    refused as :func:`policies_encoder` refuses them."""
     if settings.obs != "cmvae":
         return settings
+    encoder = policies_encoder(settings)
+    if encoder is not None and not settings.encoder_checkpoint:
+        log.info("the policies' encoder: %s (a live sim's encoder must run it too)", encoder)
+        return dataclasses.replace(settings, encoder_checkpoint=str(encoder))
+    return settings
+
+
+def policies_encoder(settings: EvaluationSettings) -> Path | None:
+    """The one encoder the contenders' policies record, None where none records one.
+
+    A given encoder that is not the one a policy records is refused naming both; so are contenders trained on
+    different encoders, since one run reads one encoder's latents; so is a file that is no policy checkpoint.
+    """
     recorded: dict[str, Path] = {}
     for entry in contenders(settings):
         if entry.checkpoint is not None and entry.algo not in SCRIPTED_NAMES:
@@ -163,11 +177,7 @@ def with_policy_encoder(settings: S) -> S:
     if len(by_content) > 1:
         pairs = "; ".join(f"{checkpoint} on {path}" for checkpoint, path in by_content.values())
         raise ValueError(f"the policies were trained on different encoders ({pairs}): evaluate them in separate runs")
-    if recorded and not settings.encoder_checkpoint:
-        encoder = next(iter(recorded.values()))
-        log.info("the policies' encoder: %s (a live sim's encoder must run it too)", encoder)
-        return dataclasses.replace(settings, encoder_checkpoint=str(encoder))
-    return settings
+    return next(iter(recorded.values()), None)
 
 
 def load_policies(settings: EvaluationSettings, entries: list[Contender]) -> dict[str, Policy]:
@@ -212,9 +222,9 @@ def evaluation_env(settings: EvaluationSettings, render: bool = False) -> Iterat
             yield env
         return
     # MuJoCo: not in the torch image
-    from learner_service.inprocess_env import TrackingEnv, sim_config_world, task_world
+    from learner_service.inprocess_env import TrackingEnv, task_world
 
-    world = task_world(task, render, sim_config_world(settings.sim_config) if settings.sim_config else None)
+    world = task_world(task, render, world_of_file(settings.sim_config) if settings.sim_config else None)
     if settings.pod != PodSettings():  # the flags' pod over the settings file's
         world.dolphin = dataclasses.replace(
             world.dolphin, pod_size=settings.pod.size, pod_crossing=settings.pod.crossing

@@ -73,7 +73,9 @@ from learner_service.smoothness import keep_smooth
 from learner_service.task import TaskSettings
 from services.keys import Keys
 from services.lifecycle import stop_on_signals
+from services.results import refuse_held_folder
 from services.settings import check_ranges, to_dict
+from sim_service.settings import world_of_file
 
 log = logging.getLogger(__name__)
 
@@ -244,11 +246,7 @@ class Training:
 
     def inprocess_world(self) -> Any:
         """The world of in-process envs from ``--sim-config`` (as a sim started with it would serve), else None."""
-        if not self.settings.sim_config:
-            return None
-        from learner_service.inprocess_env import sim_config_world  # MuJoCo: not in the torch image
-
-        return sim_config_world(self.settings.sim_config)
+        return world_of_file(self.settings.sim_config) if self.settings.sim_config else None
 
     def build_model(self, env: Any) -> Any:
         s = self.settings
@@ -387,9 +385,9 @@ class Training:
 
 def check_run_dir(run_dir: str, resume: str) -> None:
     """Refuse to start a new run in a folder that holds one (its settings.json), whose files it would overwrite."""
-    if run_dir and not resume and (Path(run_dir) / SETTINGS_FILE).is_file():
-        raise FileExistsError(f"--run-dir {run_dir} already holds a run: --resume one of its models to go on "
-                              "with it, or choose another --run-dir for a new one")  # fmt: skip
+    if run_dir and not resume:
+        remedy = "--resume one of its models to go on with it, or choose another --run-dir for a new one"
+        refuse_held_folder("--run-dir", run_dir, [SETTINGS_FILE], "a run", remedy)
 
 
 def check_new_run(settings: LearnCommandSettings) -> None:

@@ -38,7 +38,7 @@ from learner_service.identity import encoder_for, policy_task
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
 from services.results import file_sha256
-from services.settings import FilePath
+from services.settings import FilePath, PosFloat, PosInt, check_ranges
 from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
@@ -61,9 +61,9 @@ class ExportSettings:
     checkpoint: FilePath = ""  # a saved cmvae-observation model (.zip); default: the shipped policy
     encoder_checkpoint: FilePath = ""  # the CMVAE the policy was trained on; default: the one the policy records
     out: str = "runs/export/policy.onnx"
-    check_frames: int = 1000  # frames of a real in-process episode both paths must agree on
+    check_frames: PosInt = 1000  # frames of a real in-process episode both paths must agree on
     check_seed: int = 9001  # the episode's seed
-    tolerance: float = 1e-4  # largest allowed |onnx - python| action difference (a next prior's: of its range)
+    tolerance: PosFloat = 1e-4  # largest allowed |onnx - python| action difference (a next prior's: of its range)
     threads: int = 1  # torch CPU threads of the Python path (docs/eval.md: one is faster beside other work)
 
 
@@ -221,16 +221,27 @@ def verify(path: Path, recorded: dict[str, np.ndarray], tolerance: float) -> dic
     return report | {"onnx_ms_per_frame": per_frame_ms}
 
 
-def run(settings: ExportSettings) -> int:
-    if settings.check_frames < 1 or settings.tolerance <= 0:
-        raise ValueError("check_frames must be >= 1 and tolerance > 0")
-    if settings.threads > 0:
-        torch.set_num_threads(settings.threads)
+def policy_files(settings: ExportSettings) -> tuple[Path, Path]:
+    """The policy to export and its CMVAE: the one the policy records (another is refused by name), the shipped
+    CMVAE for a policy recording none."""
+    check_ranges(settings)
     policy_path = Path(settings.checkpoint) if settings.checkpoint else SHIPPED_POLICY
-    # the encoder the policy records, refusing another one by name; the shipped CMVAE for a policy recording none
     encoder_path = encoder_for(policy_path, settings.encoder_checkpoint or None) or DEFAULT_CHECKPOINT
     if not encoder_path.is_file():
         raise FileNotFoundError(f"CMVAE checkpoint {encoder_path} does not exist")
+    resolve_algorithm(settings.algo)
+    return policy_path, encoder_path
+
+
+def check(settings: ExportSettings) -> None:
+    """Refuse the settings, a file that is no policy and a policy and encoder that are no pair, before loading."""
+    policy_files(settings)
+
+
+def run(settings: ExportSettings) -> int:
+    policy_path, encoder_path = policy_files(settings)
+    if settings.threads > 0:
+        torch.set_num_threads(settings.threads)
     cls, _ = resolve_algorithm(settings.algo)
     model = cls.load(policy_path, device="cpu")
     task = TrackingTask(TaskSettings(obs="cmvae", task=policy_task(policy_path)))  # its actions are the task's

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -27,13 +26,12 @@ from learner_service.task import (
     TrackingTask,
     episode_seed,
 )
-from services import settings as settings_mod
 from services.messages import DiveMode
 from services.telemetry import Telemetry
 from sim_service.latency import latency_option
 from sim_service.noise import noise_option
 from sim_service.scenery import scene_option
-from sim_service.settings import SimSettings, WorldSettings
+from sim_service.settings import WorldSettings
 from sim_service.world import World
 
 log = logging.getLogger(__name__)
@@ -50,12 +48,6 @@ def task_world(task: TaskSettings, render: bool = False, base: WorldSettings | N
     base = base or WorldSettings()
     dolphin = dataclasses.replace(base.dolphin, motion=TASK_DOLPHIN_MOTIONS[task.task])
     return dataclasses.replace(base, render=render or task.obs in IMAGE_MODES, dolphin=dolphin)
-
-
-def sim_config_world(path: str | Path) -> WorldSettings:
-    """The world a `swimm sim` settings file describes (its image noise, scenery, pod), for in-process envs."""
-    # The file alone: a SWIMM_* variable meant for this command must not reach the world through the sim's names.
-    return settings_mod.load(SimSettings, None, str(path), environ={}).world
 
 
 class TrackingEnv(gym.Env):

@@ -11,7 +11,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from services.settings import FilePath, NonNegFloat, NonNegInt, PosFloat, PosInt, ZenohSettings, check_ranges
+from services.settings import (
+    FilePath,
+    NonNegFloat,
+    NonNegInt,
+    PosFloat,
+    PosInt,
+    SettingsError,
+    ZenohSettings,
+    check_ranges,
+)
+from sim_service.settings import world_of_file
 
 #: The choices of the learner's settings, typed so that the settings loader checks them wherever they come from.
 ObsMode = Literal["cmvae", "image", "state"]
@@ -135,9 +145,17 @@ class LearnCommandSettings:
 
 
 def check_sim_config(path: str) -> None:
-    """Refuse a ``--sim-config`` that names no file, before anything starts."""
-    if path and not Path(path).is_file():
+    """Refuse a ``--sim-config`` that names no file, or a world the sim would refuse, before anything starts."""
+    if not path:
+        return
+    if not Path(path).is_file():
         raise FileNotFoundError(f"--sim-config {path}: no such settings file for the sim")
+    try:
+        world_of_file(path)
+    except SettingsError:
+        raise  # it names the file
+    except ValueError as exc:
+        raise ValueError(f"--sim-config {path}: {exc}") from None
 
 
 def default_run_dir(settings: LearnCommandSettings) -> Path:

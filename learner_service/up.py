@@ -34,7 +34,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-import encoder_service
+from encoder_service import DEFAULT_CHECKPOINT, Engine
 from learner_service.learn_settings import (
     TASK_DOLPHIN_MOTIONS,
     LearnCommandSettings,
@@ -84,7 +84,7 @@ class UpSettings:
     learn: LearnCommandSettings = field(default_factory=LearnCommandSettings, metadata={"flatten": True})
     port: Annotated[int, at_least(0), at_most(65535)] = 7447  # the router's TCP port on 127.0.0.1; 0 = any free port
     encoders: PosInt = 1  # encoder processes (cmvae only)
-    encoder_engine: str = "torch"  # the encoders' CMVAE inference: torch | onnx (onnxruntime; `swimm encoder --engine`)
+    encoder_engine: Engine = "torch"  # the encoders' CMVAE inference (`swimm encoder --engine`)
     sims: PosInt = 1  # sim processes, the train envs split between them in equal ranges (the eval envs on the first)
     sim_eval_envs: NonNegInt = 2  # eval envs the sim serves: one for the learner's evaluations, one for `swimm eval`
     topology: Literal["peer", "client"] = "peer"  # peer: direct links once the router introduces them; client: via it
@@ -132,7 +132,7 @@ def encoder_checkpoint(learn: LearnCommandSettings) -> Path | None:
     """The CMVAE the encoders load (None when the observation mode needs no encoder); fails clearly if absent."""
     if learn.obs != "cmvae":
         return None
-    path = Path(learn.encoder_checkpoint) if learn.encoder_checkpoint else encoder_service.DEFAULT_CHECKPOINT
+    path = Path(learn.encoder_checkpoint) if learn.encoder_checkpoint else DEFAULT_CHECKPOINT
     if not path.is_file():
         raise FileNotFoundError(
             f"the CMVAE checkpoint {path} does not exist. Train one (`swimm dataset`, then `swimm train-encoder`) "
@@ -325,7 +325,6 @@ def check(settings: UpSettings) -> UpSettings:
     start would refuse (each by the command's own check); the settings with the learner's group size resolved."""
     check_ranges(settings)
     learn = settings.learn
-    encoder_service.check_engine(settings.encoder_engine, "--encoder-engine")
     check_sim_config(settings.learn.sim_config)
     largest_group = 0
     if learn.zenoh.low_latency:  # its messages cannot fragment: groups must fit the sim's observations

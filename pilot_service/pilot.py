@@ -195,14 +195,25 @@ def check_dive_mode(action_names: list[str], dive_mode: str) -> None:
         )
 
 
-def fly(settings: PilotSettings, stop: threading.Event) -> Path:
-    """The control loop until ``stop``, the duration, or the end of a file; returns the controls CSV's path."""
+def flyable_policy(settings: PilotSettings) -> OnnxPolicy:
+    """The settings checked and the policy loaded, refused where it cannot fly them (its actions, a target box)."""
     settings.check()
     policy = OnnxPolicy(settings.policy, settings.threads)
     check_dive_mode(policy.action_names, settings.dive_mode)
     if settings.target_box and not policy.tracks:
         raise ValueError(f"--target-box points a target out to a policy on a tracking CMVAE; {settings.policy} "
                          "reads no prior: it follows the dolphin the camera is centred on")  # fmt: skip
+    return policy
+
+
+def check(settings: PilotSettings) -> None:
+    """`swimm pilot`'s check: before any source or vehicle is opened."""
+    flyable_policy(settings)
+
+
+def fly(settings: PilotSettings, stop: threading.Event) -> Path:
+    """The control loop until ``stop``, the duration, or the end of a file; returns the controls CSV's path."""
+    policy = flyable_policy(settings)
     rate = settings.rate_hz or policy.control_rate_hz
     vehicle = None
     if not settings.dry_run:

@@ -23,6 +23,7 @@ import json
 import logging
 import math
 import queue
+import struct
 import threading
 import time
 from contextlib import closing
@@ -89,6 +90,12 @@ class ReplaySettings:
             raise ValueError("give the recording to replay: swimm replay FILE.mcap")
         if not Path(self.file).is_file():
             raise FileNotFoundError(f"no recording at {self.file}")
+        recorded_namespace(self.file)  # a file that is no swimm recording
+        try:
+            zenoh.KeyExpr(f"swimm/{self.keys}")
+        except zenoh.ZError as exc:
+            reason = str(exc).split(" at /")[0]  # without the Rust source location
+            raise ValueError(f"--keys {self.keys!r} is not a key expression: {reason}") from None
 
 
 class McapRecorder:
@@ -198,7 +205,7 @@ def recorded_namespace(path: str | Path) -> str:
             for record in make_reader(handle).iter_metadata():
                 if record.name == METADATA_NAME:
                     return record.metadata["namespace"]
-    except (McapError, OSError) as exc:
+    except (McapError, OSError, struct.error) as exc:  # struct: a file too short for MCAP's header
         raise ValueError(f"{path} is not a readable MCAP recording: {exc}") from None
     raise ValueError(f"{path} has no swimm metadata: was it written by `swimm record`?")
 

@@ -109,3 +109,11 @@ def write_provenance_beside(table: str | Path, about: Mapping[str, Any], append:
     runs = json.loads(path.read_text())["runs"] if append and path.is_file() else []
     path.write_text(json.dumps({"table": Path(table).name, "runs": [*runs, dict(about)]}, indent=2, default=str) + "\n")
     return path
+
+
+def refuse_held_folder(flag: str, folder: str | Path, markers: Iterable[str], what: str, remedy: str) -> None:
+    """Refuse ``folder`` where it holds any of ``markers`` (an earlier run's files, which a new run would overwrite),
+    naming the flag, the folder, the files found and what to do instead."""
+    held = [name for name in markers if (Path(folder) / name).is_file()]
+    if held:
+        raise FileExistsError(f"{flag} {folder} already holds {what} ({', '.join(held)}): {remedy}")

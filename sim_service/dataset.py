@@ -256,12 +256,8 @@ def write_dataset(
     if count <= 0 or shard_size <= 0 or workers <= 0:
         raise ValueError(f"count, shard_size and workers must be positive (got {count}, {shard_size}, {workers})")
     settings = world_settings or WorldSettings()
-    _check_pod(settings, sight_share)
-    if paired and not settings.noise.resolved().enabled:
-        raise ValueError("a paired dataset pairs noisy frames with clean ones: switch noise on (--noise-preset harsh)")
+    check_request(out_dir, settings, paired, sight_share)
     out = Path(out_dir)
-    if (out / "meta.json").exists():
-        raise FileExistsError(f"{out} already holds a dataset; choose another --out or delete it")
     out.mkdir(parents=True, exist_ok=True)
     ranges = ranges or SamplingRanges()
     jobs = [
@@ -302,6 +298,23 @@ def write_dataset(
     (out / "meta.json").write_text(json.dumps(meta, indent=2))
     log.info("wrote %d images in %d shards to %s", count, len(shards), out)
     return out
+
+
+def check_request(out_dir: str | Path, settings: WorldSettings, paired: bool, sight_share: float) -> None:
+    """Refuse a dataset that cannot be written as asked (its world, a pod, pairs, a folder holding one), before
+    any frame is rendered."""
+    settings.check()
+    _check_pod(settings, sight_share)
+    if paired and not settings.noise.resolved().enabled:
+        raise ValueError("a paired dataset pairs noisy frames with clean ones: switch noise on (--noise-preset harsh)")
+    if (Path(out_dir) / "meta.json").exists():
+        raise FileExistsError(f"{out_dir} already holds a dataset; choose another --out or delete it")
+
+
+def check(settings: DatasetSettings) -> None:
+    """`swimm dataset`'s check."""
+    sampling_ranges(settings)
+    check_request(settings.out, settings.world, settings.paired, settings.sight_share)
 
 
 def run(settings: DatasetSettings) -> int:

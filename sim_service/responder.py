@@ -101,6 +101,8 @@ def check_fits_low_latency(settings: SimSettings) -> None:
 def check(settings: SimSettings) -> None:
     """Refuse, before any world is built, settings no sim can serve (`swimm up` runs it before it starts one)."""
     check_ranges(settings)
+    if settings.train_envs == 0 and settings.eval_envs == 0:
+        raise ValueError("--train-envs 0 and --eval-envs 0: the sim would serve no env; give either at least 1")
     settings.world.check()
     check_fits_low_latency(settings)
 

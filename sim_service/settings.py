@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Annotated, Literal
 
+from services import settings as settings_mod
 from services.settings import NonNegInt, PosFloat, PosInt, ZenohSettings, at_least
 from sim_service.latency import LatencySettings
 from sim_service.noise import ImageNoise, NoiseSettings
@@ -85,3 +87,12 @@ class SimSettings:
     ident: str = ""  # this sim's id in liveliness and metrics; default sim-<pid>
     claim_grace_s: float = 10.0  # a claim lapses when its holder's token stays gone this long
     poll_ms: float = 0.0  # poll the inbox this long, then nap (services/polling.py): faster lock-step for a spare core
+
+
+def world_of_file(path: str | Path) -> WorldSettings:
+    """The world a `swimm sim` settings file describes (image noise, scenery, pod), refused as the sim would
+    refuse it, for in-process envs."""
+    # The file alone: a SWIMM_* variable meant for another command must not reach the world through the sim's names.
+    world = settings_mod.load(SimSettings, None, str(path), environ={}).world
+    world.check()
+    return world

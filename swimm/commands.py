@@ -43,9 +43,9 @@ def _sim() -> Entry:
 
 
 def _encoder() -> Entry:
-    from encoder_service.service import EncoderSettings, run
+    from encoder_service.service import EncoderSettings, check, run
 
-    return Entry(EncoderSettings, run)
+    return Entry(EncoderSettings, run, check)
 
 
 def _learn() -> Entry:
@@ -61,33 +61,33 @@ def _eval() -> Entry:
 
 
 def _dataset() -> Entry:
-    from sim_service.dataset import DatasetSettings, run
+    from sim_service.dataset import DatasetSettings, check, run
 
-    return Entry(DatasetSettings, run)
+    return Entry(DatasetSettings, run, check)
 
 
 def _train_encoder() -> Entry:
-    from encoder_service.train import TrainEncoderSettings, run
+    from encoder_service.train import TrainEncoderSettings, check, run
 
-    return Entry(TrainEncoderSettings, run)
+    return Entry(TrainEncoderSettings, run, check)
 
 
 def _eval_encoder() -> Entry:
-    from encoder_service.evaluate import EvalEncoderSettings, run
+    from encoder_service.evaluate import EvalEncoderSettings, check, run
 
-    return Entry(EvalEncoderSettings, run)
+    return Entry(EvalEncoderSettings, run, check)
 
 
 def _export_encoder() -> Entry:
-    from encoder_service.export import ExportEncoderSettings, run
+    from encoder_service.export import ExportEncoderSettings, check, run
 
-    return Entry(ExportEncoderSettings, run)
+    return Entry(ExportEncoderSettings, run, check)
 
 
 def _export() -> Entry:
-    from learner_service.export import ExportSettings, run
+    from learner_service.export import ExportSettings, check, run
 
-    return Entry(ExportSettings, run)
+    return Entry(ExportSettings, run, check)
 
 
 def _up() -> Entry:
@@ -103,29 +103,29 @@ def _status() -> Entry:
 
 
 def _pilot() -> Entry:
-    from pilot_service.pilot import PilotSettings, run
+    from pilot_service.pilot import PilotSettings, check, run
 
-    return Entry(PilotSettings, run)
+    return Entry(PilotSettings, run, check)
 
 
 def _record() -> Entry:
     from services.record import RecordSettings
     from swimm.record import run_record
 
-    return Entry(RecordSettings, run_record)
+    return Entry(RecordSettings, run_record, RecordSettings.check)
 
 
 def _replay() -> Entry:
     from services.record import ReplaySettings
     from swimm.record import run_replay
 
-    return Entry(ReplaySettings, run_replay)
+    return Entry(ReplaySettings, run_replay, ReplaySettings.check)
 
 
 def _bench() -> Entry:
-    from bench.command import BenchSettings, run
+    from bench.command import BenchSettings, check, run
 
-    return Entry(BenchSettings, run)
+    return Entry(BenchSettings, run, check)
 
 
 COMMANDS: dict[str, Command] = {

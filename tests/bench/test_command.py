@@ -6,7 +6,9 @@ import json
 
 import pytest
 
-from bench.command import BenchSettings, medians, run
+from bench.command import BenchSettings, check, medians
+from services.settings import SETTINGS_EXIT_CODE
+from swimm.cli import main
 
 
 def test_repeated_runs_report_each_numbers_median_and_a_flag_only_when_every_run_raised_it() -> None:
@@ -24,8 +26,8 @@ def test_repeated_runs_report_each_numbers_median_and_a_flag_only_when_every_run
 
 
 def test_repeat_below_one_is_refused_before_anything_runs() -> None:
-    with pytest.raises(ValueError, match="--repeat must be at least 1"):
-        run(BenchSettings(target="sim", repeat=0))
+    with pytest.raises(ValueError, match="--repeat 0: must be >= 1"):
+        check(BenchSettings(target="sim", repeat=0))
 
 
 @pytest.mark.parametrize(
@@ -38,24 +40,43 @@ def test_repeat_below_one_is_refused_before_anything_runs() -> None:
 )
 def test_a_profile_the_run_could_not_write_is_refused_before_anything_runs(settings, message) -> None:
     with pytest.raises(ValueError, match=message):
-        run(settings)
+        check(settings)
 
 
 @pytest.mark.parametrize(
     ("settings", "message"),
     [
-        (BenchSettings(target="train", envs=8, encoders=0), "--encoders must be at least 1, got 0"),
-        (BenchSettings(target="train", envs=8, zenoh_threads=-1), "--zenoh-threads must be at least 0"),
+        (BenchSettings(target="train", envs=8, encoders=0), "--encoders 0: must be >= 1"),
+        (BenchSettings(target="train", envs=8, zenoh_threads=-1), "--zenoh-threads -1: must be >= 0"),
     ],
 )
 def test_a_layout_that_cannot_run_is_refused_before_anything_runs(settings, message) -> None:
     with pytest.raises(ValueError, match=message):
-        run(settings)
+        check(settings)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["bench", "train", "--algo", "nonesuch"], "unknown algorithm 'nonesuch'"),
+        (["bench", "train", "--algo", "no_such_module:Class"], "cannot import module 'no_such_module'"),
+        (["bench", "nonesuch"], "unknown benchmark 'nonesuch'"),
+    ],
+)
+def test_the_command_refuses_its_settings_before_measuring(argv, message, capsys) -> None:
+    assert main(argv) == SETTINGS_EXIT_CODE
+    assert f"bench refused its settings: {message}" in capsys.readouterr().err
+
+
+def test_a_choice_outside_its_list_is_refused_by_the_parser(capsys) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        main(["bench", "train", "--engine", "X"])
+    assert stopped.value.code == 2 and "--engine: invalid choice: 'X'" in capsys.readouterr().err
 
 
 def test_a_ceiling_asked_of_another_benchmark_is_refused_before_anything_runs() -> None:
     with pytest.raises(ValueError, match="--ceiling is for `swimm bench train`"):
-        run(BenchSettings(target="sim", ceiling=True))
+        check(BenchSettings(target="sim", ceiling=True))
 
 
 def test_a_json_report_says_what_made_it(capsys) -> None:

@@ -100,7 +100,9 @@ def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run_a
     run(_settings(dataset_dir, resumed, epochs=1))
     assert torch.load(resumed / "last.pt", weights_only=True)["epoch"] == 1
     before = (resumed / "train_summary.json").read_bytes()
-    with pytest.raises(FileExistsError, match="already holds a training run: --resume goes on with it"):
+    with pytest.raises(
+        FileExistsError, match=r"--out .* already holds a training run \(last.pt, best.pt\): --resume goes on with it"
+    ):
         run(_settings(dataset_dir, resumed, epochs=2))  # a new run would overwrite the first one's files
     assert (resumed / "train_summary.json").read_bytes() == before
     run(_settings(dataset_dir, resumed, epochs=2, resume=True))

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from encoder_service import DEFAULT_CHECKPOINT
 from eval_service import command, engine, sweep, watch
 from eval_service.attach import NoEvalEnv, free_env_ids
 from eval_service.command import EvalCommandSettings
@@ -112,6 +113,24 @@ def test_settings_are_checked_before_anything_starts(tmp_path) -> None:
     ):
         with pytest.raises(FileNotFoundError, match=message):  # at once, not after a wait for a live sim
             command.check(settings(tmp_path, algo=["sac"], **bad))
+
+
+def test_a_file_that_is_no_policy_and_a_mismatched_pair_are_refused_before_any_wait(tmp_path) -> None:
+    """Over Zenoh (the default) both used to wait a minute for a router and then report the router."""
+    text = tmp_path / "notes.zip"
+    text.write_text("not a model")
+    with pytest.raises(ValueError, match=f"{text} is not a policy checkpoint"):
+        command.check(settings(tmp_path, backend="zenoh", algo=["sac"], checkpoint=[str(text)]))
+    mismatched = settings(
+        tmp_path,
+        backend="zenoh",
+        obs="cmvae",
+        algo=["sac"],
+        checkpoint=[str(SHIPPED_POLICY)],
+        encoder_checkpoint=str(DEFAULT_CHECKPOINT),
+    )  # the clean CMVAE, not the policy's
+    with pytest.raises(ValueError, match=f"policy {SHIPPED_POLICY} was trained on encoder .*but the encoder given is"):
+        command.check(mismatched)
 
 
 def eval_env(env: str, holder: str | None) -> InfoReply:
@@ -453,6 +472,23 @@ def test_a_sim_settings_file_builds_the_in_process_world_and_is_recorded(tmp_pat
         command.check(replace(given, backend="zenoh"))
     with pytest.raises(FileNotFoundError, match="--sim-config .*missing.yaml: no such settings file"):
         command.check(settings(tmp_path, sim_config=str(tmp_path / "missing.yaml")))
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("noise_preset: muddy\n", "unknown noise preset 'muddy'"),
+        ("scene_preset: reef\n", "unknown scene preset 'reef'"),
+        ("dolphin_pod_size: 1\ndolphin_pod_crossing: true\n", "--dolphin-pod-crossing needs a companion"),
+        ("image_size: 0\n", "image_size"),
+    ],
+)
+def test_a_sim_settings_file_the_sim_would_refuse_is_refused_at_the_check(tmp_path, line, message) -> None:
+    """Refused by the file's name before any world is built or a policy loaded (not "eval failed" later)."""
+    world_file = tmp_path / "world.yaml"
+    world_file.write_text(line)
+    with pytest.raises(ValueError, match=f"--sim-config {world_file}.*{message}|{world_file}.*{message}"):
+        command.check(settings(tmp_path, sim_config=str(world_file)))
 
 
 @pytest.mark.parametrize(

@@ -166,12 +166,21 @@ def test_up_refuses_a_missing_sim_config_before_starting_anything(tmp_path, capf
         (["--envs", "3", "--sims", "2"], "divide --envs into equal shares"),
         (["--envs", "4", "--sims", "0"], "--sims 0: must be >= 1"),
         (["--envs", "8", "--sims", "2", "--group-size", "3"], "--group-size 3 does not divide the 4 envs"),
-        (["--encoder-engine", "tensorrt"], "--encoder-engine must be one of torch, onnx, got 'tensorrt'"),
     ],
 )
 def test_up_refuses_sims_that_cannot_share_the_envs(tmp_path, capfd, flags, message) -> None:
     assert cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run"), *flags]) == 2
     assert message in capfd.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
+def test_up_refuses_an_unknown_encoder_engine_by_flag_and_by_variable(tmp_path, capfd, monkeypatch) -> None:
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run"), "--encoder-engine", "tensorrt"])
+    assert stopped.value.code == 2 and "--encoder-engine: invalid choice: 'tensorrt'" in capfd.readouterr().err
+    monkeypatch.setenv("SWIMM_ENCODER_ENGINE", "tensorrt")  # the variable a deployment sets
+    assert cli.main(["up", "--obs", "state", "--run-dir", str(tmp_path / "run")]) == 2
+    assert "SWIMM_ENCODER_ENGINE: setting 'encoder_engine' got 'tensorrt'" in capfd.readouterr().err
     assert not (tmp_path / "run").exists()
 
 
@@ -182,7 +191,7 @@ def test_up_refuses_sims_that_cannot_share_the_envs(tmp_path, capfd, flags, mess
         (["--envs", "-1"], "up refused its settings: --envs -1: must be >= 1"),
         (["--eval-episodes", "0"], "up refused its settings: --eval-episodes 0: must be >= 1"),
         (["--port", "70000"], "up refused its settings: --port 70000: must be <= 65535"),
-        (["--sim-config", "SIM_YAML"], "the sim it would start refuses its settings: settings file"),
+        (["--sim-config", "SIM_YAML"], "setting 'train_envs' got -3: must be >= 0"),
         (["--algo", "scripted"], "up refused its settings: a scripted baseline has nothing to learn"),
     ],
 )
@@ -190,7 +199,7 @@ def test_up_refuses_bad_settings_before_any_process_or_folder(tmp_path, flags, m
     """A real `swimm up`: the refusal names the flag as typed, its value and range, exits 2 at once, and
     nothing was started (no log says so) or made (no run folder)."""
     sim_yaml = tmp_path / "sim.yaml"
-    sim_yaml.write_text("train_envs: -3\n")  # a child's own setting, refused by that child's check
+    sim_yaml.write_text("train_envs: -3\n")  # a setting of the sim it would start
     flags = [str(sim_yaml) if flag == "SIM_YAML" else flag for flag in flags]
     argv = [sys.executable, "-m", "swimm", "up", "--run-dir", str(tmp_path / "run"), "--obs", "state", *flags]
     started = time.monotonic()

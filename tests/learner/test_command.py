@@ -4,6 +4,9 @@ resuming, stopping, and the command line's refusals."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import threading
 from collections import Counter
 from pathlib import Path
@@ -104,7 +107,9 @@ def test_resume_continues_the_step_count_with_the_replay_buffer(first_run) -> No
     assert reloaded.replay_buffer.size() == first.num_timesteps  # every transition so far (buffer holds 2000)
     env.close()
 
-    with pytest.raises(FileExistsError, match="already holds a run: --resume one of its models to go on with it"):
+    with pytest.raises(
+        FileExistsError, match=r"already holds a run \(settings.json\): --resume one of its models to go on with it"
+    ):
         check_new_run(tiny_settings(run_dir, steps=60))  # a new run there would overwrite the first one's files
     check_new_run(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60))
     resumed = Training(tiny_settings(run_dir, resume=str(run_dir / FINAL_MODEL), steps=60)).run()
@@ -262,9 +267,8 @@ def test_a_sim_settings_file_is_refused_where_no_in_process_world_reads_it(tmp_p
     with pytest.raises(FileNotFoundError, match="--sim-config .*absent.yaml: no such settings file"):
         check(LearnCommandSettings(backend="inprocess", sim_config=str(tmp_path / "absent.yaml")))
     sim_config.write_text("noise_presett: murky\n")
-    settings = tiny_settings(tmp_path / "run", sim_config=str(sim_config))
     with pytest.raises(settings_mod.SettingsError, match="noise_presett"):
-        Training(settings).inprocess_world()
+        check(tiny_settings(tmp_path / "run", sim_config=str(sim_config)))  # before any world is built
 
 
 def test_the_bar_names_each_phase_in_order_with_its_own_count(tmp_path: Path, monkeypatch) -> None:
@@ -298,16 +302,15 @@ def test_the_bar_names_each_phase_in_order_with_its_own_count(tmp_path: Path, mo
     assert [phase for index, phase in enumerate(entered) if index == 0 or entered[index - 1] != phase] == order
 
 
-def test_a_start_that_fails_before_training_leaves_the_run_folder_free_to_try_again(tmp_path: Path, capfd) -> None:
-    """A world that cannot be built (a sim settings file with a misspelt key) fails the run before it trains; its
-    folder holds no run, so the same --run-dir takes the next attempt."""
-    bad = tmp_path / "sim.yaml"
-    bad.write_text("noise:\n  presett: murky\n")
+def test_a_start_that_fails_before_training_leaves_the_run_folder_free_to_try_again(tmp_path: Path) -> None:
+    """A world that cannot be built (no GL context for the image observation: GLX without a display) fails the
+    run before it trains; its folder holds no run, so the same --run-dir takes the next attempt."""
     run_dir = tmp_path / "run"
-    argv = ["learn", "--backend", "inprocess", "--obs", "state", "--steps", "50", "--run-dir", str(run_dir),
-            "--no-progress-bar"]  # fmt: skip
-    assert cli.main([*argv, "--sim-config", str(bad)]) == 1  # failed: the world is built once the run starts
-    assert "unknown setting 'noise.presett'; did you mean preset?" in capfd.readouterr().err
+    argv = ["learn", "--backend", "inprocess", "--steps", "50", "--run-dir", str(run_dir), "--no-progress-bar"]
+    no_display = {key: value for key, value in os.environ.items() if key != "DISPLAY"} | {"MUJOCO_GL": "glx"}
+    failed = subprocess.run([sys.executable, "-m", "swimm", *argv, "--obs", "image"], capture_output=True, text=True,
+                            timeout=120, env=no_display)  # fmt: skip
+    assert failed.returncode == 1, failed.stderr  # it passed the check: it failed once the run started
     assert not (run_dir / "settings.json").exists()
-    assert cli.main(argv) == 0
+    assert cli.main([*argv, "--obs", "state"]) == 0
     assert (run_dir / "settings.json").is_file() and (run_dir / FINAL_MODEL).is_file()

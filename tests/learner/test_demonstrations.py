@@ -266,10 +266,10 @@ def test_the_3d_recipes_load_as_swimm_learn_settings_on_the_encoder_their_policy
 ) -> None:
     from learner_service.command import check
     from learner_service.identity import read_identity
-    from learner_service.inprocess_env import sim_config_world
     from learner_service.learn_settings import LearnCommandSettings
     from learner_service.up import encoder_checkpoint
     from services import settings as settings_mod
+    from sim_service.settings import world_of_file
 
     root = Path(__file__).resolve().parents[2]
     models = root / "learner_service" / "models"
@@ -279,4 +279,4 @@ def test_the_3d_recipes_load_as_swimm_learn_settings_on_the_encoder_their_policy
     recorded = read_identity(models / f"{recipe}.zip")
     assert recorded["task"]["name"] == "3d" and recorded["encoder"]["path"] == learn.encoder_checkpoint
     assert encoder_checkpoint(learn).name == encoder
-    assert (sim_config_world(root / learn.sim_config).noise.preset if learn.sim_config else None) == noise
+    assert (world_of_file(root / learn.sim_config).noise.preset if learn.sim_config else None) == noise

@@ -114,6 +114,6 @@ def test_a_run_folder_holding_a_run_is_refused_before_any_service_starts(tmp_pat
     for command in ("learn", "up"):
         result = swimm(command, "--run-dir", str(run_dir), "--steps", "10", cwd=elsewhere)
         assert result.returncode == SETTINGS_EXIT_CODE, result.stderr
-        assert f"--run-dir {run_dir} already holds a run: --resume one of its models" in result.stderr
+        assert f"--run-dir {run_dir} already holds a run (settings.json): --resume one of its models" in result.stderr
     assert [path.name for path in run_dir.iterdir()] == ["settings.json"]  # no logs: nothing started
     assert not any(elsewhere.iterdir())

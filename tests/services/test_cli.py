@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from services.procs import wait_for_port
+from services.record import McapRecorder
 from swimm.cli import COMMANDS
 
 #: The command line DESIGN.md promises.
@@ -73,7 +74,53 @@ def test_help_imports_no_heavy_package_the_command_does_not_need(argv: list[str]
 def test_every_command_loads_its_settings_check_and_run_function(name: str) -> None:
     entry = COMMANDS[name].load()
     assert dataclasses.is_dataclass(entry.settings) and callable(entry.run)
-    assert entry.check is None or callable(entry.check)
+    assert callable(entry.check) or name == "router"  # the router reads no file and has nothing to refuse
+
+
+@pytest.mark.parametrize(
+    ("argv", "refusal"),
+    [
+        (["train-encoder", "--dataset", "NOWHERE"], "NOWHERE is not a CMVAE dataset"),
+        (["train-encoder", "--dataset", "NOWHERE", "--mask-weight", "-1"], "--mask-weight must be a finite weight"),
+        (["train-encoder", "--dataset", "DATASET", "--init", "NOT_A_MODEL"], "--init NOT_A_MODEL is not a swimm-cmvae"),
+        (["eval-encoder", "--dataset", "NOWHERE"], "NOWHERE is not a CMVAE dataset"),
+        (["export-encoder", "--checkpoint", "NOT_A_MODEL"], "NOT_A_MODEL is not a swimm-cmvae checkpoint"),
+        (["export", "--checkpoint", "NOT_A_MODEL"], "NOT_A_MODEL is not a policy checkpoint"),
+        (["export", "--check-frames", "0"], "--check-frames 0: must be >= 1"),
+        (["encoder", "--checkpoint", "NOT_A_MODEL"], "NOT_A_MODEL is not a swimm-cmvae checkpoint"),
+        (
+            ["encoder", "--device", "cuda", "--engine", "onnx"],
+            "encoder engine must be one of torch, onnx (onnx on the cpu device only), got 'onnx' on 'cuda'",
+        ),
+        (["pilot", "--policy", "NOT_A_MODEL"], "NOT_A_MODEL"),
+        (["pilot", "--max-surge", "2"], "--max-surge, --max-yaw and --max-heave must be in (0, 1]"),
+        (["record", "--duration-s", "-1"], "--duration-s must be >= 0"),
+        (["sim", "--train-envs", "0", "--eval-envs", "0"], "--train-envs 0 and --eval-envs 0: the sim would serve no"),
+        (["replay", "NOT_A_MODEL"], "NOT_A_MODEL is not a readable MCAP recording"),
+        (["replay", "RECORDING", "--keys", "a//b"], "--keys 'a//b' is not a key expression: Invalid Key Expr"),
+        (["dataset", "--out", "DATASET", "--count", "5"], "DATASET already holds a dataset"),
+        (["dataset", "--count", "5", "--noise-preset", "muddy"], "unknown noise preset 'muddy'"),
+    ],
+)
+def test_each_command_refuses_bad_input_by_name_before_it_starts(argv, refusal, tmp_path, capfd) -> None:
+    """Exit 2, "<command> refused its settings: ...", and nothing written: the files the command would read or
+    write are checked before any model loads, any frame renders or any session opens."""
+    from swimm import cli
+
+    not_a_model = tmp_path / "notes.txt"
+    not_a_model.write_text("not a model")
+    dataset = tmp_path / "dataset"
+    dataset.mkdir()
+    (dataset / "meta.json").write_text("{}")  # a folder that claims a dataset
+    recording = tmp_path / "session.mcap"
+    McapRecorder(recording, "swimm/default", images=False).close()  # an empty recording, as `swimm record` writes
+    names = {"NOWHERE": tmp_path / "nowhere", "NOT_A_MODEL": not_a_model, "DATASET": dataset, "RECORDING": recording}
+    argv = [str(names.get(arg, arg)) for arg in argv]
+    refusal = next((refusal.replace(key, str(path)) for key, path in names.items() if key in refusal), refusal)
+    before = sorted(tmp_path.rglob("*"))
+    assert cli.main(argv) == 2
+    assert f"{argv[0]} refused its settings: {refusal}" in capfd.readouterr().err
+    assert sorted(tmp_path.rglob("*")) == before
 
 
 def test_console_script_is_installed():

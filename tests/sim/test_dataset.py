@@ -233,8 +233,8 @@ def test_a_pod_dataset_puts_companions_in_front_of_the_target_and_nearer_the_ima
     ],
 )
 def test_a_bad_pod_is_refused_naming_the_flag_before_anything_is_written(tmp_path, capsys, flags, message):
-    assert main(["dataset", "--out", str(tmp_path / "pod"), "--count", "2", *flags]) == 1
-    assert f"dataset failed: {message}" in capsys.readouterr().err  # the CLI logs the error, not a traceback
+    assert main(["dataset", "--out", str(tmp_path / "pod"), "--count", "2", *flags]) == 2
+    assert f"dataset refused its settings: {message}" in capsys.readouterr().err  # one line, not a traceback
     assert not (tmp_path / "pod").exists()
 
 
@@ -254,6 +254,6 @@ def test_a_dataset_near_the_image_centre_draws_the_same_samples_within_its_azimu
 
 @pytest.mark.parametrize("value", ["0", "-3", "50"])
 def test_an_azimuth_range_outside_the_field_of_view_is_refused_by_name(tmp_path, capsys, value):
-    assert main(["dataset", "--out", str(tmp_path / "bad"), "--count", "2", "--max-azimuth-deg", value]) == 1
-    assert "dataset failed: --max-azimuth-deg must be above 0 and at most" in capsys.readouterr().err
+    assert main(["dataset", "--out", str(tmp_path / "bad"), "--count", "2", "--max-azimuth-deg", value]) == 2
+    assert "dataset refused its settings: --max-azimuth-deg must be above 0 and at most" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()

@@ -20,12 +20,11 @@ from shift_average import shift_averaged_reading
 
 from encoder_service.inference import LatentEncoder
 from learner_service.envs import make_env
-from learner_service.inprocess_env import sim_config_world
 from learner_service.learn_settings import TrackerGains
 from learner_service.scripted import LatentTracker, ScriptedTracker
 from learner_service.task import TaskSettings, swimm2_elevation_penalty, swimm2_penalties
 from services.results import provenance, write_provenance_beside
-from sim_service.settings import WorldSettings
+from sim_service.settings import WorldSettings, world_of_file
 
 
 def play(env, encoder: LatentEncoder, tracker, steps: int, shifts: tuple[int, ...] = ()) -> np.ndarray:
@@ -93,7 +92,7 @@ def main() -> None:
     parser.add_argument("--render-scale", type=int, help="render this many times larger, then downsample")
     args = parser.parse_args()
     encoder = LatentEncoder(args.checkpoint)
-    world = sim_config_world(args.sim_config) if args.sim_config else WorldSettings()
+    world = world_of_file(args.sim_config) if args.sim_config else WorldSettings()
     if args.render_scale is not None:  # else the settings file's, so a file that sets it is not overridden
         world = replace(world, render_scale=args.render_scale)
     task = TaskSettings(obs="cmvae", task="3d")
