@@ -350,10 +350,11 @@ def check_child(command: str, argv: list[str]) -> None:
     """Refuse a sim's or an encoder's arguments as `swimm sim` or `swimm encoder` would refuse them."""
     if command == "sim":
         check_sim(settings_mod.from_command_line(SimSettings, argv))
-    else:  # an encoder: its settings load as its command loads them, or are refused
+    else:  # an encoder: its settings load and pass its check as its command's do, or are refused
         from encoder_service.service import EncoderSettings  # torch: not for `swimm up --help`
+        from encoder_service.service import check as check_encoder
 
-        settings_mod.from_command_line(EncoderSettings, argv)
+        check_encoder(settings_mod.from_command_line(EncoderSettings, argv))
 
 
 def learner_settings(settings: UpSettings, endpoint: str, run_dir: Path) -> LearnCommandSettings:

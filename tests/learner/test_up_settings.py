@@ -104,6 +104,15 @@ def test_the_sims_swim_the_dolphin_of_the_learners_task(task: str) -> None:
         assert from_command_line(SimSettings, arguments, environ={}).world.dolphin.motion == task
 
 
+def test_an_encoder_file_that_is_no_cmvae_is_refused_by_the_encoder_check_before_any_service_starts(tmp_path) -> None:
+    notes = tmp_path / "notes.pt"
+    notes.write_text("not a model")
+    result = swimm("up", "--encoder-checkpoint", str(notes), "--run-dir", str(tmp_path / "run"))
+    assert result.returncode == SETTINGS_EXIT_CODE, result.stderr
+    assert f"the encoder it would start refuses its settings: {notes} is not a swimm-cmvae" in result.stderr
+    assert not (tmp_path / "run").exists()
+
+
 def test_a_run_folder_holding_a_run_is_refused_before_any_service_starts(tmp_path: Path) -> None:
     """Refused last, after every other check, so `swimm up` from another folder got past its recipe's
     repo-relative encoder and sim settings file (found among swimm's own files) too."""
