@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Literal
 
 from bench.host import with_host_figure
-from bench.learn_settings import LearnBenchSettings
+from bench.learn_settings import Layout, LearnBenchSettings
 from encoder_service import Engine
 from services.results import PROVENANCE_KEY, provenance
 from services.settings import NonNegInt, PosInt, check_ranges
@@ -68,15 +68,21 @@ def check(settings: BenchSettings) -> None:
             raise ValueError("--profile is for one run of `swimm bench train` (without --repeat)")
         if not folder.is_dir():
             raise ValueError(f"--profile {settings.profile}: no folder {folder} to write it in")
-    if settings.target == "learn" and settings.repeat != 1:
-        raise ValueError("bench learn repeats over seeds (--seeds), not --repeat")
+    if settings.target == "learn":
+        if settings.repeat != 1:
+            raise ValueError("bench learn repeats over seeds (--seeds), not --repeat")
+        importlib.import_module(BENCHMARKS["learn"]).check(settings.learn, learn_layout(settings))
+
+
+def learn_layout(settings: BenchSettings) -> Layout:
+    """bench learn's layout from the benchmark's ``--envs`` and ``--sims``."""
+    return Layout(envs=settings.envs or 1, sims=settings.sims or 1)
 
 
 def run(settings: BenchSettings) -> int:
     if settings.target == "learn":
         learn = importlib.import_module(BENCHMARKS["learn"])
-        layout = learn.Layout(envs=settings.envs or 1, sims=settings.sims or 1)
-        return report(learn.run(settings.learn, layout), settings.json)
+        return report(learn.run(settings.learn, learn_layout(settings)), settings.json)
     module = importlib.import_module(BENCHMARKS[settings.target])
     kwargs = {"steps": settings.steps} if settings.steps else {}
     if settings.target == "train":

@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from bench.host import with_host_figure
 from bench.learn_merge import merge
-from bench.learn_settings import SUMMARY, LearnBenchSettings
+from bench.learn_settings import ONE_ENV, SUMMARY, Layout, LearnBenchSettings
 from bench.scores import curve_band, final_aggregates, first_reaching
 from encoder_service import DEFAULT_CHECKPOINT
 from eval_service.engine import EvaluationSettings, evaluate
@@ -65,21 +65,8 @@ def run_dir(settings: LearnBenchSettings, algo: str, seed: int) -> Path:
     return Path(settings.out) / "runs" / f"{algo}-{seed}"
 
 
-@dataclasses.dataclass(frozen=True)
-class Layout:
-    """How each run is served: training envs (the same gradient steps per env step whatever the number) and the
-    sims they are split between (`swimm up --envs --sims`), from `swimm bench`'s ``--envs`` and ``--sims``."""
-
-    envs: int = 1
-    sims: int = 1
-
-    def check(self) -> None:
-        if self.envs < 1 or self.sims < 1 or self.envs % self.sims:
-            raise ValueError(f"--envs must be >= 1 and --sims divide it, got {self.envs} envs and {self.sims} sims")
-
-
 def learn_settings(
-    settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = Layout()
+    settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = ONE_ENV
 ) -> LearnCommandSettings:
     """One run's learner: the algorithm's shipped hyperparameters from scratch, evaluating every N steps."""
     evaluation = EvalSettings(
@@ -108,7 +95,7 @@ def learn_settings(
     )
 
 
-def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = Layout()) -> None:
+def train(settings: LearnBenchSettings, algo: str, seed: int, layout: Layout = ONE_ENV) -> None:
     """One `swimm up` to the end of its budget; refuses to go on past a learner that failed."""
     learn = learn_settings(settings, algo, seed, layout)
     folder = Path(learn.run_dir)
@@ -198,7 +185,7 @@ def summarise(
     settings: LearnBenchSettings,
     evaluations: pd.DataFrame,
     finals: dict[tuple[str, int], dict],
-    layout: Layout = Layout(),
+    layout: Layout = ONE_ENV,
     bests: dict[tuple[str, int], dict] | None = None,
 ) -> dict:
     """The JSON summary: per algorithm, per-seed numbers in the order of ``seeds`` and their aggregates."""
@@ -262,14 +249,22 @@ def learning_figure(evaluations: pd.DataFrame) -> Figure:
     return figure
 
 
-def run(settings: LearnBenchSettings, layout: Layout = Layout()) -> dict[str, Any]:
-    """Train what is missing, evaluate it, write the results folder; returns the summary with its provenance."""
+def check(settings: LearnBenchSettings, layout: Layout = ONE_ENV) -> None:
+    """Refuse the benchmark's settings and every learner's (an algorithm, hyperparams, smoothing) before the first
+    run starts."""
     settings.check()
     if settings.merge:
-        return write_results(Path(settings.out), *merge(settings))
+        return
     layout.check()
-    for algo in settings.algos:  # a learner's mistake (hyperparams, smoothing) refused before the first run
+    for algo in settings.algos:
         check_learner(learn_settings(settings, algo, settings.seeds[0], layout))
+
+
+def run(settings: LearnBenchSettings, layout: Layout = ONE_ENV) -> dict[str, Any]:
+    """Train what is missing, evaluate it, write the results folder; returns the summary with its provenance."""
+    check(settings, layout)
+    if settings.merge:
+        return write_results(Path(settings.out), *merge(settings))
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     finals: dict[tuple[str, int], dict] = {}

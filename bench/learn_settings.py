@@ -42,3 +42,19 @@ class LearnBenchSettings:
             raise ValueError("budget_steps, eval_every, eval_episodes, eval_max_steps and final_episodes must be >= 1")
         if self.budget_min <= 0:
             raise ValueError(f"--budget-min must be > 0 minutes, got {self.budget_min}")
+
+
+@dataclass(frozen=True)
+class Layout:
+    """How each run is served: training envs (the same gradient steps per env step whatever the number) and the
+    sims they are split between (`swimm up --envs --sims`), from `swimm bench`'s ``--envs`` and ``--sims``."""
+
+    envs: int = 1
+    sims: int = 1
+
+    def check(self) -> None:
+        if self.envs < 1 or self.sims < 1 or self.envs % self.sims:
+            raise ValueError(f"--envs must be >= 1 and --sims divide it, got {self.envs} envs and {self.sims} sims")
+
+
+ONE_ENV = Layout()  # one env on one sim: the default layout

@@ -38,6 +38,7 @@ from eval_service.suite import SuiteSettings, check_suite, run_suite
 from eval_service.sweep import SweepSettings, check_sweep, sweep
 from eval_service.watch import WATCH_TABLE, watch
 from learner_service.metrics import summarise
+from services.record import recorded_namespace
 from services.results import provenance, refuse_held_folder
 from services.settings import to_dict
 
@@ -79,6 +80,7 @@ def check(settings: EvalCommandSettings) -> None:
             raise ValueError("--recording scores a file offline: it takes no --sweep, --watch or --live-port")
         if not Path(settings.recording).is_file():
             raise FileNotFoundError(f"--recording {settings.recording}: no such file (written by `swimm record`)")
+        recorded_namespace(settings.recording)  # a file that is no swimm recording
     if settings.sweep:
         check_sweep(settings.sweep_plan)
         if settings.watch:
@@ -87,6 +89,8 @@ def check(settings: EvalCommandSettings) -> None:
         check_suite(settings.suite_plan)
         if settings.sweep or settings.watch or settings.recording:
             raise ValueError("--suite is a run of its own: it takes no --sweep, --watch or --recording")
+    if settings.watch and not Path(settings.watch).is_dir():
+        raise FileNotFoundError(f"--watch {settings.watch}: nothing to watch, no run folder of `swimm learn` there")
     if settings.live.env and settings.live.port < 0:
         raise ValueError("--live-env shows envs in the live view: give --live-port too (0 for any free port)")
     for name in settings.live.env:

@@ -91,8 +91,6 @@ def watch(settings: EvaluationSettings, run_dir: Path, out: Path, feed: LiveFeed
           stop: threading.Event | None = None) -> int:  # fmt: skip
     """Evaluate each new best model until the run finishes (or ``stop`` is set), looking every ``interval_s``;
     returns how many were scored."""
-    if not run_dir.is_dir():
-        raise FileNotFoundError(f"nothing to watch: {run_dir} is not a run folder of `swimm learn`")
     stop = stop or _stop_on_signals()
     watcher = BestModelWatcher(run_dir, out / "checkpoints")
     scored = 0
