@@ -34,9 +34,9 @@ from encoder_service.model import (
     label_ranges,
     load_model,
     read_checkpoint,
+    resolve_device,
     tensor_to_images,
 )
-from encoder_service.train import resolve_device
 from services.geometry import camera_centred
 from services.results import provenance, write_result
 from services.settings import FilePath
@@ -297,6 +297,7 @@ def check(settings: EvalEncoderSettings) -> None:
     """Refuse the settings, the model and the datasets before anything is read in full or written."""
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR (held-out frames from `swimm dataset`)")
+    resolve_device(settings.device)
     read_checkpoint(settings.checkpoint or DEFAULT_CHECKPOINT)
     for root in filter(None, (settings.dataset, settings.noisy_dataset)):
         CMVAEDataset(root)  # a folder this code reads

@@ -773,6 +773,20 @@ def make_checkpoint(
     }
 
 
+def resolve_device(name: str) -> torch.device:
+    """The torch device ``--device`` names ("auto": CUDA where torch sees it, else the CPU); one that torch does
+    not know, or CUDA where torch sees none, is refused by name."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except RuntimeError as exc:
+        raise ValueError(f"--device {name!r} is not a torch device (cpu, cuda, cuda:1, mps, ...)") from exc
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device {name!r} asked for, but torch sees no CUDA device (use --device cpu)")
+    return device
+
+
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load and check a checkpoint dict (safe unpickling); a clear error says what is wrong with it."""
     path = Path(path)

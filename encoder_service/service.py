@@ -35,7 +35,7 @@ import zenoh
 
 from encoder_service import Engine
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, check_engine
-from encoder_service.model import read_checkpoint
+from encoder_service.model import read_checkpoint, resolve_device
 from services.keys import Keys
 from services.lifecycle import Service, serve_until_signalled
 from services.messages import IMAGE_SHAPE, BadMessage, BatchItem, BatchMsg, LatentMsg, ObservationMsg
@@ -281,6 +281,7 @@ def check(settings: EncoderSettings) -> None:
     """`swimm encoder`'s check: the engine on its device and the checkpoint, before a model loads or a session
     opens."""
     check_engine(settings.engine, settings.device)
+    resolve_device(settings.device)
     read_checkpoint(settings.checkpoint or DEFAULT_CHECKPOINT)
 
 

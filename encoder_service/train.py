@@ -57,6 +57,7 @@ from encoder_service.model import (
     normalise_labels,
     pool_masks,
     read_checkpoint,
+    resolve_device,
 )
 from services.geometry import ALPHA_DEG
 from services.lifecycle import sigterm_as_ctrl_c
@@ -134,15 +135,6 @@ class EarlyStopping:
         else:
             self.epochs_without_gain += 1
         return self.epochs_without_gain >= self.patience
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError(f"device {name!r} asked for, but torch sees no CUDA device")
-    return device
 
 
 def _mean(totals: dict[str, float], count: int) -> dict[str, float]:
@@ -602,6 +594,7 @@ def check(settings: TrainEncoderSettings) -> None:
         raise ValueError(f"--mask-weight must be a finite weight >= 0 (0 = no mask head), got {settings.mask_weight}")
     if settings.locate and settings.mask_weight <= 0:
         raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
+    resolve_device(settings.device)
     if not settings.resume:
         refuse_held_folder("--out", settings.out, ("last.pt", "best.pt"), "a training run",
                            "--resume goes on with it; choose another --out for a new one")  # fmt: skip

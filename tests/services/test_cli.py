@@ -88,6 +88,8 @@ def test_every_command_loads_its_settings_check_and_run_function(name: str) -> N
         (["export", "--checkpoint", "NOT_A_MODEL"], "NOT_A_MODEL is not a policy checkpoint"),
         (["export", "--check-frames", "0"], "--check-frames 0: must be >= 1"),
         (["encoder", "--checkpoint", "NOT_A_MODEL"], "NOT_A_MODEL is not a swimm-cmvae checkpoint"),
+        (["encoder", "--device", "banana"], "--device 'banana' is not a torch device"),
+        (["train-encoder", "--dataset", "NOWHERE", "--device", "banana"], "--device 'banana' is not a torch device"),
         (
             ["encoder", "--device", "cuda", "--engine", "onnx"],
             "encoder engine must be one of torch, onnx (onnx on the cpu device only), got 'onnx' on 'cuda'",
