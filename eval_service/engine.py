@@ -106,11 +106,12 @@ def check_evaluation(settings: EvaluationSettings) -> None:
     for flag, path in named:  # before any wait for a live sim
         if path and not Path(path).is_file():
             raise FileNotFoundError(f"{flag} {path}: no such file")
-    for path in settings.checkpoint:
-        read_identity(path)  # a file that is no policy checkpoint
     task_settings(settings)  # validates obs and reward
     if settings.obs == "cmvae":
-        policies_encoder(settings)  # a policy and an encoder that are no pair
+        policies_encoder(settings)  # a policy and an encoder that are no pair, a file that is no policy
+    else:
+        for path in settings.checkpoint:
+            read_identity(path)  # a file that is no policy checkpoint
 
 
 def task_settings(settings: EvaluationSettings) -> TaskSettings:

@@ -229,13 +229,14 @@ def policy_files(settings: ExportSettings) -> tuple[Path, Path]:
     encoder_path = encoder_for(policy_path, settings.encoder_checkpoint or None) or DEFAULT_CHECKPOINT
     if not encoder_path.is_file():
         raise FileNotFoundError(f"CMVAE checkpoint {encoder_path} does not exist")
-    resolve_algorithm(settings.algo)
     return policy_path, encoder_path
 
 
 def check(settings: ExportSettings) -> None:
-    """Refuse the settings, a file that is no policy and a policy and encoder that are no pair, before loading."""
+    """Refuse the settings, a file that is no policy, a policy and encoder that are no pair and an unknown
+    algorithm, before loading."""
     policy_files(settings)
+    resolve_algorithm(settings.algo)
 
 
 def run(settings: ExportSettings) -> int:
