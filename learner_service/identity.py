@@ -10,6 +10,7 @@ default (:func:`encoder_for`) and refuses another by name. Likewise a policy act
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import zipfile
@@ -89,8 +90,7 @@ def encoder_for(checkpoint: str | Path, given: str | Path | None) -> Path | None
     recorded = (identity or {}).get("encoder")
     if recorded is None:
         if identity is None:
-            log.warning("%s records no encoder (saved before policies carried one); using %s", checkpoint,
-                        given or "the default CMVAE")  # fmt: skip
+            _warn_no_encoder(str(checkpoint), str(given or "the default CMVAE"))
         return Path(given) if given else None
     if given:
         if file_sha256(given) != recorded["sha256"]:
@@ -101,6 +101,11 @@ def encoder_for(checkpoint: str | Path, given: str | Path | None) -> Path | None
             )
         return Path(given)
     return _find(recorded, checkpoint)
+
+
+@functools.cache  # once a process: a command's check and its run both ask
+def _warn_no_encoder(checkpoint: str, used: str) -> None:
+    log.warning("%s records no encoder (saved before policies carried one); using %s", checkpoint, used)
 
 
 def _find(recorded: dict[str, str], checkpoint: str | Path) -> Path:

@@ -130,3 +130,17 @@ def test_reading_a_policys_encoder_needs_no_zenoh() -> None:
     probe = "import sys, learner_service.identity; print('zenoh' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO_ROOT, check=True)
     assert result.stdout.strip() == "False"
+
+
+def test_a_policy_saved_before_identities_is_warned_of_once(tmp_path, caplog) -> None:
+    """A command's check and its run both ask for the encoder: the user reads the warning once."""
+    legacy = tmp_path / "legacy.zip"
+    with zipfile.ZipFile(legacy, "w") as archive:
+        archive.writestr("data", "{}")
+    with caplog.at_level("WARNING", logger="learner_service.identity"):
+        assert encoder_for(legacy, None) is None
+        assert encoder_for(legacy, None) is None
+        assert encoder_for(legacy, ENCODERS / "cmvae.pt") == ENCODERS / "cmvae.pt"
+    warned = [r.getMessage() for r in caplog.records if "records no encoder" in r.getMessage()]
+    said = f"{legacy} records no encoder (saved before policies carried one); using"
+    assert warned == [f"{said} the default CMVAE", f"{said} {ENCODERS / 'cmvae.pt'}"]
