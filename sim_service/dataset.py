@@ -60,6 +60,7 @@ from services.geometry import (
     relative_geometry,
     vertical_geometry,
 )
+from services.results import refuse_held_folder
 from services.settings import PosInt
 from sim_service.settings import WorldSettings
 from sim_service.world import World
@@ -307,8 +308,7 @@ def check_request(out_dir: str | Path, settings: WorldSettings, paired: bool, si
     _check_pod(settings, sight_share)
     if paired and not settings.noise.resolved().enabled:
         raise ValueError("a paired dataset pairs noisy frames with clean ones: switch noise on (--noise-preset harsh)")
-    if (Path(out_dir) / "meta.json").exists():
-        raise FileExistsError(f"{out_dir} already holds a dataset; choose another --out or delete it")
+    refuse_held_folder("--out", out_dir, ["meta.json"], "a dataset", "choose another --out or delete it")
 
 
 def check(settings: DatasetSettings) -> None:

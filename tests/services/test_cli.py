@@ -103,7 +103,7 @@ def test_every_command_loads_its_settings_check_and_run_function(name: str) -> N
         (["eval", "--watch", "NOWHERE"], "--watch NOWHERE: nothing to watch"),
         (["bench", "learn", "--algos", "nonesuch"], "unknown algorithm 'nonesuch'"),
         (["replay", "RECORDING", "--keys", "a//b"], "--keys 'a//b' is not a key expression: Invalid Key Expr"),
-        (["dataset", "--out", "DATASET", "--count", "5"], "DATASET already holds a dataset"),
+        (["dataset", "--out", "DATASET", "--count", "5"], "--out DATASET already holds a dataset (meta.json)"),
         (["dataset", "--count", "5", "--noise-preset", "muddy"], "unknown noise preset 'muddy'"),
     ],
 )
