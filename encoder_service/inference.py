@@ -43,7 +43,7 @@ def _inputs(model: CMVAE, device: torch.device | str) -> tuple[torch.nn.Module, 
     encoder reads each frame's prior too, and gives the next (:class:`PriorReader`)."""
     example = images_to_tensor(np.zeros((1, *IMAGE_SHAPE), dtype=np.uint8), device)
     if model.tracks:
-        return PriorReader(model), (example, torch.zeros(1, device=device)), ["images", "prior"]
+        return PriorReader(model), (example, torch.zeros(1, *model.prior_shape, device=device)), ["images", "prior"]
     return model.encoder, (example,), ["images"]
 
 
@@ -158,11 +158,14 @@ class LatentEncoder:
     @torch.inference_mode()
     def _run(self, images: np.ndarray, priors: np.ndarray | None) -> tuple[np.ndarray, ...]:
         self.check_images(images)
+        shape = (len(images), *self._model.prior_shape)
         if priors is None:
-            priors = np.zeros(len(images), dtype=np.float32)
+            priors = np.zeros(shape, dtype=np.float32)
         priors = np.asarray(priors, dtype=np.float32)
-        if priors.shape != (len(images),) or not np.isfinite(priors).all():
-            raise ValueError(f"priors must be {len(images)} finite azimuths in degrees, one per frame, got {priors!r}")
+        if priors.shape != shape or not np.isfinite(priors).all():
+            what = " and distances in metres" if self._model.prior_distance else ""
+            raise ValueError(f"priors must be {len(images)} finite azimuths in degrees{what}, one per frame, shaped "
+                             f"{shape}, got {priors!r}")  # fmt: skip
         prior = torch.from_numpy(priors).to(self.device)
         outputs = self._encoder(images_to_tensor(images, self.device), prior)
         return tuple(output.float().cpu().numpy() for output in outputs)
@@ -171,6 +174,11 @@ class LatentEncoder:
     def tracks(self) -> bool:
         """Whether the model reads a prior beside each frame (trained with ``swimm train-encoder --track``)."""
         return self._model.tracks
+
+    @property
+    def prior_shape(self) -> tuple[int, ...]:
+        """One frame's prior: () for an azimuth, (2,) for an azimuth and a distance (``--prior-distance``)."""
+        return self._model.prior_shape
 
     @property
     def labels(self) -> tuple[str, ...]:

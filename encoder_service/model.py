@@ -35,6 +35,7 @@ LABEL_RANGES = {
 LABEL_SETS = (LABEL_NAMES, VERTICAL_LABEL_NAMES)
 PSI = LABEL_NAMES.index("psi")  # the one circular label
 THETA = LABEL_NAMES.index("theta")
+DISTANCE = LABEL_NAMES.index("d")
 #: Labels a left-right flip of the frame negates (the target at -theta, facing -psi); d and the elevation keep theirs.
 MIRROR_NEGATED = ("theta", "psi")
 
@@ -192,11 +193,13 @@ NORMALISERS = {"none": nn.Identity, "channel": WhiteBalance, "local": LocalContr
 INPUT_NORMS = tuple(NORMALISERS)
 
 
-def input_channels(input_norm: str, track: bool) -> tuple[str, ...]:
+def input_channels(input_norm: str, track: bool, prior_distance: bool = False) -> tuple[str, ...]:
     """The first convolution's input channels by name: the normalised frame's colours, a tracking encoder's prior
-    stripe, the light's colours. Starting a model from another matches its weights by these names."""
+    stripe (and its distance plane), the light's colours. Starting a model from another matches its weights by
+    these names."""
     light = ("light red", "light green", "light blue") if input_norm == "light" else ()
-    return ("red", "green", "blue") + (("prior",) if track else ()) + light
+    prior = (("prior",) if track else ()) + (("prior distance",) if prior_distance else ())
+    return ("red", "green", "blue") + prior + light
 
 
 def mirror_signs(labels: tuple[str, ...], n_z: int) -> tuple[float, ...]:
@@ -223,10 +226,23 @@ def prior_map(azimuth_deg: torch.Tensor, size: int = IMAGE_SHAPE[0]) -> torch.Te
     return (2.0 * stripe - 1.0)[:, None, None, :].expand(-1, 1, size, size)
 
 
-def with_prior(images: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tensor:
-    """A tracking encoder's input: the (N, 3, H, W) frames and the prior's stripe as a fourth channel."""
-    stripe = prior_map(azimuth_deg.to(images.device), images.shape[-1]).to(images.dtype)
-    return torch.cat([images, stripe], dim=1).contiguous(memory_format=torch.channels_last)
+def distance_map(distance_m: torch.Tensor, size: int = IMAGE_SHAPE[0]) -> torch.Tensor:
+    """Distances (N,) in metres -> (N, 1, size, size): a plane at the distance normalised as the d label is; the
+    engagement prior's 0 m (the target not yet seen) draws -1.5, below any distance the encoder reads."""
+    low, high = LABEL_RANGES["d"]
+    level = (2.0 * (distance_m.reshape(-1, 1, 1, 1).float() - low) / (high - low)) - 1.0
+    level = torch.where(distance_m.reshape(-1, 1, 1, 1) > 0, level, torch.full_like(level, -1.5))
+    return level.expand(-1, 1, size, size)
+
+
+def with_prior(images: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
+    """A tracking encoder's input: the (N, 3, H, W) frames and the prior's stripe as a fourth channel; a prior
+    (N, 2) of azimuth and distance adds the distance plane as a fifth."""
+    prior, size = prior.to(images.device), images.shape[-1]
+    planes = [images, prior_map(prior if prior.dim() == 1 else prior[:, 0], size).to(images.dtype)]
+    if prior.dim() == 2:
+        planes.append(distance_map(prior[:, 1], size).to(images.dtype))
+    return torch.cat(planes, dim=1).contiguous(memory_format=torch.channels_last)
 
 
 #: The training prior's spread about the target's true azimuth, degrees: a step's reading error and motion mostly,
@@ -235,6 +251,9 @@ def with_prior(images: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tensor:
 #: fifth wide, it leant on the prior and lagged the target in closed loop (docs/encoder.md, pods).
 PRIOR_JITTER_DEG = (5.0, 10.0)
 PRIOR_WIDE_SHARE = 0.3
+#: A distance prior's spread, a share of the distance: the loop's own distance reads are off by about a metre
+#: (docs/encoder.md, pods); the wide share is drawn as the azimuth's is.
+PRIOR_DISTANCE_JITTER = (0.1, 0.25)
 #: The share of frames whose target is the dolphin nearest the image centre that get the engagement prior instead,
 #: exactly the centre (0 deg), as the loop's first frame does: without them the encoder never saw a centre prior far
 #: from its target, and lost it at engagement when the nearest dolphin was well off the centre (docs/encoder.md).
@@ -246,22 +265,26 @@ EVALUATION_PRIORS_SEED = 0
 class PriorReader(nn.Module):
     """A tracking CMVAE as the inference engines run it: (frames (N, 3, H, W), priors (N,) degrees) ->
     (mu, logvar, next priors (N,) degrees); the stripe is drawn inside, so the ONNX file takes the prior as the
-    azimuth it is.
+    azimuth it is. A model whose prior holds the distance too takes and gives priors (N, 2): degrees, metres.
 
-    The next prior is the azimuth the latent decodes to, computed here so that the engines and the exported policy
+    The next prior is what the latent decodes to, computed here so that the engines and the exported policy
     file give it alike.
     """
 
     def __init__(self, cmvae: CMVAE) -> None:
         super().__init__()
         self.encoder = cmvae.encoder
-        self.theta = cmvae.labels.index("theta")
-        self.decoder = cmvae.state_decoders[self.theta]
+        self.prior_labels = cmvae.prior_labels
+        self.columns = [cmvae.labels.index(label) for label in self.prior_labels]
+        self.decoders = nn.ModuleList(cmvae.state_decoders[column] for column in self.columns)
 
     def forward(self, images: torch.Tensor, prior: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         mu, logvar = self.encoder(with_prior(images, prior))
-        low, high = LABEL_RANGES["theta"]  # denormalise_labels, in torch for the engines' graphs
-        return mu, logvar, (self.decoder(mu[:, self.theta : self.theta + 1])[:, 0] + 1.0) * (0.5 * (high - low)) + low
+        read = []
+        for label, column, decoder in zip(self.prior_labels, self.columns, self.decoders, strict=True):
+            low, high = LABEL_RANGES[label]  # denormalise_labels, in torch for the engines' graphs
+            read.append((decoder(mu[:, column : column + 1])[:, 0] + 1.0) * (0.5 * (high - low)) + low)
+        return mu, logvar, read[0] if len(read) == 1 else torch.stack(read, dim=1)
 
 
 def jittered_priors(azimuth_deg: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -271,16 +294,29 @@ def jittered_priors(azimuth_deg: np.ndarray, rng: np.random.Generator) -> np.nda
     return (azimuth + rng.normal(size=len(azimuth)) * spread).astype(np.float32)
 
 
-def training_priors(azimuth_deg: np.ndarray, centred: np.ndarray | None, rng: np.random.Generator) -> np.ndarray:
+def training_priors(
+    azimuth_deg: np.ndarray,
+    centred: np.ndarray | None,
+    rng: np.random.Generator,
+    distance_m: np.ndarray | None = None,
+) -> np.ndarray:
     """:func:`jittered_priors`, but :data:`ENGAGEMENT_SHARE` of the frames whose target is the dolphin nearest the
     image centre (``centred``, bool (N,); None: every frame's, a lone dolphin's) get the engagement prior, 0 deg.
-    The share is drawn for every frame, so which frames qualify never shifts the other draws."""
+    The share is drawn for every frame, so which frames qualify never shifts the other draws. With the targets'
+    distances, priors (N, 2): each distance off by :data:`PRIOR_DISTANCE_JITTER` of itself, the engagement
+    prior's 0 m (not yet seen); drawn after the azimuths, so those are the same with or without."""
     priors = jittered_priors(azimuth_deg, rng)
     engaged = rng.random(len(priors)) < ENGAGEMENT_SHARE
     if centred is not None:
         engaged &= np.asarray(centred, dtype=bool)
     priors[engaged] = 0.0
-    return priors
+    if distance_m is None:
+        return priors
+    distance = np.asarray(distance_m, dtype=np.float64)
+    spread = np.where(rng.random(len(distance)) < PRIOR_WIDE_SHARE, *PRIOR_DISTANCE_JITTER[::-1])
+    distance = np.clip(distance * (1.0 + rng.normal(size=len(distance)) * spread), *LABEL_RANGES["d"])
+    distance[engaged] = 0.0
+    return np.stack([priors, distance.astype(np.float32)], axis=1)
 
 
 def encoder_input(
@@ -292,12 +328,13 @@ def encoder_input(
     centred: np.ndarray | None = None,
 ) -> torch.Tensor:
     """uint8 frames as ``model``'s encoder reads them in training and evaluation: a tracking model's with
-    :func:`training_priors` about the true azimuths (``labels``, physical, theta in column 1) as the stripe,
-    the engagement prior on a share of the frames ``centred`` (a batch's) marks."""
+    :func:`training_priors` about the true azimuths (``labels``, physical, d and theta in columns 0 and 1) as the
+    stripe (and the distance plane), the engagement prior on a share of the frames ``centred`` (a batch's) marks."""
     images = images_to_tensor(frames, device)
     if not model.tracks:
         return images
-    return with_prior(images, torch.from_numpy(training_priors(labels[:, THETA], centred, rng)))
+    distance = labels[:, DISTANCE] if model.prior_distance else None
+    return with_prior(images, torch.from_numpy(training_priors(labels[:, THETA], centred, rng, distance)))
 
 
 class ImageEncoder(nn.Module):
@@ -329,6 +366,7 @@ class ImageEncoder(nn.Module):
         locate: bool = False,
         track: bool = False,
         mirror_signs: tuple[float, ...] | None = None,
+        prior_distance: bool = False,
     ) -> None:
         super().__init__()
         if mirror_signs is not None and len(mirror_signs) != n_z:
@@ -336,9 +374,12 @@ class ImageEncoder(nn.Module):
         if input_norm not in INPUT_NORMS:
             raise ValueError(f"input_norm must be one of {', '.join(INPUT_NORMS)}, got {input_norm!r}")
         self.input_norm = input_norm
+        if prior_distance and not track:
+            raise ValueError("a distance prior is a tracking encoder's: prior_distance needs track")
         self.tracks = track
+        self.prior_distance = prior_distance
         self.normalise = NORMALISERS[input_norm]()
-        self.input_channels = input_channels(input_norm, track)
+        self.input_channels = input_channels(input_norm, track, prior_distance)
         self.features = nn.Sequential(
             nn.Conv2d(len(self.input_channels), 32, 5, stride=2, padding=2),  # 64 -> 32
             nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16
@@ -491,6 +532,7 @@ class CMVAE(nn.Module):
         locate: bool = False,
         track: bool = False,
         mirror_average: bool = False,
+        prior_distance: bool = False,
     ) -> None:
         super().__init__()
         self.labels = check_label_names(labels, "CMVAE")
@@ -501,7 +543,7 @@ class CMVAE(nn.Module):
         self.n_z = n_z
         self.input_norm = input_norm
         signs = mirror_signs(self.labels, n_z) if mirror_average else None
-        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs)
+        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs, prior_distance)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
         # made last, so a model without it draws every other weight as before the head existed
@@ -518,6 +560,21 @@ class CMVAE(nn.Module):
     def tracks(self) -> bool:
         """Whether the encoder reads a prior (:func:`with_prior`) beside each frame."""
         return self.encoder.tracks
+
+    @property
+    def prior_distance(self) -> bool:
+        """Whether a tracking encoder's prior holds the target's last distance beside its azimuth."""
+        return self.encoder.prior_distance
+
+    @property
+    def prior_labels(self) -> tuple[str, ...]:
+        """The labels a tracking encoder's prior carries, in the prior's order: what its latent read last."""
+        return ("theta", "d") if self.prior_distance else ("theta",)
+
+    @property
+    def prior_shape(self) -> tuple[int, ...]:
+        """One frame's prior: a scalar azimuth, or (azimuth, distance)."""
+        return (2,) if self.prior_distance else ()
 
     @property
     def mirror_averages(self) -> bool:
@@ -764,6 +821,7 @@ def make_checkpoint(
             "locate": model.locates,
             "track": model.tracks,
             "mirror_average": model.mirror_averages,
+            "prior_distance": model.prior_distance,
         },
         "state_dict": state_dict,
         "epoch": int(epoch),
@@ -817,6 +875,7 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CM
         locate=config.get("locate", False),
         track=config.get("track", False),
         mirror_average=config.get("mirror_average", False),
+        prior_distance=config.get("prior_distance", False),
     )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()

@@ -99,6 +99,7 @@ class TrainEncoderSettings:
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
     locate: bool = False  # the encoder reads where the dolphin is off a locator the masks train (needs --mask-weight)
     track: bool = False  # the encoder reads a prior, where the target was last seen, beside each frame: pods
+    prior_distance: bool = False  # a tracking encoder's prior holds the target's last distance too (needs --track)
     mirror_average: bool = False  # the encoder averages each frame's reading with its mirror image's (symmetric)
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
@@ -488,7 +489,9 @@ def load_init_weights(model: CMVAE, path: str, n_z: int) -> None:
     if config["n_z"] != n_z:
         raise ValueError(f"--init {path} has n_z={config['n_z']}, settings say {n_z}")
     weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
-    inherited_inputs = input_channels(config.get("input_norm", "none"), config.get("track", False))
+    inherited_inputs = input_channels(
+        config.get("input_norm", "none"), config.get("track", False), config.get("prior_distance", False)
+    )
     model.load_state_dict(_matched_to(weights, model, inherited_inputs))
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
     inherited = len(config.get("labels", LABEL_NAMES))
@@ -594,6 +597,8 @@ def check(settings: TrainEncoderSettings) -> None:
         raise ValueError(f"--mask-weight must be a finite weight >= 0 (0 = no mask head), got {settings.mask_weight}")
     if settings.locate and settings.mask_weight <= 0:
         raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
+    if settings.prior_distance and not settings.track:
+        raise ValueError("--prior-distance is a tracking encoder's prior: give --track too")
     resolve_device(settings.device)
     if not settings.resume:
         refuse_held_folder("--out", settings.out, ("last.pt", "best.pt"), "a training run",
@@ -639,7 +644,7 @@ def run(settings: TrainEncoderSettings) -> int:
     mask_head = settings.mask_weight > 0 and not settings.locate  # a locator learns the masks itself
     model = CMVAE(
         settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate, settings.track,
-        settings.mirror_average,
+        settings.mirror_average, settings.prior_distance,
     )  # fmt: skip
     model.to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
@@ -657,7 +662,7 @@ def run(settings: TrainEncoderSettings) -> int:
             raise ValueError(
                 f"{last_path} learns labels {last['config'].get('labels')}, the dataset {list(model.labels)}"
             )
-        for flag in ("locate", "track", "mirror_average"):
+        for flag in ("locate", "track", "mirror_average", "prior_distance"):
             if last["config"].get(flag, False) != getattr(settings, flag):
                 raise ValueError(f"{last_path} was trained with {flag}={last['config'].get(flag, False)}: resume it so")
         model.load_state_dict(last["state_dict"])

@@ -89,7 +89,7 @@ class TrackingEnv(gym.Env):
         self.episode = 0
         self._encoder = encoder
         self._last_image: np.ndarray | None = None
-        self._prior = 0.0
+        self._prior: np.ndarray | None = None  # None at an episode's first frame: the engagement prior
 
     @property
     def encoder(self) -> Any:
@@ -117,7 +117,7 @@ class TrackingEnv(gym.Env):
         self.episode += 1
         world_seed = episode_seed(self.base_seed, self.episode)
         telemetry, image = self.world.reset(world_seed, noise, scene=scene)
-        self._prior = 0.0
+        self._prior = None
         obs = self.task.reset(self._frame(telemetry, image), seed=world_seed)
         info = self.task.info(telemetry, self.task.settings.task) | {"ep": self.episode, "seed": world_seed}
         log.debug(
@@ -148,8 +148,9 @@ class TrackingEnv(gym.Env):
         if not getattr(self.encoder, "tracks", False):
             mu, logvar = self.encoder.encode(image[None])
         else:
-            mu, logvar, next_prior = self.encoder.track(image[None], np.array([self._prior], dtype=np.float32))
-            self._prior = float(next_prior[0])
+            priors = None if self._prior is None else self._prior[None]
+            mu, logvar, next_prior = self.encoder.track(image[None], priors)
+            self._prior = np.asarray(next_prior[0], dtype=np.float32)
         return Frame(telemetry, image=image, mu=mu[0], logvar=logvar[0])
 
     def close(self) -> None:

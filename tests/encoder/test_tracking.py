@@ -174,7 +174,7 @@ class _Recording(LatentEncoder):
         self.seen: list[float] = []
 
     def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-        self.seen.append(float(priors[0]))
+        self.seen.append(0.0 if priors is None else float(priors[0]))  # None: the engagement prior, the centre
         return super().track(images, priors)
 
 
@@ -194,3 +194,54 @@ def test_the_in_process_env_hands_each_frame_the_prior_its_last_latent_decoded_t
     assert encoder.seen[0] == 0.0 and encoder.seen[4] == 0.0  # each episode starts at the image centre
     mus = np.stack([latent[: encoder.n_z] for latent in latents[:3]])
     np.testing.assert_allclose(encoder.seen[1:4], encoder.decode_state(mus)[1], rtol=1e-5, atol=1e-4)
+
+
+def test_a_distance_prior_adds_the_targets_distance_and_leaves_the_azimuths_as_they_were() -> None:
+    azimuths, distances = np.linspace(-30.0, 30.0, 4000), np.linspace(3.0, 9.0, 4000)
+    alone = training_priors(azimuths, None, np.random.default_rng(8))
+    both = training_priors(azimuths, None, np.random.default_rng(8), distances)
+    assert both.shape == (4000, 2) and both.dtype == np.float32
+    np.testing.assert_array_equal(both[:, 0], alone)  # drawn after the azimuths: those do not move
+    engaged = both[:, 0] == 0.0
+    assert (both[engaged, 1] == 0.0).all() and (both[~engaged, 1] >= 2.0).all()  # 0 m: not yet seen
+    misses = both[~engaged, 1] / distances[~engaged] - 1.0
+    assert 0.1 < misses.std() < 0.2 and abs(np.median(misses)) < 0.01
+    planes = with_prior(torch.zeros(4, 3, 64, 64), torch.tensor([[0.0, 2.0], [0.0, 6.0], [0.0, 10.0], [0.0, 0.0]]))
+    assert planes.shape == (4, 5, 64, 64)
+    np.testing.assert_allclose(planes[:, 4].amin(dim=(1, 2)), [-1.0, 0.0, 1.0, -1.5])  # the d label's scale
+    np.testing.assert_array_equal(planes[:, 4].amax(dim=(1, 2)), planes[:, 4].amin(dim=(1, 2)))
+    torch.testing.assert_close(planes[:, :4], with_prior(torch.zeros(4, 3, 64, 64), torch.zeros(4)))
+
+
+def test_a_distance_tracker_reads_both_priors_and_hands_both_on(pod: Path, tmp_path: Path) -> None:
+    """Started from a tracker of the azimuth alone, the distance plane comes in through zero weights; trained, the
+    engines read the distance and give (azimuth, distance) as the next prior, what the latent decodes to."""
+    tracker = tmp_path / "tracker.pt"
+    started, _, frames = started_from_general(pod, track=True)
+    torch.save(make_checkpoint(started, 8.0, 1, 0.0, {}), tracker)
+    run(_settings(pod, tmp_path / "run", epochs=1, lr=1e-3, batch_size=16, init=str(tracker), prior_distance=True))
+    checkpoint = tmp_path / "run" / "last.pt"
+    assert torch.load(checkpoint, weights_only=True)["config"]["prior_distance"] is True
+    fresh = CMVAE(input_norm="channel", track=True, prior_distance=True)
+    load_init_weights(fresh, str(tracker), n_z=10)
+    azimuths = torch.linspace(-20, 20, 8)
+    with torch.no_grad():
+        near = fresh.eval().encode(with_prior(frames, torch.stack([azimuths, torch.full((8,), 3.0)], dim=1)))
+        torch.testing.assert_close(near, started.encode(with_prior(frames, azimuths)), rtol=1e-5, atol=1e-5)
+
+    images = np.load(pod / "shard-00001.images.npy")[:6]
+    priors = np.array([[-15.0, 4.0], [-5.0, 5.0], [0.0, 0.0], [3.0, 6.0], [10.0, 7.0], [20.0, 8.0]], np.float32)
+    encoder = LatentEncoder(checkpoint)
+    assert encoder.prior_shape == (2,)
+    mu, _, next_priors = encoder.track(images, priors)
+    farther = priors + np.array([0.0, 2.0], np.float32)
+    assert np.abs(encoder.encode(images, farther)[0] - mu).max() > 1e-4  # the distance is read
+    state = encoder.decode_state(mu)
+    np.testing.assert_allclose(next_priors, np.stack([state[1], state[0]], axis=1), rtol=1e-5, atol=1e-4)
+    onnx_mu, _, onnx_next = LatentEncoder(checkpoint, engine="onnx").track(images, priors)
+    np.testing.assert_allclose(onnx_mu, mu, rtol=1e-4, atol=3e-4)
+    np.testing.assert_allclose(onnx_next, next_priors, atol=1e-2)
+    with pytest.raises(ValueError, match=r"priors must be 6 finite azimuths in degrees and distances in metres"):
+        encoder.encode(images, priors[:, 0])
+    with pytest.raises(ValueError, match="--prior-distance is a tracking encoder's prior: give --track too"):
+        run(_settings(pod, tmp_path / "untracked", track=False, prior_distance=True))
