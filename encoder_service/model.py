@@ -863,6 +863,16 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return checkpoint
 
 
+def refuse_distance_prior(path: str | Path, where: str) -> None:
+    """A tracking CMVAE whose prior holds the target's distance runs in process only so far (the wire carries an
+    azimuth): ``where`` refuses one by name."""
+    if read_checkpoint(path)["config"].get("prior_distance", False):
+        raise ValueError(
+            f"{path} is a tracking CMVAE whose prior holds the target's distance (--prior-distance): "
+            f"{where} carries an azimuth only so far; run it in process (--backend inprocess)"
+        )
+
+
 def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CMVAE, dict[str, Any]]:
     """A CMVAE in eval mode, channels_last, on ``device``, with the checkpoint dict it came from."""
     checkpoint = read_checkpoint(path)

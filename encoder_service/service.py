@@ -35,7 +35,7 @@ import zenoh
 
 from encoder_service import Engine
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, check_engine
-from encoder_service.model import read_checkpoint, resolve_device
+from encoder_service.model import refuse_distance_prior, resolve_device
 from services.keys import Keys
 from services.lifecycle import Service, serve_until_signalled
 from services.messages import IMAGE_SHAPE, BadMessage, BatchItem, BatchMsg, LatentMsg, ObservationMsg
@@ -155,6 +155,7 @@ class EncoderService(Service):
         self.settings = settings
         self.keys = Keys(settings.zenoh.namespace)
         self.ident = settings.ident or f"enc-{os.getpid()}"
+        refuse_distance_prior(settings.checkpoint or DEFAULT_CHECKPOINT, "swimm encoder")
         self.encoder = LatentEncoder(
             settings.checkpoint or DEFAULT_CHECKPOINT, settings.device, settings.threads or None, settings.engine
         )
@@ -282,7 +283,7 @@ def check(settings: EncoderSettings) -> None:
     opens."""
     check_engine(settings.engine, settings.device)
     resolve_device(settings.device)
-    read_checkpoint(settings.checkpoint or DEFAULT_CHECKPOINT)
+    refuse_distance_prior(settings.checkpoint or DEFAULT_CHECKPOINT, "swimm encoder")
 
 
 def run(settings: EncoderSettings) -> None:

@@ -33,7 +33,7 @@ import torch
 
 from encoder_service import DEFAULT_CHECKPOINT
 from encoder_service.inference import LatentEncoder
-from encoder_service.model import CMVAE, LABEL_RANGES, PriorReader, load_model
+from encoder_service.model import CMVAE, LABEL_RANGES, PriorReader, load_model, refuse_distance_prior
 from learner_service.identity import encoder_for, policy_task
 from learner_service.registry import deterministic_action, resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
@@ -229,6 +229,7 @@ def policy_files(settings: ExportSettings) -> tuple[Path, Path]:
     encoder_path = encoder_for(policy_path, settings.encoder_checkpoint or None) or DEFAULT_CHECKPOINT
     if not encoder_path.is_file():
         raise FileNotFoundError(f"CMVAE checkpoint {encoder_path} does not exist")
+    refuse_distance_prior(encoder_path, "swimm export")
     return policy_path, encoder_path
 
 

@@ -171,18 +171,22 @@ class _Recording(LatentEncoder):
 
     def __init__(self, checkpoint: Path) -> None:
         super().__init__(checkpoint)
-        self.seen: list[float] = []
+        self.seen: list[np.ndarray] = []
 
     def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-        self.seen.append(0.0 if priors is None else float(priors[0]))  # None: the engagement prior, the centre
+        engagement = np.zeros(self.prior_shape, np.float32)  # None: the engagement prior, the centre (and 0 m)
+        self.seen.append(engagement if priors is None else priors[0])
         return super().track(images, priors)
 
 
-def test_the_in_process_env_hands_each_frame_the_prior_its_last_latent_decoded_to(tmp_path: Path) -> None:
+@pytest.mark.parametrize("prior_distance", [False, True])
+def test_the_in_process_env_hands_each_frame_the_prior_its_last_latent_decoded_to(
+    tmp_path: Path, prior_distance: bool
+) -> None:
     from learner_service.inprocess_env import TrackingEnv
     from learner_service.task import TaskSettings
 
-    model = CMVAE(input_norm="channel", track=True)
+    model = CMVAE(input_norm="channel", track=True, prior_distance=prior_distance)
     load_init_weights(model, str(GENERAL), n_z=10)
     torch.save(make_checkpoint(model.eval(), 8.0, 1, 0.0, {}), tmp_path / "tracking.pt")
     encoder = _Recording(tmp_path / "tracking.pt")
@@ -191,9 +195,11 @@ def test_the_in_process_env_hands_each_frame_the_prior_its_last_latent_decoded_t
     latents += [env.step(np.zeros(env.action_space.shape, np.float32))[0] for _ in range(3)]
     env.reset()
     env.close()
-    assert encoder.seen[0] == 0.0 and encoder.seen[4] == 0.0  # each episode starts at the image centre
+    assert not encoder.seen[0].any() and not encoder.seen[4].any()  # each episode starts at the image centre
     mus = np.stack([latent[: encoder.n_z] for latent in latents[:3]])
-    np.testing.assert_allclose(encoder.seen[1:4], encoder.decode_state(mus)[1], rtol=1e-5, atol=1e-4)
+    distance, theta, *_ = encoder.decode_state(mus)
+    read = np.stack([theta, distance], axis=1) if prior_distance else theta
+    np.testing.assert_allclose(np.stack(encoder.seen[1:4]), read, rtol=1e-5, atol=1e-4)
 
 
 def test_a_distance_prior_adds_the_targets_distance_and_leaves_the_azimuths_as_they_were() -> None:
@@ -243,5 +249,10 @@ def test_a_distance_tracker_reads_both_priors_and_hands_both_on(pod: Path, tmp_p
     np.testing.assert_allclose(onnx_next, next_priors, atol=1e-2)
     with pytest.raises(ValueError, match=r"priors must be 6 finite azimuths in degrees and distances in metres"):
         encoder.encode(images, priors[:, 0])
+    from encoder_service.service import EncoderSettings, check
+
+    with pytest.raises(ValueError, match=r"prior holds the target's distance .* swimm encoder carries an azimuth only"):
+        check(EncoderSettings(checkpoint=str(checkpoint)))  # the wire's prior is an azimuth: in process only so far
+    check(EncoderSettings(checkpoint=str(tracker)))
     with pytest.raises(ValueError, match="--prior-distance is a tracking encoder's prior: give --track too"):
         run(_settings(pod, tmp_path / "untracked", track=False, prior_distance=True))
