@@ -193,28 +193,13 @@ NORMALISERS = {"none": nn.Identity, "channel": WhiteBalance, "local": LocalContr
 INPUT_NORMS = tuple(NORMALISERS)
 
 
-def input_channels(input_norm: str, track: bool, prior_distance: bool = False, coords: bool = False) -> tuple[str, ...]:
+def input_channels(input_norm: str, track: bool, prior_distance: bool = False) -> tuple[str, ...]:
     """The first convolution's input channels by name: the normalised frame's colours, a tracking encoder's prior
-    stripe (and its distance plane), the light's colours, each pixel's column and row. Starting a model from
-    another matches its weights by these names."""
+    stripe (and its distance plane), the light's colours. Starting a model from another matches its weights by
+    these names."""
     light = ("light red", "light green", "light blue") if input_norm == "light" else ()
     prior = (("prior",) if track else ()) + (("prior distance",) if prior_distance else ())
-    return ("red", "green", "blue") + prior + light + (COORDINATE_CHANNELS if coords else ())
-
-
-#: The channels a CoordConv encoder reads after the others: each pixel's column and row, in [-1, 1].
-COORDINATE_CHANNELS = ("column", "row")
-
-
-def coordinate_planes(images: torch.Tensor) -> torch.Tensor:
-    """(N, 2, H, W): each pixel's column (-1 at the left edge, +1 at the right) and row (-1 at the top), so that
-    the convolutions, which see the same wherever they slide, can tell where in the frame a feature lies
-    (CoordConv, Liu et al. 2018): the azimuth is a column, and the stride-2 layers blur it away otherwise."""
-    count, _, height, width = images.shape
-    columns = torch.linspace(-1.0, 1.0, width, dtype=images.dtype, device=images.device)
-    rows = torch.linspace(-1.0, 1.0, height, dtype=images.dtype, device=images.device)
-    grid = torch.stack([columns[None, :].expand(height, width), rows[:, None].expand(height, width)])
-    return grid[None].expand(count, -1, -1, -1)
+    return ("red", "green", "blue") + prior + light
 
 
 def mirror_signs(labels: tuple[str, ...], n_z: int) -> tuple[float, ...]:
@@ -382,7 +367,6 @@ class ImageEncoder(nn.Module):
         track: bool = False,
         mirror_signs: tuple[float, ...] | None = None,
         prior_distance: bool = False,
-        coords: bool = False,
     ) -> None:
         super().__init__()
         if mirror_signs is not None and len(mirror_signs) != n_z:
@@ -394,9 +378,8 @@ class ImageEncoder(nn.Module):
             raise ValueError("a distance prior is a tracking encoder's: prior_distance needs track")
         self.tracks = track
         self.prior_distance = prior_distance
-        self.coords = coords
         self.normalise = NORMALISERS[input_norm]()
-        self.input_channels = input_channels(input_norm, track, prior_distance, coords)
+        self.input_channels = input_channels(input_norm, track, prior_distance)
         self.features = nn.Sequential(
             nn.Conv2d(len(self.input_channels), 32, 5, stride=2, padding=2),  # 64 -> 32
             nn.MaxPool2d(3, stride=2, padding=1),  # 32 -> 16
@@ -450,16 +433,12 @@ class ImageEncoder(nn.Module):
         return mu, logvar, feature_map, where
 
     def _normalised(self, images: torch.Tensor) -> torch.Tensor:
-        """The input norm applied to the colour channels; a tracking encoder's prior stripe passes as it is, and a
-        CoordConv encoder's coordinates follow, in the places :func:`input_channels` gives them."""
+        """The input norm applied to the colour channels; a tracking encoder's prior stripe passes as it is, in
+        the place :func:`input_channels` gives it."""
         if not self.tracks:
-            normalised = self.normalise(images)
-        else:
-            colours = self.normalise(images[:, :3])
-            normalised = torch.cat([colours[:, :3], images[:, 3:], colours[:, 3:]], dim=1)
-        if not self.coords:
-            return normalised
-        return torch.cat([normalised, coordinate_planes(normalised)], dim=1)
+            return self.normalise(images)
+        normalised = self.normalise(images[:, :3])
+        return torch.cat([normalised[:, :3], images[:, 3:], normalised[:, 3:]], dim=1)
 
     def _split(self, stats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return stats[:, : self.n_z], stats[:, self.n_z :]
@@ -554,7 +533,6 @@ class CMVAE(nn.Module):
         track: bool = False,
         mirror_average: bool = False,
         prior_distance: bool = False,
-        coords: bool = False,
     ) -> None:
         super().__init__()
         self.labels = check_label_names(labels, "CMVAE")
@@ -565,7 +543,7 @@ class CMVAE(nn.Module):
         self.n_z = n_z
         self.input_norm = input_norm
         signs = mirror_signs(self.labels, n_z) if mirror_average else None
-        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs, prior_distance, coords)
+        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs, prior_distance)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
         # made last, so a model without it draws every other weight as before the head existed
@@ -587,11 +565,6 @@ class CMVAE(nn.Module):
     def prior_distance(self) -> bool:
         """Whether a tracking encoder's prior holds the target's last distance beside its azimuth."""
         return self.encoder.prior_distance
-
-    @property
-    def coords(self) -> bool:
-        """Whether the encoder reads each pixel's column and row beside the frame (:func:`coordinate_planes`)."""
-        return self.encoder.coords
 
     @property
     def prior_labels(self) -> tuple[str, ...]:
@@ -849,7 +822,6 @@ def make_checkpoint(
             "track": model.tracks,
             "mirror_average": model.mirror_averages,
             "prior_distance": model.prior_distance,
-            "coords": model.coords,
         },
         "state_dict": state_dict,
         "epoch": int(epoch),
@@ -914,7 +886,6 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CM
         track=config.get("track", False),
         mirror_average=config.get("mirror_average", False),
         prior_distance=config.get("prior_distance", False),
-        coords=config.get("coords", False),
     )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()

@@ -101,7 +101,6 @@ class TrainEncoderSettings:
     track: bool = False  # the encoder reads a prior, where the target was last seen, beside each frame: pods
     prior_distance: bool = False  # a tracking encoder's prior holds the target's last distance too (needs --track)
     mirror_average: bool = False  # the encoder averages each frame's reading with its mirror image's (symmetric)
-    coords: bool = False  # the encoder reads each pixel's column and row beside the frame (CoordConv)
     bn_batches: int = 50  # training batches that re-estimate batch-norm statistics before each validation; 0 = off
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
@@ -491,10 +490,7 @@ def load_init_weights(model: CMVAE, path: str, n_z: int) -> None:
         raise ValueError(f"--init {path} has n_z={config['n_z']}, settings say {n_z}")
     weights = {name: tensor.float() for name, tensor in checkpoint["state_dict"].items()}
     inherited_inputs = input_channels(
-        config.get("input_norm", "none"),
-        config.get("track", False),
-        config.get("prior_distance", False),
-        config.get("coords", False),
+        config.get("input_norm", "none"), config.get("track", False), config.get("prior_distance", False)
     )
     model.load_state_dict(_matched_to(weights, model, inherited_inputs))
     log.info("starting from the weights of %s (its epoch %d)", path, checkpoint["epoch"])
@@ -533,9 +529,9 @@ def _matched_to(
 ) -> dict[str, torch.Tensor]:
     """``weights`` with the optional parts matched to ``model``'s: its fresh part where the checkpoint has none,
     the checkpoint's dropped where the model has none (the encoder is what carries over). A model that locates,
-    tracks or reads the light or coordinates, started from one that does not, reads the soft-argmax, the prior, the
-    light or the coordinates through zero weights: it starts as the checkpoint. The first convolution's weights go
-    to the input channels of the same name (``inherited_inputs``: the checkpoint's, :func:`input_channels`)."""
+    tracks or reads the light, started from one that does not, reads the soft-argmax, the prior or the light
+    through zero weights: it starts as the checkpoint. The first convolution's weights go to the input channels of
+    the same name (``inherited_inputs``: the checkpoint's, :func:`input_channels`)."""
     own = model.state_dict()
     kept = {name: tensor for name, tensor in weights.items() if name in own or not name.startswith(OPTIONAL_PARTS)}
     fresh = {name: tensor for name, tensor in own.items() if name.startswith(OPTIONAL_PARTS) and name not in weights}
@@ -648,7 +644,7 @@ def run(settings: TrainEncoderSettings) -> int:
     mask_head = settings.mask_weight > 0 and not settings.locate  # a locator learns the masks itself
     model = CMVAE(
         settings.n_z, settings.input_norm, mask_head, dataset.label_names, settings.locate, settings.track,
-        settings.mirror_average, settings.prior_distance, settings.coords,
+        settings.mirror_average, settings.prior_distance,
     )  # fmt: skip
     model.to(device=device, memory_format=torch.channels_last)
     teacher = _teacher(settings, dataset, device)
@@ -666,7 +662,7 @@ def run(settings: TrainEncoderSettings) -> int:
             raise ValueError(
                 f"{last_path} learns labels {last['config'].get('labels')}, the dataset {list(model.labels)}"
             )
-        for flag in ("locate", "track", "mirror_average", "prior_distance", "coords"):
+        for flag in ("locate", "track", "mirror_average", "prior_distance"):
             if last["config"].get(flag, False) != getattr(settings, flag):
                 raise ValueError(f"{last_path} was trained with {flag}={last['config'].get(flag, False)}: resume it so")
         model.load_state_dict(last["state_dict"])
