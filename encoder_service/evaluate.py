@@ -68,7 +68,7 @@ class EncodedSet:
     labels: np.ndarray  # (N, labels) physical units
     image_mae: float  # mean |reconstruction - input| in 0-255
     image_mae_vs_reference: float | None  # the same against the reference dataset's frames, when one is given
-    names: tuple[str, ...] = LABEL_NAMES  # the labels' names, the model's
+    names: tuple[str, ...] = LABEL_NAMES  # the labels read: those the model and the dataset share
 
 
 @torch.inference_mode()
@@ -83,9 +83,8 @@ def encode_rows(
 ) -> EncodedSet:
     """Run ``model`` (z = mu) over ``rows``; ``reference`` (same poses) adds the reconstruction error against it.
 
-    A planar model reads a vertical dataset's frames for its own labels (the elevation column is left out)."""
-    if dataset.label_names[: len(model.labels)] != model.labels:
-        raise ValueError(f"the model reads {list(model.labels)} but {dataset.root} labels {list(dataset.label_names)}")
+    The labels read are those the model and the dataset share (:func:`shared_labels`)."""
+    names = shared_labels(model.labels, dataset)
     mus, predictions, labels = [], [], []
     abs_error, abs_error_reference, pixels = 0.0, 0.0, 0
     batches = prefetch(iter_batches(dataset, rows, batch_size))
@@ -99,16 +98,25 @@ def encode_rows(
             twin = reference.read(batch.indices)
             abs_error_reference += float(np.abs(reconstructions - twin.images).sum())
         mus.append(outputs.mu.float().cpu().numpy())
-        predictions.append(denormalise_labels(outputs.state.float().cpu().numpy(), model.labels))
-        labels.append(batch.labels[:, : len(model.labels)])
+        predictions.append(denormalise_labels(outputs.state[:, : len(names)].float().cpu().numpy(), names))
+        labels.append(batch.labels[:, : len(names)])
     return EncodedSet(
         mu=np.concatenate(mus),
         predicted=np.concatenate(predictions),
         labels=np.concatenate(labels),
         image_mae=abs_error / pixels,
         image_mae_vs_reference=abs_error_reference / pixels if reference is not None else None,
-        names=model.labels,
+        names=names,
     )
+
+
+def shared_labels(model_labels: tuple[str, ...], dataset: CMVAEDataset) -> tuple[str, ...]:
+    """The labels both read, in order: a planar model reads a vertical dataset's d, theta and psi, and a vertical
+    model a planar dataset's (the elevation left out); any other difference is refused, naming both."""
+    count = min(len(model_labels), len(dataset.label_names))
+    if tuple(dataset.label_names[:count]) != tuple(model_labels[:count]):
+        raise ValueError(f"the model reads {list(model_labels)} but {dataset.root} labels {list(dataset.label_names)}")
+    return tuple(model_labels[:count])
 
 
 def require_same_poses(clean: CMVAEDataset, noisy: CMVAEDataset, rows: np.ndarray) -> None:
@@ -298,9 +306,9 @@ def check(settings: EvalEncoderSettings) -> None:
     if not settings.dataset:
         raise ValueError("no dataset given: pass --dataset DIR (held-out frames from `swimm dataset`)")
     resolve_device(settings.device)
-    read_checkpoint(settings.checkpoint or DEFAULT_CHECKPOINT)
+    config = read_checkpoint(settings.checkpoint or DEFAULT_CHECKPOINT)["config"]
     for root in filter(None, (settings.dataset, settings.noisy_dataset)):
-        CMVAEDataset(root)  # a folder this code reads
+        shared_labels(tuple(config.get("labels", LABEL_NAMES)), CMVAEDataset(root))  # a folder this code reads
 
 
 def run(settings: EvalEncoderSettings) -> int:

@@ -158,7 +158,7 @@ def test_state_metrics_split_every_labels_error_by_distance_band() -> None:
     assert bands["4-6m"] == pytest.approx({"d_m": 0.5, "theta_deg": 1.5, "psi_deg": 25.0})
 
 
-def test_the_elevation_is_read_by_a_vertical_model_and_left_out_by_a_planar_one(
+def test_the_elevation_is_read_by_a_vertical_model_and_left_out_by_a_planar_one_or_on_planar_frames(
     setup: dict[str, Path], tmp_path: Path
 ) -> None:
     from services.geometry import VERTICAL_LABEL_NAMES
@@ -175,5 +175,19 @@ def test_the_elevation_is_read_by_a_vertical_model_and_left_out_by_a_planar_one(
         run(EvalEncoderSettings(checkpoint=str(checkpoint), dataset=str(vertical), out=str(out), batch_size=8))
         mae = json.loads((out / "metrics.json").read_text())["mae"]
         assert len(mae) == expected and ("elevation_deg" in mae) == (expected == 4)
-    with pytest.raises(ValueError, match="the model reads \\['d', 'theta', 'psi', 'elevation'\\] but"):
-        run(EvalEncoderSettings(checkpoint=str(vertical_model), dataset=str(setup["clean"]), out=str(tmp_path / "x")))
+    # a vertical model on planar frames: the three labels both have (is a 3d CMVAE as good where the dolphin is level?)
+    out = tmp_path / "vertical-on-planar"
+    run(EvalEncoderSettings(checkpoint=str(vertical_model), dataset=str(setup["clean"]), out=str(out), batch_size=8))
+    assert set(json.loads((out / "metrics.json").read_text())["mae"]) == {"d_m", "theta_deg", "psi_deg"}
+
+
+def test_labels_a_model_and_a_dataset_do_not_share_in_order_are_refused_naming_both() -> None:
+    from types import SimpleNamespace
+
+    from encoder_service.evaluate import shared_labels
+
+    planar = SimpleNamespace(root="data/planar", label_names=("d", "theta", "psi"))
+    assert shared_labels(("d", "theta", "psi", "elevation"), planar) == ("d", "theta", "psi")
+    swapped = SimpleNamespace(root="data/odd", label_names=("theta", "d", "psi"))
+    with pytest.raises(ValueError, match="the model reads \\['d', 'theta', 'psi'\\] but data/odd labels"):
+        shared_labels(("d", "theta", "psi"), swapped)
