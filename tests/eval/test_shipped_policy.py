@@ -63,7 +63,7 @@ SHIPPED = (
 )
 IDENTITY_OBS, IDENTITY_SEED = 8, 0
 #: Each shipped policy's deterministic actions (surge, yaw; the 3d ones' surge, heave, yaw) on those observations,
-#: measured at commit 9eb0b59 (sac_cmvae_wide.zip and the 3d ones at the commits that added them) by
+#: measured at commit 9eb0b59 (sac_cmvae_wide.zip and the 3d ones at the commits that added or replaced them) by
 #: `PYTHONPATH=. python tests/eval/test_shipped_policy.py`, which prints this table. A planar policy's actions never
 #: match a 3d one's record: their shapes differ.
 ACTIONS = {
@@ -79,9 +79,9 @@ ACTIONS = {
                               [-0.5261, -0.5585], [-0.964, -0.5027], [0.964, -0.1226], [-0.964, -0.2073]],
     "sac_cmvae_wide.zip": [[0.6874, 0.1931], [0.964, 0.1463], [-0.7298, -0.6982], [0.964, 0.3201],
                            [-0.6142, -0.3148], [-0.964, -0.4199], [0.964, 0.0012], [-0.964, 0.0001]],
-    "sac_cmvae_3d.zip": [[0.3404, 0.964, -0.085], [0.1016, 0.7257, -0.1562], [0.6077, -0.7113, 0.0057],
-                         [-0.4394, -0.1389, 0.0014], [-0.2177, -0.8039, -0.0302], [-0.3842, 0.8697, -0.106],
-                         [-0.7915, 0.3894, 0.3844], [0.0157, 0.3297, 0.1801]],
+    "sac_cmvae_3d.zip": [[0.3497, 0.9563, -0.0478], [0.2229, 0.6118, -0.1202], [0.7834, -0.5677, -0.0583],
+                         [-0.2244, -0.1362, -0.0883], [-0.2483, -0.88, -0.0091], [-0.4051, 0.858, -0.0422],
+                         [-0.6409, 0.4151, 0.3224], [0.0237, 0.1911, 0.1773]],
     "sac_cmvae_3d_robust.zip": [[0.3519, 0.964, -0.1346], [0.1528, 0.6467, -0.1327], [0.6755, -0.7468, -0.0491],
                                 [-0.3171, -0.284, 0.0121], [-0.1312, -0.6819, -0.0821], [-0.3404, 0.8835, -0.1052],
                                 [-0.7487, 0.3156, 0.3195], [0.0139, 0.3423, 0.1261]],
