@@ -186,6 +186,7 @@ def test_labels_a_model_and_a_dataset_do_not_share_in_order_are_refused_naming_b
 
     from encoder_service.evaluate import shared_labels
 
+    # No `swimm dataset` writes its labels in another order, so the datasets here are stand-ins with label names.
     planar = SimpleNamespace(root="data/planar", label_names=("d", "theta", "psi"))
     assert shared_labels(("d", "theta", "psi", "elevation"), planar) == ("d", "theta", "psi")
     swapped = SimpleNamespace(root="data/odd", label_names=("theta", "d", "psi"))
