@@ -1,6 +1,6 @@
 """Can the rest of the latent, earlier latents or the actions predict the CMVAE's read error in the 3d loop?
 
-Fits the error (read minus true, degrees) of theta and of the elevation on each step's observation, with 0, 3 or 8
+Fits the error (read minus true: metres for d, degrees for the angles) of d, theta and the elevation on each step's observation, with 0, 3 or 8
 earlier latents beside it, linearly and with a small MLP, on the steps of one seed's episodes, and reports the
 corrected read's MAE on another seed's (files from latent_correction_collect.py; output latent-correction.txt):
 
@@ -17,7 +17,7 @@ def load(path):
     obs = r[:, 2:2 + n_obs]
     d, az, el = r[:, 2 + n_obs:5 + n_obs].T
     read = r[:, 5 + n_obs:]
-    return ep, step, obs, az, el, read
+    return ep, step, obs, az, el, read, d
 def features(ep, obs, lags):
     feats = [obs]
     for k in range(1, lags + 1):
@@ -27,7 +27,7 @@ def features(ep, obs, lags):
         feats.append(lagged)
     return np.concatenate(feats, 1)
 tr, te = load(sys.argv[1]), load(sys.argv[2])
-for name, idx, truth in (("theta", 1, 3), ("elevation", 3, 4)):
+for name, idx, truth in (("d", 0, 6), ("theta", 1, 3), ("elevation", 3, 4)):
     ytr = tr[5][:, idx] - tr[truth]; yte = te[5][:, idx] - te[truth]
     print(f"{name}: raw read MAE train {abs(ytr).mean():.3f} test {abs(yte).mean():.3f}; bias-only test {abs(yte - ytr.mean()).mean():.3f}")
     for lags in (0, 3, 8):
