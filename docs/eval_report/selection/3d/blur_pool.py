@@ -6,7 +6,8 @@ then blurs and subsamples (Zhang 2019, "Making convolutional networks shift-inva
 weights, so a checkpoint's keys stay as they are and ``--init`` starts from the plain model. Then runs a `swimm`
 command or a script with the patch in place (docs/learner.md, the 3d tries):
 
-    MUJOCO_GL=egl python blur_pool.py swimm train-encoder --dataset data/vert --init encoder_service/models/cmvae_vertical.pt ...
+    MUJOCO_GL=egl python blur_pool.py swimm train-encoder --dataset data/vert \
+        --init encoder_service/models/cmvae_vertical.pt ...
     MUJOCO_GL=egl python blur_pool.py run return_budget.py OUT.csv --tracker camera --checkpoint runs/blur-mirror.pt ...
 """
 

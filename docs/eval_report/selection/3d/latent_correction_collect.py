@@ -4,8 +4,11 @@ latent_correction_fit.py (docs/learner.md, the 3d tries; scratch, not built):
 
     MUJOCO_GL=egl python latent_correction_collect.py SEED EPISODES OUT.npy     # run from the repository root
 """
+
 import sys
+
 import numpy as np
+
 from encoder_service.inference import LatentEncoder
 from learner_service.envs import make_env
 from learner_service.learn_settings import TrackerGains
