@@ -29,6 +29,7 @@ import torch
 
 from encoder_service import DEFAULT_CHECKPOINT, ENGINES
 from encoder_service.model import CMVAE, PriorReader, denormalise_labels, images_to_tensor, load_model
+from encoder_service.pod_encoder import PodEncoder, is_detector
 from services.messages import IMAGE_SHAPE
 
 log = logging.getLogger(__name__)
@@ -195,3 +196,11 @@ class LatentEncoder:
         normalised = self._model.decode_state(torch.from_numpy(mu).to(self.device)).float().cpu().numpy()
         physical = denormalise_labels(normalised, self._model.labels)
         return tuple(physical.T)
+
+
+def open_encoder(checkpoint: str | Path = DEFAULT_CHECKPOINT, **options: Any) -> Any:
+    """The encoder a checkpoint holds: a CMVAE's :class:`LatentEncoder` (``options`` passed on), or for a pod
+    detector's checkpoint its detector and tracker (encoder_service.pod_encoder), which take no options."""
+    if is_detector(checkpoint):
+        return PodEncoder(checkpoint)
+    return LatentEncoder(checkpoint, **options)

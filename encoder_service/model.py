@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from encoder_service import DETECTOR_FORMAT
 from services.geometry import ALPHA_DEG, BETA_DEG, LABEL_NAMES, VERTICAL_LABEL_NAMES
 from services.messages import IMAGE_SHAPE as IMAGE_SHAPE  # re-exported: encoder_service.data reads it here
 
@@ -856,6 +857,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise ValueError(
             f"{path} is not a {CHECKPOINT_FORMAT} checkpoint: torch cannot read it ({type(exc).__name__})"
         ) from exc
+    if isinstance(checkpoint, dict) and checkpoint.get("format") == DETECTOR_FORMAT:
+        raise ValueError(
+            f"{path} is a pod detector, not a CMVAE: it runs in process only so far (--backend inprocess), the wire "
+            "carrying no tracker state yet"
+        )
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
     if checkpoint.get("version") != CHECKPOINT_VERSION:

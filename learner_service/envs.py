@@ -26,7 +26,7 @@ import gymnasium as gym
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecMonitor
 
 from encoder_service import DEFAULT_CHECKPOINT
-from encoder_service.inference import LatentEncoder
+from encoder_service.inference import open_encoder
 from learner_service.learn_settings import Backend
 from learner_service.task import TaskSettings
 
@@ -56,7 +56,7 @@ def shared_encoder(task: TaskSettings, encoder: Any = None, checkpoint: str | Pa
     """
     if task.obs != "cmvae" or encoder is not None:
         return encoder
-    return LatentEncoder(checkpoint or DEFAULT_CHECKPOINT)
+    return open_encoder(checkpoint or DEFAULT_CHECKPOINT)
 
 
 def make_env(

@@ -36,7 +36,7 @@ from stable_baselines3.common.noise import (
 from stable_baselines3.common.utils import LinearSchedule
 
 from encoder_service import DEFAULT_CHECKPOINT
-from encoder_service.inference import LatentEncoder
+from encoder_service.inference import open_encoder
 from learner_service.episodic import episodic_callbacks, vectorised_kwargs
 from learner_service.identity import check_task, read_identity
 from learner_service.learn_settings import TrackerGains
@@ -272,7 +272,7 @@ def load_policy(
     if algo == SCRIPTED:
         return ScriptedTracker(gains or TrackerGains())
     if algo == LATENT_SCRIPTED:
-        encoder = LatentEncoder(checkpoint or DEFAULT_CHECKPOINT)
+        encoder = open_encoder(checkpoint or DEFAULT_CHECKPOINT)
         return LatentTracker(encoder.decode_state, encoder.n_z, gains)
     cls, _ = resolve_algorithm(algo)
     if checkpoint is None:

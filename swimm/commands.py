@@ -72,6 +72,12 @@ def _train_encoder() -> Entry:
     return Entry(TrainEncoderSettings, run, check)
 
 
+def _train_detector() -> Entry:
+    from encoder_service.pod_detector_train import TrainDetectorSettings, check, run
+
+    return Entry(TrainDetectorSettings, run, check)
+
+
 def _eval_encoder() -> Entry:
     from encoder_service.evaluate import EvalEncoderSettings, check, run
 
@@ -136,6 +142,7 @@ COMMANDS: dict[str, Command] = {
     "eval": Command(_eval, "evaluate checkpoints", renders=True),
     "dataset": Command(_dataset, "write a CMVAE dataset"),
     "train-encoder": Command(_train_encoder, "train the CMVAE"),
+    "train-detector": Command(_train_detector, "train the pod detector that finds every dolphin in a frame"),
     "eval-encoder": Command(_eval_encoder, "evaluate a CMVAE"),
     "export-encoder": Command(_export_encoder, "shrink a CMVAE for shipping"),
     "export": Command(_export, "a policy as one ONNX file, frame to action", renders=True),

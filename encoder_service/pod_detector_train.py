@@ -1,0 +1,191 @@
+"""`swimm train-detector`: fit the pod detector (encoder_service.pod_detector) on pod datasets.
+
+    swimm dataset --out data/pod4 --count 40000 --seed 3 --workers 2 --masks --dolphin-pod-size 4
+    swimm train-detector --dataset data/pod4 --out runs/pod_detector.pt
+
+Every dolphin's label comes from the stored poses (encoder_service.pod_detector); frames are mirrored at random
+(the pod's geometry is left-right symmetric). Validation is a fixed tail of the dataset: the share of seen targets
+found (a peak within 2 pixels of the target's centre) and those detections' azimuth and distance errors.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from encoder_service.pod_detector import (
+    PodDetector,
+    decode,
+    detector_loss,
+    dolphin_points,
+    heatmap_targets,
+    seen_dolphins,
+    to_pixels,
+)
+from encoder_service.pod_encoder import save_detector
+from services.geometry import CAMERA_AHEAD_M
+from services.results import provenance, write_result
+
+log = logging.getLogger(__name__)
+
+THRESHOLD = 0.3  # a peak's least score to count as a dolphin
+
+
+def pod_dataset_meta(folder: Path) -> dict:
+    """A pod dataset's meta.json, or an error naming the folder and what it lacks."""
+    path = folder / "meta.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"--dataset {folder}: no meta.json (write one with `swimm dataset`)")
+    meta = json.loads(path.read_text())
+    if not meta.get("masks") or not meta.get("pod"):
+        raise ValueError(f"--dataset {folder}: the detector needs a pod dataset with masks "
+                         "(`swimm dataset --dolphin-pod-size N --masks`)")  # fmt: skip
+    return meta
+
+
+def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
+    """Images, poses, companions and target mask sizes of every shard of a pod dataset with masks."""
+    meta = pod_dataset_meta(folder)
+    parts: dict[str, list[np.ndarray]] = {"images": [], "poses": [], "companions": [], "target_pixels": []}
+    for shard in meta["shards"]:
+        stem = folder / shard
+        parts["images"].append(np.load(f"{stem}.images.npy"))
+        parts["poses"].append(np.load(f"{stem}.poses.npy"))
+        parts["companions"].append(np.load(f"{stem}.companions.npy"))
+        parts["target_pixels"].append(np.load(f"{stem}.masks.npy", mmap_mode="r").sum(axis=(1, 2)))
+    data = {name: np.concatenate(arrays) for name, arrays in parts.items()}
+    points = dolphin_points(data["poses"].astype(np.float64), data["companions"].astype(np.float64))
+    data["seen"], data["ignored"] = seen_dolphins(points, data["target_pixels"])
+    data["pixels"] = to_pixels(points, data["images"].shape[1])
+    data["azimuths"] = np.degrees(np.arctan2(points[..., 1], points[..., 0] + CAMERA_AHEAD_M))  # the task's
+    positions = np.concatenate([data["poses"][:, None, 6:8], data["companions"][..., :2]], axis=1)
+    data["distances"] = np.hypot(*(positions - data["poses"][:, None, :2]).transpose(2, 0, 1))
+    return data
+
+
+def batch(data: dict[str, np.ndarray], rows: np.ndarray, stride: int, mirror: np.ndarray | None = None) -> tuple:
+    """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows."""
+    images = data["images"][rows].copy()
+    pixels = data["pixels"][rows].copy()
+    size = images.shape[1]
+    if mirror is not None:
+        images[mirror] = images[mirror][:, :, ::-1]
+        pixels[mirror, :, 0] = size - pixels[mirror, :, 0]
+    targets = heatmap_targets(pixels, data["distances"][rows], data["seen"][rows], data["ignored"][rows], size, stride)
+    frames = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
+    return frames, {name: torch.from_numpy(value) for name, value in targets.items()}
+
+
+def validate(model: PodDetector, data: dict[str, np.ndarray], rows: np.ndarray, threshold: float) -> dict[str, float]:
+    """Recall of seen targets and the found ones' azimuth (deg) and distance (m) errors, plus false peaks a frame."""
+    model.eval()
+    found, theta_errors, d_errors, extra = 0, [], [], []
+    size = data["images"].shape[1]
+    with torch.no_grad():
+        for start in range(0, len(rows), 256):
+            chunk = rows[start : start + 256]
+            frames, _ = batch(data, chunk, model.stride)
+            detections = decode(*model(frames), threshold=threshold, size=size, stride=model.stride)
+            for row, frame in zip(chunk, detections, strict=True):
+                seen = np.nonzero(data["seen"][row])[0]
+                extra.append(max(len(frame) - len(seen), 0))
+                if not data["seen"][row, 0] or len(frame) == 0:
+                    continue
+                azimuth_true = data["azimuths"][row, 0]
+                nearest = int(np.argmin(np.abs(frame.azimuth - azimuth_true)))
+                if abs(frame.azimuth[nearest] - azimuth_true) < 2.5:
+                    found += 1
+                    theta_errors.append(abs(frame.azimuth[nearest] - azimuth_true))
+                    d_errors.append(abs(frame.distance[nearest] - data["distances"][row, 0]))
+    seen_targets = int(data["seen"][rows, 0].sum())
+    model.train()
+    return {
+        "target_recall": found / max(seen_targets, 1),
+        "theta_mae_deg": float(np.mean(theta_errors)) if theta_errors else float("nan"),
+        "d_mae_m": float(np.mean(d_errors)) if d_errors else float("nan"),
+        "extra_peaks_per_frame": float(np.mean(extra)),
+    }
+
+
+@dataclass
+class TrainDetectorSettings:
+    dataset: list[str] = field(default_factory=list)  # pod datasets with masks (`swimm dataset --dolphin-pod-size N
+    # --masks`); several are read as one
+    out: str = "runs/pod_detector.pt"  # the checkpoint, written after every epoch
+    overwrite: bool = False  # replace an existing --out
+    epochs: int = 10
+    batch_size: int = 128
+    lr: float = 2e-3  # the one-cycle schedule's peak
+    val_frames: int = 2000  # the last frames of the datasets, held out to validate each epoch
+    seed: int = 0
+    width: int = 16  # channels of the finest features; the coarser have 2x and 4x
+    stride: int = 2  # pixels per heatmap cell: 2 or 4
+    threshold: float = THRESHOLD  # a peak's least score to count as a dolphin, saved in the checkpoint
+
+
+def check(settings: TrainDetectorSettings) -> None:
+    """Refuse bad settings before any frame is read, naming the flag."""
+    if not settings.dataset:
+        raise ValueError(
+            "--dataset: give at least one pod dataset folder (`swimm dataset --dolphin-pod-size N --masks`)"
+        )
+    for folder in settings.dataset:
+        pod_dataset_meta(Path(folder))
+    if settings.stride not in (2, 4):
+        raise ValueError(f"--stride {settings.stride}: the detector reads 2 or 4 pixels a heatmap cell")
+    if not 0.0 < settings.threshold < 1.0:
+        raise ValueError(f"--threshold {settings.threshold}: a peak's score lies in (0, 1)")
+    for flag, value in (("--epochs", settings.epochs), ("--batch-size", settings.batch_size),
+                        ("--val-frames", settings.val_frames), ("--width", settings.width)):  # fmt: skip
+        if value < 1:
+            raise ValueError(f"{flag} {value}: must be at least 1")
+    if Path(settings.out).exists() and not settings.overwrite:
+        raise FileExistsError(f"--out {settings.out} exists: give --overwrite to replace it, or another --out")
+
+
+def run(settings: TrainDetectorSettings) -> int:
+    check(settings)
+    torch.manual_seed(settings.seed)
+    parts = [load_pod_dataset(Path(folder)) for folder in settings.dataset]
+    data = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
+    count = len(data["images"])
+    if settings.val_frames >= count:
+        raise ValueError(f"--val-frames {settings.val_frames}: the datasets hold only {count} frames")
+    train_rows, val_rows = np.arange(count - settings.val_frames), np.arange(count - settings.val_frames, count)
+    model = PodDetector(width=settings.width, stride=settings.stride)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=1e-4)
+    batches = len(train_rows) // settings.batch_size
+    schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
+    rng = np.random.default_rng(settings.seed)
+    history: list[dict[str, float]] = []
+    out = Path(settings.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for epoch in range(1, settings.epochs + 1):
+        order = rng.permutation(train_rows)
+        started = time.time()
+        bar = tqdm(range(batches), desc=f"epoch {epoch}/{settings.epochs}", mininterval=5)
+        for step in bar:
+            rows = order[step * settings.batch_size : (step + 1) * settings.batch_size]
+            frames, targets = batch(data, rows, model.stride, mirror=rng.random(len(rows)) < 0.5)
+            loss, parts_of_loss = detector_loss(*model(frames), targets)
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            schedule.step()
+            bar.set_postfix({name: f"{value:.3f}" for name, value in parts_of_loss.items()})
+        scores = validate(model, data, val_rows, settings.threshold)
+        history.append(scores | {"epoch": epoch, "seconds": round(time.time() - started, 1)})
+        log.info("epoch %d: %s", epoch, ", ".join(f"{k} {v:.3f}" for k, v in scores.items()))
+        save_detector(model, out, settings.threshold, history)
+    write_result(out.with_suffix(".json"), {"settings": asdict(settings), "history": history},
+                 provenance(seeds=[settings.seed], datasets=settings.dataset))  # fmt: skip
+    log.info("pod detector written to %s (fly it: swimm eval --backend inprocess --algo scripted-camera "
+             "--encoder-checkpoint %s --dolphin-pod-size 4)", out, out)  # fmt: skip
+    return 0

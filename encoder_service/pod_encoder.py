@@ -1,0 +1,87 @@
+"""The pod detector and tracker as an encoder: frames and the loop's tracker state in, the target's latent out.
+
+It answers as a tracking CMVAE does (``track(images, priors) -> (mu, logvar, next priors)``), its prior the
+tracker's whole state (encoder_service.pod_tracker), so the loops that carry a tracking CMVAE's prior carry it and
+keep the encoder stateless. The latent holds the target's distance and azimuth where a CMVAE's state decoders read
+them (normalised as the labels are; target yaw and the rest 0), so the camera-only scripted tracker flies on it.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from encoder_service import DETECTOR_FORMAT
+from encoder_service.model import LABEL_NAMES, denormalise_labels, normalise_labels
+from encoder_service.pod_detector import PodDetector, decode
+from encoder_service.pod_tracker import STATE_SIZE, PodTracker
+from services.geometry import OPT_D
+
+log = logging.getLogger(__name__)
+
+DETECTOR_VERSION = 1
+N_Z = 10  # a CMVAE's latent size, so the same policies' observation fits
+#: Distance read before any dolphin is engaged: the task's optimum, so the rover holds still until one is seen.
+UNSEEN = (OPT_D, 0.0)
+
+
+def is_detector(path: str | Path) -> bool:
+    """Whether ``path`` is a pod detector checkpoint (rather than a CMVAE's)."""
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # torch has no one error for a file not its own; the CMVAE loader names what is wrong
+        return False
+    return isinstance(checkpoint, dict) and checkpoint.get("format") == DETECTOR_FORMAT
+
+
+def save_detector(model: PodDetector, path: Path, threshold: float, history: list[dict[str, Any]]) -> None:
+    torch.save({"format": DETECTOR_FORMAT, "version": DETECTOR_VERSION, "width": model.width, "stride": model.stride,
+                "threshold": threshold, "state_dict": model.state_dict(), "history": history}, path)  # fmt: skip
+
+
+class PodEncoder:
+    """Detector plus tracker behind the encoder interface the in-process env and the scripted tracker use."""
+
+    tracks = True
+    n_z = N_Z
+    labels = LABEL_NAMES
+    prior_shape = (STATE_SIZE,)
+
+    def __init__(self, checkpoint: str | Path, tracker: PodTracker | None = None) -> None:
+        saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        if saved.get("format") != DETECTOR_FORMAT or saved.get("version") != DETECTOR_VERSION:
+            raise ValueError(f"{checkpoint} is not a {DETECTOR_FORMAT} checkpoint of version {DETECTOR_VERSION}")
+        self.model = PodDetector(width=int(saved["width"]), stride=int(saved.get("stride", 4)))
+        self.model.load_state_dict(saved["state_dict"])
+        self.model.eval()
+        self.threshold = float(saved["threshold"])
+        self.tracker = tracker or PodTracker()
+        self.checkpoint = Path(checkpoint)
+        log.info("pod detector %s loaded (threshold %.2f)", checkpoint, self.threshold)
+
+    @torch.inference_mode()
+    def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each frame's target latent (mu, logvar) and the tracker state to hand back with the next frame; a prior
+        of None (or all zeros) starts tracking afresh: the engagement frame."""
+        frames = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
+        detections = decode(*self.model(frames), self.threshold, images.shape[1], self.model.stride)
+        mu = np.zeros((len(images), N_Z), np.float32)
+        states = np.zeros((len(images), STATE_SIZE), np.float32)
+        for row, frame in enumerate(detections):
+            prior = None if priors is None or not np.any(priors[row]) else priors[row]
+            states[row], reading = self.tracker.update(prior, frame)
+            distance, azimuth = reading or UNSEEN
+            mu[row, :3] = normalise_labels(np.array([[distance, azimuth, 0.0]]))[0]
+        return mu, np.zeros_like(mu), states
+
+    def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        mu, logvar, _ = self.track(images, priors)
+        return mu, logvar
+
+    def decode_state(self, mu: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(d m, theta deg, psi deg) arrays from latents (N, n_z), as a CMVAE's decoders give them."""
+        return tuple(denormalise_labels(np.asarray(mu)[:, :3]).T)

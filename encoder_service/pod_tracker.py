@@ -1,0 +1,176 @@
+"""Which detection is the target: every dolphin tracked across frames, the target one of the tracks.
+
+The detector (encoder_service.pod_detector) says where the dolphins are in one frame; identity lives across frames.
+Each track holds a dolphin's azimuth and log distance with their rates (an alpha-beta filter), and detections join
+tracks by the nearest gated match in both, the cheapest pairs first. The target is the track the first frame's
+dolphin nearest the image centre started (the engagement rule, docs/physics.md, "Pods").
+
+Distance is what tells a companion passing in front from the target: the one in front is nearer. While the target
+has no detection and a nearer dolphin covers where it was, the target is *behind* it: its azimuth is held within
+the disc of the one in front and its distance stays put, so when the two part the target's track
+takes the farther dolphin again.
+
+The whole state is one float vector (:data:`STATE_SIZE`), so the loop can carry it from frame to frame as it
+carries a tracking encoder's prior, and an encoder that reads frames keeps none.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from encoder_service.pod_detector import Detections
+from services.identity import DOLPHIN_RADIUS_M
+
+FIELDS = ("alive", "target", "azimuth", "log_d", "rate", "log_d_rate", "misses", "behind")
+ALIVE, TARGET, AZIMUTH, LOG_D, RATE, LOG_D_RATE, MISSES, BEHIND = range(len(FIELDS))
+MAX_TRACKS = 8
+STATE_SIZE = MAX_TRACKS * len(FIELDS)
+NOT_MATCHED = math.inf
+PRIORITY_STEP = 100.0  # above any gated cost: a cascade level
+
+
+@dataclass(frozen=True)
+class TrackerParams:
+    azimuth_sigma_deg: float = 2.5  # a matched detection's spread about its track's prediction
+    azimuth_sigma_growth_deg: float = 0.4  # per frame without a detection
+    max_azimuth_sigma_deg: float = 15.0
+    behind_azimuth_sigma_deg: float = 5.0  # a target behind another comes out beside it
+    log_d_sigma: float = 0.12  # about 12% in distance
+    log_d_sigma_growth: float = 0.01  # per frame without a detection, unless the track is behind another
+    max_log_d_sigma: float = 0.35
+    gate: float = 9.0  # the largest squared normalised distance a match may have (3 sigma)
+    azimuth_gain: float = 0.6
+    rate_gain: float = 0.1
+    log_d_gain: float = 0.25
+    log_d_rate_gain: float = 0.01
+    rate_decay: float = 0.9  # per frame without a detection
+    companion_misses: int = 10  # a companion's track ends after this many frames without a detection
+    nearer: float = 0.92  # a dolphin covers the target when nearer than this share of its distance...
+    cover_margin_deg: float = 1.0  # ...and its disc, widened by this, holds the target's centre
+
+
+class PodTracker:
+    """``update(state, detections) -> (next state, (distance m, azimuth deg) of the target or None)``."""
+
+    def __init__(self, params: TrackerParams | None = None) -> None:
+        self.params = params or TrackerParams()
+
+    def update(self, state: np.ndarray | None, frame: Detections) -> tuple[np.ndarray, tuple[float, float] | None]:
+        blank = np.zeros(STATE_SIZE)
+        tracks = np.array(blank if state is None else state, dtype=float).reshape(MAX_TRACKS, len(FIELDS))
+        alive = tracks[:, ALIVE] > 0
+        tracks[alive, AZIMUTH] += tracks[alive, RATE]
+        tracks[alive, LOG_D] += tracks[alive, LOG_D_RATE]
+        log_d = np.log(np.maximum(frame.distance, 0.1))
+        pairs = self._match(tracks, frame.azimuth, log_d)
+        matched_tracks = {track for track, _ in pairs}
+        used = {detection for _, detection in pairs}
+        for track, detection in pairs:
+            self._correct(tracks[track], frame.azimuth[detection], log_d[detection])
+        for track in np.nonzero(alive)[0]:
+            if track not in matched_tracks:
+                self._coast(tracks[track], frame, log_d)
+        tracks[(tracks[:, TARGET] == 0) & (tracks[:, MISSES] > self.params.companion_misses)] = 0.0
+        self._start_tracks(tracks, frame, log_d, used, engage=not np.any(tracks[:, TARGET] > 0))
+        target = np.nonzero(tracks[:, TARGET] > 0)[0]
+        reading = None if len(target) == 0 else (math.exp(tracks[target[0], LOG_D]), tracks[target[0], AZIMUTH])
+        return tracks.reshape(-1).astype(np.float32), reading
+
+    def _sigmas(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each track's match spreads: wider the longer it goes unseen, except behind another, which bounds it."""
+        p = self.params
+        misses = np.where(tracks[:, BEHIND] > 0, 0.0, tracks[:, MISSES])
+        azimuth = np.minimum(p.azimuth_sigma_deg + p.azimuth_sigma_growth_deg * misses, p.max_azimuth_sigma_deg)
+        azimuth = np.where(tracks[:, BEHIND] > 0, p.behind_azimuth_sigma_deg, azimuth)
+        return azimuth, np.minimum(p.log_d_sigma + p.log_d_sigma_growth * misses, p.max_log_d_sigma)
+
+    def _match(self, tracks: np.ndarray, azimuth: np.ndarray, log_d: np.ndarray) -> list[tuple[int, int]]:
+        """Gated (track, detection) pairs, cheapest first, each track and detection at most once."""
+        alive = np.nonzero(tracks[:, ALIVE] > 0)[0]
+        if len(alive) == 0 or len(azimuth) == 0:
+            return []
+        sigma_azimuth, sigma_log_d = self._sigmas(tracks[alive])
+        cost = ((tracks[alive, AZIMUTH, None] - azimuth[None]) / sigma_azimuth[:, None]) ** 2 + (
+            (tracks[alive, LOG_D, None] - log_d[None]) / sigma_log_d[:, None]
+        ) ** 2
+        cost[cost > self.params.gate] = NOT_MATCHED
+        # A matching cascade: tracks seen more recently choose first, the target first among equals, so neither a
+        # look-alike's track outbids the target nor a coasting target steals a companion's detection.
+        cost += PRIORITY_STEP * (tracks[alive, MISSES, None] - 0.5 * tracks[alive, TARGET, None])
+        pairs = []
+        while np.isfinite(cost).any():
+            row, column = np.unravel_index(np.argmin(cost), cost.shape)
+            pairs.append((int(alive[row]), int(column)))
+            cost[row, :] = NOT_MATCHED
+            cost[:, column] = NOT_MATCHED
+        return pairs
+
+    def _correct(self, track: np.ndarray, azimuth: float, log_d: float) -> None:
+        p = self.params
+        residual = azimuth - track[AZIMUTH]
+        track[AZIMUTH] += p.azimuth_gain * residual
+        track[RATE] += p.rate_gain * residual
+        residual = log_d - track[LOG_D]
+        track[LOG_D] += p.log_d_gain * residual
+        track[LOG_D_RATE] += p.log_d_rate_gain * residual
+        track[MISSES] = track[BEHIND] = 0.0
+
+    def _coast(self, track: np.ndarray, frame: Detections, log_d: np.ndarray) -> None:
+        """A track without a detection keeps its prediction; the target's goes behind a nearer dolphin covering it
+        (were it outside that one's disc, the frame would show it)."""
+        track[MISSES] += 1
+        track[RATE] *= self.params.rate_decay
+        track[LOG_D_RATE] *= self.params.rate_decay
+        if track[TARGET] > 0:
+            cover = self._covering(track, frame, log_d)
+            track[BEHIND] = float(cover is not None)
+            if cover is not None:  # hidden somewhere behind the nearer one's disc: held within it
+                extent = float(_angular_radius_deg(frame.distance[cover]))
+                low, high = frame.azimuth[cover] - extent, frame.azimuth[cover] + extent
+                track[AZIMUTH] = min(max(track[AZIMUTH], low), high)
+
+    def _covering(self, track: np.ndarray, frame: Detections, log_d: np.ndarray) -> int | None:
+        """The nearest-in-azimuth detection that is nearer than the track and whose disc overlaps its own."""
+        p = self.params
+        reach = _angular_radius_deg(frame.distance) + p.cover_margin_deg  # its centre behind the nearer one's disc
+        apart = np.abs(frame.azimuth - track[AZIMUTH])
+        covering = (log_d < track[LOG_D] + math.log(p.nearer)) & (apart < reach)
+        if not covering.any():
+            return None
+        return int(np.argmin(np.where(covering, apart, np.inf)))
+
+    def _start_tracks(
+        self, tracks: np.ndarray, frame: Detections, log_d: np.ndarray, used: set[int], engage: bool
+    ) -> None:
+        """New tracks for detections no track took; at engagement the one nearest the image centre is the target."""
+        fresh = [j for j in range(len(frame)) if j not in used and not self._explained(tracks, frame, log_d, j)]
+        if engage and fresh:
+            off_axis = np.hypot(frame.azimuth[fresh], frame.elevation[fresh])
+            fresh.insert(0, fresh.pop(int(np.argmin(off_axis))))
+        for order, detection in enumerate(fresh):
+            free = np.nonzero(tracks[:, ALIVE] == 0)[0]
+            if len(free) == 0:
+                return
+            track = tracks[free[0]]
+            track[:] = 0.0
+            track[ALIVE] = 1.0
+            track[TARGET] = float(engage and order == 0)
+            track[AZIMUTH], track[LOG_D] = frame.azimuth[detection], log_d[detection]
+
+    def _explained(self, tracks: np.ndarray, frame: Detections, log_d: np.ndarray, detection: int) -> bool:
+        """Whether a detection lies within a live track's gate: a second peak on a dolphin already tracked."""
+        alive = tracks[:, ALIVE] > 0
+        if not alive.any():
+            return False
+        sigma_azimuth, sigma_log_d = self._sigmas(tracks[alive])
+        cost = ((tracks[alive, AZIMUTH] - frame.azimuth[detection]) / sigma_azimuth) ** 2 + (
+            (tracks[alive, LOG_D] - log_d[detection]) / sigma_log_d
+        ) ** 2
+        return bool((cost < self.params.gate).any())
+
+
+def _angular_radius_deg(distance: np.ndarray | float) -> np.ndarray:
+    return np.degrees(np.arcsin(np.clip(DOLPHIN_RADIUS_M / np.maximum(distance, 1e-6), 0.0, 1.0)))

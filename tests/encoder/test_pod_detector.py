@@ -1,0 +1,139 @@
+"""The pod detector: labels from a real pod dataset's poses, a short real training, and the encoder it makes."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from encoder_service.inference import LatentEncoder, open_encoder
+from encoder_service.model import read_checkpoint
+from encoder_service.pod_detector import (
+    PodDetector,
+    decode,
+    dolphin_points,
+    from_pixels,
+    heatmap_targets,
+    rover_azimuth,
+    seen_dolphins,
+    to_pixels,
+)
+from encoder_service.pod_detector_train import TrainDetectorSettings, check, load_pod_dataset, run
+from encoder_service.pod_encoder import PodEncoder
+from encoder_service.pod_tracker import STATE_SIZE
+
+
+@pytest.fixture(scope="module")
+def pod(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small dataset of a pod of 3, with masks."""
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when MuJoCo is first imported
+    from sim_service.dataset import write_dataset
+    from sim_service.settings import DolphinSettings, WorldSettings
+
+    root = tmp_path_factory.mktemp("detector") / "pod"
+    world = WorldSettings(render=True, dolphin=DolphinSettings(pod_size=3))
+    return write_dataset(root, count=64, seed=4, shard_size=32, world_settings=world, progress=False, masks=True)
+
+
+@pytest.fixture(scope="module")
+def detector(pod: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("detector") / "detector.pt"
+    settings = TrainDetectorSettings(dataset=[str(pod)], out=str(out), epochs=2, batch_size=16, val_frames=16)
+    assert run(settings) == 0
+    return out
+
+
+def test_pixels_and_rays_agree() -> None:
+    points = np.array([[6.0, 1.0, -0.5], [3.0, -2.0, 0.4], [9.0, 0.0, 0.0]])
+    x, y = to_pixels(points, 64).T
+    assert (x[2], y[2]) == pytest.approx((32.0, 32.0))  # on the axis: the image centre
+    azimuth, elevation = from_pixels(x, y, 64)
+    np.testing.assert_allclose(azimuth, np.degrees(np.arctan2(points[:, 1], points[:, 0])), atol=1e-9)
+    np.testing.assert_allclose(elevation, np.degrees(np.arctan2(points[:, 2], np.hypot(*points[:, :2].T))), atol=1e-9)
+
+
+def test_the_labels_are_the_datasets_own(pod: Path) -> None:
+    """The target's distance and the azimuth the camera's ray gives, moved to the rover's centre, are the stored
+    labels; the target's centre falls inside its own mask in most frames that show it."""
+    data = load_pod_dataset(pod)
+    labels = np.concatenate([np.load(path) for path in sorted(pod.glob("*.labels.npy"))])
+    masks = np.concatenate([np.load(path) for path in sorted(pod.glob("*.masks.npy"))])
+    np.testing.assert_allclose(data["distances"][:, 0], labels[:, 0], atol=1e-4)
+    np.testing.assert_allclose(data["azimuths"][:, 0], labels[:, 1], atol=1e-3)
+    points = dolphin_points(data["poses"].astype(float), data["companions"].astype(float))
+    camera_azimuth = np.degrees(np.arctan2(points[:, 0, 1], points[:, 0, 0]))
+    np.testing.assert_allclose(rover_azimuth(camera_azimuth, data["distances"][:, 0]), labels[:, 1], atol=1e-3)
+    shown = data["seen"][:, 0]
+    assert shown.sum() >= 20
+    x, y = np.clip(data["pixels"][:, 0].astype(int), 0, 63).T
+    on_mask = np.array([masks[i, max(y[i] - 2, 0) : y[i] + 3, max(x[i] - 2, 0) : x[i] + 3].any() for i in range(64)])
+    assert on_mask[shown].mean() > 0.8
+
+
+def test_each_seen_dolphin_peaks_at_its_cell() -> None:
+    pixels = np.array([[[10.3, 20.9], [50.0, 33.0]]])
+    seen, ignored = np.array([[True, False]]), np.array([[False, True]])
+    targets = heatmap_targets(pixels, np.array([[5.0, 3.0]]), seen, ignored, 64, 2)
+    assert targets["heat"][0, 10, 5] == 1.0 and targets["centre"].sum() == 1
+    assert targets["regress"][0, :, 10, 5] == pytest.approx([0.15, 0.45, np.log(5.0)], abs=1e-6)
+    assert targets["skip"][0, 16, 25] and not targets["skip"][0, 10, 5]  # the hidden one: neither taught nor punished
+
+
+def test_a_hidden_companion_is_not_seen(pod: Path) -> None:
+    data = load_pod_dataset(pod)
+    points = dolphin_points(data["poses"].astype(float), data["companions"].astype(float))
+    seen, ignored = seen_dolphins(points, data["target_pixels"])
+    assert not (seen & ignored).any()
+    assert ignored.any()  # the dataset's sight-line companions hide some
+
+
+def test_decode_reads_a_peak_back() -> None:
+    heat = torch.full((1, 1, 32, 32), -9.0)
+    heat[0, 0, 10, 16] = 4.0
+    regression = torch.zeros((1, 3, 32, 32))
+    regression[0, :, 10, 16] = torch.tensor([0.5, 0.5, float(np.log(6.0))])
+    (frame,) = decode(heat, regression, 0.3, 64, 2)
+    assert len(frame) == 1
+    assert frame.distance[0] == pytest.approx(6.0)
+    assert frame.azimuth[0] == pytest.approx(rover_azimuth(from_pixels(33.0, 21.0, 64)[0], 6.0))
+
+
+def test_training_writes_an_encoder_the_loaders_take(detector: Path) -> None:
+    encoder = open_encoder(detector)
+    assert isinstance(encoder, PodEncoder) and encoder.tracks
+    with pytest.raises(ValueError, match="pod detector, not a CMVAE"):
+        read_checkpoint(detector)
+    with pytest.raises(ValueError, match="pod detector"):
+        LatentEncoder(detector)
+    summary = detector.with_suffix(".json")
+    assert summary.is_file() and "history" in summary.read_text()
+
+
+def test_the_encoder_carries_its_tracker_state(detector: Path, pod: Path) -> None:
+    encoder = open_encoder(detector)
+    images = load_pod_dataset(pod)["images"][:4]
+    mu, logvar, state = encoder.track(images)
+    assert mu.shape == (4, encoder.n_z) and state.shape == (4, STATE_SIZE)
+    distance, azimuth, _ = encoder.decode_state(mu)
+    assert np.all((distance >= 2.0) & (distance <= 10.0)) and np.all(np.abs(azimuth) <= 45.0)
+    again, _, _ = encoder.track(images, state)
+    assert again.shape == mu.shape
+
+
+def test_bad_settings_are_refused_by_flag(pod: Path, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="--stride 3"):
+        check(TrainDetectorSettings(dataset=[str(pod)], stride=3, out=str(tmp_path / "d.pt")))
+    with pytest.raises(FileNotFoundError, match="no meta.json"):
+        check(TrainDetectorSettings(dataset=[str(tmp_path)], out=str(tmp_path / "d.pt")))
+    (tmp_path / "d.pt").write_bytes(b"")
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        check(TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "d.pt")))
+
+
+def test_the_detector_runs_both_strides() -> None:
+    for stride in (2, 4):
+        heat, regression = PodDetector(stride=stride)(torch.rand(2, 3, 64, 64))
+        assert heat.shape == (2, 1, 64 // stride, 64 // stride) and regression.shape[1] == 3

@@ -1,0 +1,79 @@
+"""The pod tracker: the target chosen at engagement and held through a companion passing in front of it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from encoder_service.pod_detector import Detections
+from encoder_service.pod_tracker import BEHIND, FIELDS, MAX_TRACKS, STATE_SIZE, TARGET, PodTracker
+
+
+def frame(*dolphins: tuple[float, float]) -> Detections:
+    """Detections of dolphins at (azimuth deg, distance m), all level, all sure."""
+    azimuth = np.array([a for a, _ in dolphins], float)
+    distance = np.array([d for _, d in dolphins], float)
+    return Detections(np.ones(len(dolphins)), azimuth, np.zeros(len(dolphins)), distance)
+
+
+def run(tracker: PodTracker, frames: list[Detections]) -> tuple[np.ndarray, list]:
+    state, readings = None, []
+    for detections in frames:
+        state, reading = tracker.update(state, detections)
+        readings.append(reading)
+    return state, readings
+
+
+def test_engages_on_the_dolphin_nearest_the_image_centre() -> None:
+    state, readings = run(PodTracker(), [frame((12.0, 5.0), (-3.0, 7.0), (20.0, 4.0))])
+    assert state.shape == (STATE_SIZE,)
+    assert readings[0] == pytest.approx((7.0, -3.0))
+    tracks = state.reshape(MAX_TRACKS, len(FIELDS))
+    assert tracks[:, TARGET].sum() == 1
+
+
+def test_no_dolphin_no_target_until_one_is_seen() -> None:
+    state, readings = run(PodTracker(), [frame(), frame(), frame((5.0, 6.0))])
+    assert readings[:2] == [None, None]
+    assert readings[2] == pytest.approx((6.0, 5.0))
+
+
+def test_a_companion_passing_in_front_does_not_take_the_target_over() -> None:
+    """The companion (3 m) sweeps from 15 deg across the target (6 m, fixed at 0 deg) to -15 deg; while it covers
+    the target only the companion is detected. Afterwards the target is the far dolphin at 0 deg again."""
+    frames = []
+    for step in range(61):
+        companion = 15.0 - 0.5 * step
+        covered = abs(companion) < 8.0
+        frames.append(frame((companion, 3.0)) if covered else frame((0.0, 6.0), (companion, 3.0)))
+    tracker = PodTracker()
+    state, readings = run(tracker, frames)
+    distance, azimuth = readings[-1]
+    assert distance == pytest.approx(6.0, rel=0.05)
+    assert azimuth == pytest.approx(0.0, abs=1.0)
+    behind_steps = [i for i, f in enumerate(frames) if len(f) == 1]
+    assert all(abs(readings[i][1]) < 9.0 for i in behind_steps)  # held within the one in front's disc
+    assert all(readings[i][0] == pytest.approx(6.0, rel=0.05) for i in behind_steps)  # its distance kept
+
+
+def target_track(state: np.ndarray) -> np.ndarray:
+    tracks = state.reshape(MAX_TRACKS, len(FIELDS))
+    return tracks[tracks[:, TARGET] > 0][0]
+
+
+def test_the_target_behind_is_marked_and_released() -> None:
+    tracker = PodTracker()
+    state, _ = run(tracker, [frame((0.0, 6.0), (10.0, 3.0)), frame((0.0, 6.0), (5.0, 3.0)), frame((1.0, 3.0))])
+    assert target_track(state)[BEHIND] == 1.0
+    state, reading = tracker.update(state, frame((0.0, 6.0), (-4.0, 3.0)))
+    assert target_track(state)[BEHIND] == 0.0
+    assert reading == pytest.approx((6.0, 0.0), abs=0.3)
+
+
+def test_a_moving_target_is_followed_through_missed_frames() -> None:
+    """A target sweeping at 1 deg a frame, unseen for 5 frames, is found where it went, not a still companion."""
+    frames = [frame((float(step), 6.0), (30.0, 6.0)) for step in range(20)]
+    frames += [frame((30.0, 6.0)) for _ in range(5)]
+    frames += [frame((25.0, 6.0), (30.0, 6.0))]
+    _, readings = run(PodTracker(), frames)
+    assert readings[-1][1] == pytest.approx(25.0, abs=1.5)
