@@ -34,11 +34,11 @@ PRIORITY_STEP = 100.0  # above any gated cost: a cascade level
 
 @dataclass(frozen=True)
 class TrackerParams:
-    azimuth_sigma_deg: float = 2.5  # a matched detection's spread about its track's prediction
-    azimuth_sigma_growth_deg: float = 0.4  # per frame without a detection
+    azimuth_sigma_deg: float = 1.5  # a matched detection's spread about its track's prediction
+    azimuth_sigma_growth_deg: float = 0.1  # per frame without a detection
     max_azimuth_sigma_deg: float = 15.0
     behind_azimuth_sigma_deg: float = 5.0  # a target behind another comes out beside it
-    log_d_sigma: float = 0.12  # about 12% in distance
+    log_d_sigma: float = 0.2  # about 20% in distance: a pod's dolphins lie close in distance, the reads less so
     log_d_sigma_growth: float = 0.01  # per frame without a detection, unless the track is behind another
     max_log_d_sigma: float = 0.35
     gate: float = 9.0  # the largest squared normalised distance a match may have (3 sigma)
@@ -48,6 +48,8 @@ class TrackerParams:
     log_d_rate_gain: float = 0.01
     rate_decay: float = 0.9  # per frame without a detection
     companion_misses: int = 10  # a companion's track ends after this many frames without a detection
+    reacquire_after: int = 20  # frames a target may go unseen, behind no one, before another seen one takes over
+    reacquire_azimuth_sigma_deg: float = 10.0
     nearer: float = 0.92  # a dolphin covers the target when nearer than this share of its distance...
     cover_margin_deg: float = 1.0  # ...and its disc, widened by this, holds the target's centre
 
@@ -70,14 +72,36 @@ class PodTracker:
         used = {detection for _, detection in pairs}
         for track, detection in pairs:
             self._correct(tracks[track], frame.azimuth[detection], log_d[detection])
+        track_of = {detection: track for track, detection in pairs}
         for track in np.nonzero(alive)[0]:
             if track not in matched_tracks:
-                self._coast(tracks[track], frame, log_d)
+                self._coast(tracks, track, frame, log_d, track_of)
         tracks[(tracks[:, TARGET] == 0) & (tracks[:, MISSES] > self.params.companion_misses)] = 0.0
         self._start_tracks(tracks, frame, log_d, used, engage=not np.any(tracks[:, TARGET] > 0))
+        self._reacquire(tracks)
         target = np.nonzero(tracks[:, TARGET] > 0)[0]
         reading = None if len(target) == 0 else (math.exp(tracks[target[0], LOG_D]), tracks[target[0], AZIMUTH])
         return tracks.reshape(-1).astype(np.float32), reading
+
+    def _reacquire(self, tracks: np.ndarray) -> None:
+        """A target unseen too long, and behind no one, is lost: the dolphin seen now likeliest to be it (nearest
+        its last azimuth and distance, loosely) becomes the target, so the rover keeps a dolphin in view."""
+        p = self.params
+        targets = np.nonzero(tracks[:, TARGET] > 0)[0]
+        if len(targets) == 0:
+            return
+        target = targets[0]
+        if tracks[target, MISSES] <= p.reacquire_after or tracks[target, BEHIND] > 0:
+            return
+        seen = np.nonzero((tracks[:, ALIVE] > 0) & (tracks[:, MISSES] == 0))[0]
+        if len(seen) == 0:
+            return
+        cost = ((tracks[seen, AZIMUTH] - tracks[target, AZIMUTH]) / p.reacquire_azimuth_sigma_deg) ** 2 + (
+            (tracks[seen, LOG_D] - tracks[target, LOG_D]) / p.max_log_d_sigma
+        ) ** 2
+        chosen = seen[int(np.argmin(cost))]
+        tracks[target] = 0.0
+        tracks[chosen, TARGET] = 1.0
 
     def _sigmas(self, tracks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each track's match spreads: wider the longer it goes unseen, except behind another, which bounds it."""
@@ -97,9 +121,9 @@ class PodTracker:
             (tracks[alive, LOG_D, None] - log_d[None]) / sigma_log_d[:, None]
         ) ** 2
         cost[cost > self.params.gate] = NOT_MATCHED
-        # A matching cascade: tracks seen more recently choose first, the target first among equals, so neither a
-        # look-alike's track outbids the target nor a coasting target steals a companion's detection.
-        cost += PRIORITY_STEP * (tracks[alive, MISSES, None] - 0.5 * tracks[alive, TARGET, None])
+        # A matching cascade: tracks seen more recently choose first, so a coasting target never steals the
+        # detection of a companion seen all along (the one now in front of it).
+        cost += PRIORITY_STEP * tracks[alive, MISSES, None]
         pairs = []
         while np.isfinite(cost).any():
             row, column = np.unravel_index(np.argmin(cost), cost.shape)
@@ -118,9 +142,13 @@ class PodTracker:
         track[LOG_D_RATE] += p.log_d_rate_gain * residual
         track[MISSES] = track[BEHIND] = 0.0
 
-    def _coast(self, track: np.ndarray, frame: Detections, log_d: np.ndarray) -> None:
+    def _coast(
+        self, tracks: np.ndarray, index: int, frame: Detections, log_d: np.ndarray, track_of: dict[int, int]
+    ) -> None:
         """A track without a detection keeps its prediction; the target's goes behind a nearer dolphin covering it
-        (were it outside that one's disc, the frame would show it)."""
+        (were it outside that one's disc, the frame would show it), and nears or recedes as that one does (the
+        rover closing on both)."""
+        track = tracks[index]
         track[MISSES] += 1
         track[RATE] *= self.params.rate_decay
         track[LOG_D_RATE] *= self.params.rate_decay
@@ -131,6 +159,8 @@ class PodTracker:
                 extent = float(_angular_radius_deg(frame.distance[cover]))
                 low, high = frame.azimuth[cover] - extent, frame.azimuth[cover] + extent
                 track[AZIMUTH] = min(max(track[AZIMUTH], low), high)
+                if cover in track_of:
+                    track[LOG_D_RATE] = tracks[track_of[cover], LOG_D_RATE]
 
     def _covering(self, track: np.ndarray, frame: Detections, log_d: np.ndarray) -> int | None:
         """The nearest-in-azimuth detection that is nearer than the track and whose disc overlaps its own."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -24,18 +23,13 @@ from encoder_service.pod_detector import (
 from encoder_service.pod_detector_train import TrainDetectorSettings, check, load_pod_dataset, run
 from encoder_service.pod_encoder import PodEncoder
 from encoder_service.pod_tracker import STATE_SIZE
+from tests.encoder.pod_testdata import render_pod_dataset
 
 
 @pytest.fixture(scope="module")
 def pod(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small dataset of a pod of 3, with masks."""
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when MuJoCo is first imported
-    from sim_service.dataset import write_dataset
-    from sim_service.settings import DolphinSettings, WorldSettings
-
-    root = tmp_path_factory.mktemp("detector") / "pod"
-    world = WorldSettings(render=True, dolphin=DolphinSettings(pod_size=3))
-    return write_dataset(root, count=64, seed=4, shard_size=32, world_settings=world, progress=False, masks=True)
+    return render_pod_dataset(tmp_path_factory.mktemp("detector") / "pod", count=64, shard_size=32)
 
 
 @pytest.fixture(scope="module")

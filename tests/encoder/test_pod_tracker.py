@@ -77,3 +77,13 @@ def test_a_moving_target_is_followed_through_missed_frames() -> None:
     frames += [frame((25.0, 6.0), (30.0, 6.0))]
     _, readings = run(PodTracker(), frames)
     assert readings[-1][1] == pytest.approx(25.0, abs=1.5)
+
+
+def test_a_target_lost_behind_no_one_is_given_up_for_the_likeliest_seen() -> None:
+    """Unseen for longer than reacquire_after frames with nothing in front of it, the target passes to the dolphin
+    seen nearest where it was, not to the one nearest the image centre."""
+    tracker = PodTracker()
+    lost = [frame((10.0, 6.0))] + [frame((-30.0, 3.0), (40.0, 9.0))] * (tracker.params.reacquire_after + 2)
+    _, readings = run(tracker, lost)
+    assert readings[tracker.params.reacquire_after - 5] == pytest.approx((6.0, 10.0))  # still waiting for it
+    assert readings[-1] == pytest.approx((9.0, 40.0), abs=0.5)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from functools import partial
 from pathlib import Path
 
@@ -26,19 +25,14 @@ from encoder_service.model import (
 from encoder_service.train import load_init_weights, mirror_batch, run
 from services.identity import TARGET
 from tests.encoder.cmvae_testdata import write_dataset as write_lone_dataset
+from tests.encoder.pod_testdata import render_pod_dataset
 from tests.encoder.quick_training import GENERAL, quick_settings, started_from_general
 
 
 @pytest.fixture(scope="module")
 def pod(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small dataset of a pod of 3, with the target's masks."""
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; read when MuJoCo is first imported
-    from sim_service.dataset import write_dataset
-    from sim_service.settings import DolphinSettings, WorldSettings
-
-    root = tmp_path_factory.mktemp("tracking") / "pod"
-    world = WorldSettings(render=True, dolphin=DolphinSettings(pod_size=3))
-    return write_dataset(root, count=96, seed=4, shard_size=48, world_settings=world, progress=False, masks=True)
+    return render_pod_dataset(tmp_path_factory.mktemp("tracking") / "pod", count=96, shard_size=48)
 
 
 _settings = partial(quick_settings, track=True, input_norm="channel")
