@@ -124,7 +124,8 @@ def _block(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> nn.Sequ
 
 
 class PodDetector(nn.Module):
-    """Frames (N, 3, 64, 64) floats in [0, 1] -> (heat logits (N, 1, G, G), regression (N, 3, G, G)), G = 64 / stride.
+    """Frames (N, 3, 64, 64) in [-1, 1] (encoder_service.model.images_to_tensor) -> (heat logits (N, 1, G, G),
+    regression (N, 3, G, G)), G = 64 / stride.
 
     Features at three scales: 8x8 (a dolphin 2 m away spans half the frame) for what and how far, 16x16 for where,
     and at stride 2 also 32x32, so that two dolphins a few pixels apart keep a peak each.
@@ -150,7 +151,7 @@ class PodDetector(nn.Module):
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         # Each frame evened per channel: the water's colour and brightness say nothing of where a dolphin is.
         mean = images.mean(dim=(2, 3), keepdim=True)
-        std = images.std(dim=(2, 3), keepdim=True) + 0.02
+        std = images.std(dim=(2, 3), keepdim=True) + 0.04
         stem = self.stem((images - mean) / std)
         fine = self.fine(stem)
         coarse = F.interpolate(self.coarse(fine), size=fine.shape[-2:], mode="nearest")

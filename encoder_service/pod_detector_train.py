@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from encoder_service.model import images_to_tensor
 from encoder_service.pod_detector import (
     PodDetector,
     decode,
@@ -79,8 +80,7 @@ def batch(data: dict[str, np.ndarray], rows: np.ndarray, stride: int, mirror: np
         images[mirror] = images[mirror][:, :, ::-1]
         pixels[mirror, :, 0] = size - pixels[mirror, :, 0]
     targets = heatmap_targets(pixels, data["distances"][rows], data["seen"][rows], data["ignored"][rows], size, stride)
-    frames = torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255.0
-    return frames, {name: torch.from_numpy(value) for name, value in targets.items()}
+    return images_to_tensor(images), {name: torch.from_numpy(value) for name, value in targets.items()}
 
 
 def validate(model: PodDetector, data: dict[str, np.ndarray], rows: np.ndarray, threshold: float) -> dict[str, float]:

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from encoder_service import DETECTOR_FORMAT
-from encoder_service.model import LABEL_NAMES, denormalise_labels, normalise_labels
+from encoder_service.model import LABEL_NAMES, denormalise_labels, images_to_tensor, normalise_labels
 from encoder_service.pod_detector import PodDetector, decode
 from encoder_service.pod_tracker import STATE_SIZE, PodTracker
 from services.geometry import OPT_D
@@ -55,7 +55,7 @@ class PodEncoder:
         saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
         if saved.get("format") != DETECTOR_FORMAT or saved.get("version") != DETECTOR_VERSION:
             raise ValueError(f"{checkpoint} is not a {DETECTOR_FORMAT} checkpoint of version {DETECTOR_VERSION}")
-        self.model = PodDetector(width=int(saved["width"]), stride=int(saved.get("stride", 4)))
+        self.model = PodDetector(width=int(saved["width"]), stride=int(saved["stride"]))
         self.model.load_state_dict(saved["state_dict"])
         self.model.eval()
         self.threshold = float(saved["threshold"])
@@ -67,15 +67,15 @@ class PodEncoder:
     def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's target latent (mu, logvar) and the tracker state to hand back with the next frame; a prior
         of None (or all zeros) starts tracking afresh: the engagement frame."""
-        frames = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255.0
-        detections = decode(*self.model(frames), self.threshold, images.shape[1], self.model.stride)
-        mu = np.zeros((len(images), N_Z), np.float32)
+        detections = decode(*self.model(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride)
         states = np.zeros((len(images), STATE_SIZE), np.float32)
+        readings = np.zeros((len(images), 3))  # d, theta and psi (unread: 0) of each frame's target
         for row, frame in enumerate(detections):
             prior = None if priors is None or not np.any(priors[row]) else priors[row]
             states[row], reading = self.tracker.update(prior, frame)
-            distance, azimuth = reading or UNSEEN
-            mu[row, :3] = normalise_labels(np.array([[distance, azimuth, 0.0]]))[0]
+            readings[row, :2] = reading or UNSEEN
+        mu = np.zeros((len(images), N_Z), np.float32)
+        mu[:, :3] = normalise_labels(readings)
         return mu, np.zeros_like(mu), states
 
     def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
