@@ -67,17 +67,14 @@ class PodTracker:
         tracks[alive, AZIMUTH] += tracks[alive, RATE]
         tracks[alive, LOG_D] += tracks[alive, LOG_D_RATE]
         log_d = np.log(np.maximum(frame.distance, 0.1))
-        pairs = self._match(tracks, frame.azimuth, log_d)
-        matched_tracks = {track for track, _ in pairs}
-        used = {detection for _, detection in pairs}
-        for track, detection in pairs:
+        track_of = {detection: track for track, detection in self._match(tracks, frame.azimuth, log_d)}
+        for detection, track in track_of.items():
             self._correct(tracks[track], frame.azimuth[detection], log_d[detection])
-        track_of = {detection: track for track, detection in pairs}
         for track in np.nonzero(alive)[0]:
-            if track not in matched_tracks:
+            if track not in track_of.values():
                 self._coast(tracks, track, frame, log_d, track_of)
         tracks[(tracks[:, TARGET] == 0) & (tracks[:, MISSES] > self.params.companion_misses)] = 0.0
-        self._start_tracks(tracks, frame, log_d, used, engage=not np.any(tracks[:, TARGET] > 0))
+        self._start_tracks(tracks, frame, log_d, set(track_of), engage=not np.any(tracks[:, TARGET] > 0))
         self._reacquire(tracks)
         target = np.nonzero(tracks[:, TARGET] > 0)[0]
         reading = None if len(target) == 0 else (math.exp(tracks[target[0], LOG_D]), tracks[target[0], AZIMUTH])
@@ -96,9 +93,8 @@ class PodTracker:
         seen = np.nonzero((tracks[:, ALIVE] > 0) & (tracks[:, MISSES] == 0))[0]
         if len(seen) == 0:
             return
-        cost = ((tracks[seen, AZIMUTH] - tracks[target, AZIMUTH]) / p.reacquire_azimuth_sigma_deg) ** 2 + (
-            (tracks[seen, LOG_D] - tracks[target, LOG_D]) / p.max_log_d_sigma
-        ) ** 2
+        cost = _apart(tracks[seen], tracks[target, AZIMUTH], tracks[target, LOG_D],
+                      p.reacquire_azimuth_sigma_deg, p.max_log_d_sigma)  # fmt: skip
         chosen = seen[int(np.argmin(cost))]
         tracks[target] = 0.0
         tracks[chosen, TARGET] = 1.0
@@ -117,9 +113,7 @@ class PodTracker:
         if len(alive) == 0 or len(azimuth) == 0:
             return []
         sigma_azimuth, sigma_log_d = self._sigmas(tracks[alive])
-        cost = ((tracks[alive, AZIMUTH, None] - azimuth[None]) / sigma_azimuth[:, None]) ** 2 + (
-            (tracks[alive, LOG_D, None] - log_d[None]) / sigma_log_d[:, None]
-        ) ** 2
+        cost = _apart(tracks[alive, None], azimuth[None], log_d[None], sigma_azimuth[:, None], sigma_log_d[:, None])
         cost[cost > self.params.gate] = NOT_MATCHED
         # A matching cascade: tracks seen more recently choose first, so a coasting target never steals the
         # detection of a companion seen all along (the one now in front of it).
@@ -196,11 +190,14 @@ class PodTracker:
         if not alive.any():
             return False
         sigma_azimuth, sigma_log_d = self._sigmas(tracks[alive])
-        cost = ((tracks[alive, AZIMUTH] - frame.azimuth[detection]) / sigma_azimuth) ** 2 + (
-            (tracks[alive, LOG_D] - log_d[detection]) / sigma_log_d
-        ) ** 2
+        cost = _apart(tracks[alive], frame.azimuth[detection], log_d[detection], sigma_azimuth, sigma_log_d)
         return bool((cost < self.params.gate).any())
 
 
 def _angular_radius_deg(distance: np.ndarray | float) -> np.ndarray:
     return np.degrees(np.arcsin(np.clip(DOLPHIN_RADIUS_M / np.maximum(distance, 1e-6), 0.0, 1.0)))
+
+
+def _apart(tracks: np.ndarray, azimuth, log_d, sigma_azimuth, sigma_log_d) -> np.ndarray:
+    """Squared normalised distance of ``tracks`` (rows of the state) from (azimuth, log distance), broadcast."""
+    return ((tracks[..., AZIMUTH] - azimuth) / sigma_azimuth) ** 2 + ((tracks[..., LOG_D] - log_d) / sigma_log_d) ** 2
