@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from encoder_service import DEFAULT_CHECKPOINT, ENGINES
-from encoder_service.model import CMVAE, PriorReader, denormalise_labels, images_to_tensor, load_model
+from encoder_service.model import CMVAE, PriorReader, check_images, denormalise_labels, images_to_tensor, load_model
 from encoder_service.pod_encoder import PodEncoder, is_detector
 from services.messages import IMAGE_SHAPE
 
@@ -130,16 +130,6 @@ class LatentEncoder:
         log.info("CMVAE %s loaded (n_z=%d, %d epochs) on %s, %s engine", path, self.n_z, self.trained_epochs,
                  self.device, engine)  # fmt: skip
 
-    @staticmethod
-    def check_images(images: np.ndarray) -> None:
-        """Raise ValueError unless ``images`` is a uint8 array shaped (N, 64, 64, 3)."""
-        if not isinstance(images, np.ndarray):
-            raise ValueError(f"images must be a numpy array, got {type(images).__name__}")
-        if images.dtype != np.uint8:
-            raise ValueError(f"images must be uint8, got {images.dtype}")
-        if images.ndim != 4 or images.shape[1:] != IMAGE_SHAPE or images.shape[0] == 0:
-            raise ValueError(f"images must be shaped (N>0, {', '.join(map(str, IMAGE_SHAPE))}), got {images.shape}")
-
     def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(mu, logvar) for a batch of RGB frames; a tracking model reads each frame's prior (N,), the azimuth in
         degrees where its target was last seen (:meth:`track` gives the next), the image centre where None (the
@@ -158,7 +148,7 @@ class LatentEncoder:
 
     @torch.inference_mode()
     def _run(self, images: np.ndarray, priors: np.ndarray | None) -> tuple[np.ndarray, ...]:
-        self.check_images(images)
+        check_images(images)
         shape = (len(images), *self._model.prior_shape)
         if priors is None:
             priors = np.zeros(shape, dtype=np.float32)
@@ -198,9 +188,19 @@ class LatentEncoder:
         return tuple(physical.T)
 
 
-def open_encoder(checkpoint: str | Path = DEFAULT_CHECKPOINT, **options: Any) -> Any:
-    """The encoder a checkpoint holds: a CMVAE's :class:`LatentEncoder` (``options`` passed on), or for a pod
-    detector's checkpoint its detector and tracker (encoder_service.pod_encoder), which take no options."""
+def open_encoder(
+    checkpoint: str | Path = DEFAULT_CHECKPOINT, device: str = "cpu", threads: int | None = None, engine: str = "torch"
+) -> LatentEncoder | PodEncoder:
+    """The encoder a checkpoint holds: a CMVAE's :class:`LatentEncoder`, or for a pod detector's checkpoint its
+    detector and tracker (encoder_service.pod_encoder), which run on the torch engine on the cpu only."""
+    refuse_detector_engine(checkpoint, engine, device)
     if is_detector(checkpoint):
-        return PodEncoder(checkpoint)
-    return LatentEncoder(checkpoint, **options)
+        return PodEncoder(checkpoint, threads=threads)
+    return LatentEncoder(checkpoint, device, threads, engine)
+
+
+def refuse_detector_engine(checkpoint: str | Path, engine: str, device: str) -> None:
+    """A pod detector runs on the torch engine on the cpu only so far: refuse any other for one by name."""
+    if is_detector(checkpoint) and (engine, device) != ("torch", "cpu"):
+        raise ValueError(f"{checkpoint} is a pod detector, which runs on the torch engine on the cpu only so far; "
+                         f"got engine {engine!r} on device {device!r}")  # fmt: skip

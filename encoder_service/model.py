@@ -79,6 +79,16 @@ def label_errors(predicted: np.ndarray, true: np.ndarray) -> np.ndarray:
     return errors
 
 
+def check_images(images: np.ndarray) -> None:
+    """Raise ValueError unless ``images`` is a uint8 array shaped (N, 64, 64, 3)."""
+    if not isinstance(images, np.ndarray):
+        raise ValueError(f"images must be a numpy array, got {type(images).__name__}")
+    if images.dtype != np.uint8:
+        raise ValueError(f"images must be uint8, got {images.dtype}")
+    if images.ndim != 4 or images.shape[1:] != IMAGE_SHAPE or images.shape[0] == 0:
+        raise ValueError(f"images must be shaped (N>0, {', '.join(map(str, IMAGE_SHAPE))}), got {images.shape}")
+
+
 def images_to_tensor(images: np.ndarray | torch.Tensor, device: torch.device | str = "cpu") -> torch.Tensor:
     """uint8 NHWC frames -> float NCHW in [-1, 1], channels_last.
 

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from encoder_service import DETECTOR_FORMAT
-from encoder_service.model import LABEL_NAMES, denormalise_labels, images_to_tensor, normalise_labels
+from encoder_service.model import LABEL_NAMES, check_images, denormalise_labels, images_to_tensor, normalise_labels
 from encoder_service.pod_detector import PodDetector, decode
 from encoder_service.pod_tracker import STATE_SIZE, PodTracker
 from services.geometry import OPT_D
@@ -51,7 +51,9 @@ class PodEncoder:
     labels = LABEL_NAMES
     prior_shape = (STATE_SIZE,)
 
-    def __init__(self, checkpoint: str | Path, tracker: PodTracker | None = None) -> None:
+    def __init__(self, checkpoint: str | Path, tracker: PodTracker | None = None, threads: int | None = None) -> None:
+        if threads is not None:
+            torch.set_num_threads(threads)  # process-wide, as a CMVAE's LatentEncoder does
         saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
         if saved.get("format") != DETECTOR_FORMAT or saved.get("version") != DETECTOR_VERSION:
             raise ValueError(f"{checkpoint} is not a {DETECTOR_FORMAT} checkpoint of version {DETECTOR_VERSION}")
@@ -67,6 +69,10 @@ class PodEncoder:
     def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each frame's target latent (mu, logvar) and the tracker state to hand back with the next frame; a prior
         of None (or all zeros) starts tracking afresh: the engagement frame."""
+        check_images(images)
+        if priors is not None and (np.shape(priors) != (len(images), STATE_SIZE) or not np.isfinite(priors).all()):
+            raise ValueError(f"priors must be {len(images)} finite pod tracker states of {STATE_SIZE} numbers, one "
+                             f"per frame, got an array shaped {np.shape(priors)}")  # fmt: skip
         detections = decode(*self.model(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride)
         states = np.zeros((len(images), STATE_SIZE), np.float32)
         readings = np.zeros((len(images), 3))  # d, theta and psi (unread: 0) of each frame's target

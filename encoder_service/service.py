@@ -34,11 +34,11 @@ import numpy as np
 import zenoh
 
 from encoder_service import Engine
-from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, check_engine
-from encoder_service.model import refuse_distance_prior, resolve_device
+from encoder_service.inference import DEFAULT_CHECKPOINT, check_engine, open_encoder, refuse_detector_engine
+from encoder_service.model import resolve_device
 from services.keys import Keys
 from services.lifecycle import Service, serve_until_signalled
-from services.messages import IMAGE_SHAPE, BadMessage, BatchItem, BatchMsg, LatentMsg, ObservationMsg
+from services.messages import IMAGE_SHAPE, BadMessage, BatchItem, BatchMsg, LatentMsg, ObservationMsg, Prior
 from services.metrics import Metrics, MetricsPublisher
 from services.presence import announce, declare_about
 from services.results import file_sha256
@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 @dataclass
 class EncoderSettings:
     zenoh: ZenohSettings = field(default_factory=ZenohSettings, metadata={"flatten": True})
-    checkpoint: FilePath = ""  # a CMVAE checkpoint; default: the shipped model
+    checkpoint: FilePath = ""  # a CMVAE or a pod detector checkpoint; default: the shipped CMVAE
     max_batch: PosInt = 32  # frames per forward pass
     max_wait_ms: NonNegFloat = 0.0  # how long the first frame of a batch waits for company; 0 = take what is queued
     device: str = "cpu"
@@ -155,10 +155,12 @@ class EncoderService(Service):
         self.settings = settings
         self.keys = Keys(settings.zenoh.namespace)
         self.ident = settings.ident or f"enc-{os.getpid()}"
-        refuse_distance_prior(settings.checkpoint or DEFAULT_CHECKPOINT, "swimm encoder")
-        self.encoder = LatentEncoder(
+        self.encoder = open_encoder(
             settings.checkpoint or DEFAULT_CHECKPOINT, settings.device, settings.threads or None, settings.engine
         )
+        # A tracking encoder's prior for one frame, flattened as it travels; a frame without one (a new episode's
+        # first) starts from zeros: the image centre, or for the pod tracker no track yet.
+        self._prior_size = int(np.prod(self.encoder.prior_shape)) if self.encoder.tracks else 0
         self.batcher = LatentBatcher(settings.max_batch, settings.max_wait_ms)
         self.metrics = EncoderMetrics()
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -222,23 +224,32 @@ class EncoderService(Service):
                 observations.append(item.error)
                 continue
             try:
-                observations.append(ObservationMsg.from_item(item, IMAGE_SHAPE))
+                observations.append(self._observation(item))
             except BadMessage as exc:
                 self.metrics.count("errors_refused")
                 log.warning("refused the frame of %s/%s in group %s: %s", channel, item.env, batch.group, exc)
                 observations.append(f"encoder {self.ident} refused the frame: {exc}")
         return _Group(frame, channel, batch, observations)
 
+    def _observation(self, item: BatchItem) -> ObservationMsg:
+        obs = ObservationMsg.from_item(item, IMAGE_SHAPE)
+        if self._prior_size and obs.prior is not None and len(obs.prior) != self._prior_size:
+            raise BadMessage(f"prior of {len(obs.prior)} numbers; {self.encoder.checkpoint} reads {self._prior_size}")
+        return obs
+
     def _encode(self, frames: list[_Frame]) -> None:
         """One forward pass for every frame of every group in ``frames``, then one message of latents per group."""
         groups = [group for frame in frames if (group := self._decode(frame)) is not None]
         observed = [obs for group in groups for obs in group.observations if isinstance(obs, ObservationMsg)]
         if observed:
-            priors = [0.0 if obs.prior is None else obs.prior for obs in observed]  # None: the image centre
             images = np.stack([obs.image for obs in observed])
             if self.encoder.tracks:
-                mu, logvar, azimuths = self.encoder.track(images, np.asarray(priors))
-                next_priors = azimuths.tolist()
+                priors = np.zeros((len(observed), self._prior_size), np.float32)
+                for row, obs in enumerate(observed):
+                    priors[row] = obs.prior or 0.0
+                shaped = priors.reshape(len(observed), *self.encoder.prior_shape)
+                mu, logvar, states = self.encoder.track(images, shaped)
+                next_priors = [tuple(state) for state in states.reshape(len(observed), -1).tolist()]
             else:
                 (mu, logvar), next_priors = self.encoder.encode(images), [None] * len(observed)
             self.metrics.record_batch(len(observed))
@@ -255,7 +266,7 @@ class EncoderService(Service):
             self._publisher(self.keys.latent(group.channel, group.batch.group)).put(reply.encode())
             self.metrics.observe_ms("latency", (time.perf_counter() - group.frame.received_at) * 1e3)
 
-    def _latent(self, obs: ObservationMsg, mu: np.ndarray, logvar: np.ndarray, next_prior: float | None) -> LatentMsg:
+    def _latent(self, obs: ObservationMsg, mu: np.ndarray, logvar: np.ndarray, next_prior: Prior | None) -> LatentMsg:
         return LatentMsg(
             env=obs.env,
             ep=obs.ep,
@@ -283,7 +294,7 @@ def check(settings: EncoderSettings) -> None:
     opens."""
     check_engine(settings.engine, settings.device)
     resolve_device(settings.device)
-    refuse_distance_prior(settings.checkpoint or DEFAULT_CHECKPOINT, "swimm encoder")
+    refuse_detector_engine(settings.checkpoint or DEFAULT_CHECKPOINT, settings.engine, settings.device)
 
 
 def run(settings: EncoderSettings) -> None:

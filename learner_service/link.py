@@ -39,6 +39,7 @@ from services.messages import (
     EnvState,
     LatentMsg,
     ObservationMsg,
+    Prior,
     ReleaseRequest,
     ResetRequest,
 )
@@ -58,7 +59,7 @@ class StepRefused(RuntimeError):
     """The sim refused a step or reset; the message carries its reason."""
 
 
-def decode_reply(item: BatchItem, encoded: bool) -> tuple[Frame, float | None]:
+def decode_reply(item: BatchItem, encoded: bool) -> tuple[Frame, Prior | None]:
     """One env's reply: the encoder's latent (``encoded``) or the sim's observation, with the prior for the env's
     next action (a tracking encoder's ``next_prior``, else None); BadMessage if unreadable."""
     if encoded:
@@ -109,7 +110,7 @@ class EnvLink:
         self.claimed = [False] * len(envs)  # set by a granted claim; only then does release() send anything
         self.ep = [0] * len(envs)
         self.seq = [0] * len(envs)
-        self.priors: list[float | None] = [None] * len(envs)  # the last latent's next_prior, for the next action
+        self.priors: list[Prior | None] = [None] * len(envs)  # the last latent's next_prior, for the next action
         self.duplicates_dropped = 0
         self.retries = 0
         self._replies: Inbox[BatchMsg | None] = Inbox(poll_seconds(poll_ms))  # None: an unreadable message

@@ -30,13 +30,19 @@ M = TypeVar("M")
 #: 4: telemetry carries a pod's identity ground truth (pod_size, followed, target_occluded; services/identity.py).
 #: 5: a tracking encoder's prior travels with the env's messages (ActionMsg.prior, ObservationMsg.prior,
 #: LatentMsg.next_prior), so the encoder keeps no state.
-PROTOCOL_VERSION = 5
+#: 6: the prior is a list of numbers, not one: any tracking encoder's state (an azimuth, an azimuth and a distance,
+#: the pod tracker's tracks) travels as 5's azimuth did.
+PROTOCOL_VERSION = 6
 #: Payloads above this size are refused before decoding (a 1080p RGB frame is ~6.2 MB).
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
 ACTION_SIZE = 4  # (sway, heave, surge, yaw)
 #: A policy's action components by task (the learner's action space, an exported file's contract, what the pilot
 #: flies): the planar curriculum drives surge and yaw, the 3d task heave too.
 POLICY_ACTIONS: dict[str, tuple[str, ...]] = {"planar": ("surge", "yaw"), "3d": ("surge", "heave", "yaw")}
+#: The most numbers a tracking encoder's prior may hold (the pod tracker's state holds 64).
+MAX_PRIOR_SIZE = 256
+#: A tracking encoder's state for one env's next frame, flattened; None where there is none (a new episode).
+Prior = tuple[float, ...]
 IMAGE_SHAPE = (64, 64, 3)  # the camera frame (H, W, RGB) the encoder reads and image policies observe
 DIRECT_ROUTE = "direct"  # observation goes straight to the learner, no encoder
 #: The words of a sim's refusal to drive an env nobody holds: a learner that reads them knows the sim lost its claim
@@ -115,19 +121,21 @@ def _float_list(body: dict[str, Any], name: str, size: int | None) -> tuple[floa
     return numbers
 
 
-def _optional_float(body: dict[str, Any], name: str) -> float | None:
-    """A finite number, or None when absent."""
-    value = body.get(name)
-    if value is None:
+def _optional_prior(body: dict[str, Any], name: str) -> Prior | None:
+    """A list of at most :data:`MAX_PRIOR_SIZE` finite numbers, or None when absent."""
+    if body.get(name) is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise BadMessage(f"field {name!r} must be a finite number or absent, got {value!r}")
-    return float(value)
+    if not isinstance(body[name], (list, tuple)) or not 0 < len(body[name]) <= MAX_PRIOR_SIZE:
+        raise BadMessage(f"field {name!r} must be a list of 1 to {MAX_PRIOR_SIZE} numbers or absent, "
+                         f"got {body[name]!r}")  # fmt: skip
+    if any(isinstance(value, bool) for value in body[name]):
+        raise BadMessage(f"field {name!r} holds a non-number")
+    return _float_list(body, name, None)
 
 
-def _if_set(name: str, value: float | None) -> dict[str, float]:
-    """``{name: value}``, or nothing for None: an unset prior costs no bytes."""
-    return {} if value is None else {name: value}
+def _if_set(name: str, value: Prior | None) -> dict[str, list[float]]:
+    """``{name: [values]}``, or nothing for None: an unset prior costs no bytes."""
+    return {} if value is None else {name: list(value)}
 
 
 @dataclass(frozen=True)
@@ -148,7 +156,7 @@ class ActionMsg:
     route: str = DIRECT_ROUTE
     sender: str = ""  # the claimant's id; the sim refuses actions from anyone but the holder
     sent_at: float = field(default_factory=time.time)
-    prior: float | None = None  # azimuth (deg) where the tracking encoder last saw the target
+    prior: Prior | None = None  # the tracking encoder's state after the previous frame
 
     def fields(self) -> dict[str, Any]:
         return {
@@ -178,7 +186,7 @@ class ActionMsg:
             route=_str(body, "route", DIRECT_ROUTE),
             sender=_str(body, "sender", ""),
             sent_at=_time(body),
-            prior=_optional_float(body, "prior"),
+            prior=_optional_prior(body, "prior"),
         )
 
 
@@ -216,7 +224,7 @@ class ObservationMsg:
     telemetry: Telemetry
     image: np.ndarray | None  # HxWx3 uint8; None from a sim that does not render (state observations)
     sent_at: float = field(default_factory=time.time)
-    prior: float | None = None  # the action's prior, echoed for the encoder; None after a reset
+    prior: Prior | None = None  # the action's prior, echoed for the encoder; None after a reset
 
     def fields(self) -> dict[str, Any]:
         image = image_to_fields(self.image) if self.image is not None else {}
@@ -235,7 +243,7 @@ class ObservationMsg:
             telemetry=_telemetry(body),
             image=image_from_fields(body, expected_shape) if "image" in body else None,
             sent_at=_time(body),
-            prior=_optional_float(body, "prior"),
+            prior=_optional_prior(body, "prior"),
         )
 
 
@@ -261,7 +269,7 @@ class LatentMsg:
     logvar: tuple[float, ...]
     encoder: str
     sent_at: float = field(default_factory=time.time)
-    next_prior: float | None = None  # a tracking encoder's prior for the env's next frame, for the learner to hand back
+    next_prior: Prior | None = None  # a tracking encoder's prior for the env's next frame, for the learner to hand back
 
     def fields(self) -> dict[str, Any]:
         return {
@@ -286,7 +294,7 @@ class LatentMsg:
             logvar=_float_list(body, "logvar", len(mu)),
             encoder=_str(body, "encoder"),
             sent_at=_time(body),
-            next_prior=_optional_float(body, "next_prior"),
+            next_prior=_optional_prior(body, "next_prior"),
         )
 
 

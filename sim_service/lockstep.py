@@ -17,7 +17,7 @@ import logging
 import time
 from dataclasses import dataclass, replace
 
-from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, BatchItem, EnvState, ObservationMsg
+from services.messages import DIRECT_ROUTE, UNCLAIMED, ActionMsg, BatchItem, EnvState, ObservationMsg, Prior
 from sim_service.latency import LatencySettings
 from sim_service.noise import NoiseSettings
 from sim_service.scenery import SceneSettings
@@ -48,7 +48,7 @@ class LockstepEnv:
         self._last: ObservationMsg | None = None
         self.route = DIRECT_ROUTE  # where this env's observations go (set by reset and each action)
         self.action = (0.0, 0.0, 0.0, 0.0)  # held between steps in real-time mode
-        self.prior: float | None = None  # held with the action in real-time mode
+        self.prior: Prior | None = None  # held with the action in real-time mode
         self.pending: ActionMsg | None = None  # real-time mode: the latest action, applied at the next tick
 
     @property
@@ -132,7 +132,7 @@ class LockstepEnv:
         self._last = ObservationMsg(self.env, self.ep, self.seq, telemetry, image, time.time(), self.prior)
         return Outcome(BatchItem.of(self.env, self._last), replayed=False)
 
-    def _replay(self, prior: float | None) -> Outcome:
+    def _replay(self, prior: Prior | None) -> Outcome:
         """The cached observation again, with the retry's prior: a failover's retry goes to an encoder that has none."""
         return Outcome(BatchItem.of(self.env, replace(self._last, prior=prior)), replayed=True)
 

@@ -24,6 +24,9 @@ import zenoh
 from encoder_service.inference import DEFAULT_CHECKPOINT as SHIPPED_CMVAE
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
+from encoder_service.pod_detector_train import load_pod_dataset
+from encoder_service.pod_encoder import PodEncoder
+from encoder_service.pod_tracker import STATE_SIZE
 from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
 from learner_service.live_encoders import check_live_encoders
 from services.keys import Keys
@@ -32,8 +35,10 @@ from services.presence import Roster, ask_about
 from services.results import file_sha256
 from services.settings import ZenohSettings
 from services.telemetry import Telemetry
+from tests.encoder.pod_testdata import render_pod_dataset
 
 IDENT = "enc-test"
+SHIPPED_DETECTOR = SHIPPED_CMVAE.parent / "pod_detector.pt"
 BLOCK = zenoh.CongestionControl.BLOCK
 
 
@@ -101,7 +106,7 @@ class Feeder:
         self._encoders.wait_for(1, timeout_s=20)  # the encoder announces itself once it listens
         self.session.put(self.keys.obs(channel, group, IDENT), payload, congestion_control=BLOCK)  # as the sim does
 
-    def frame(self, env: str, seq: int, image: np.ndarray, prior: float | None = None) -> BatchItem:
+    def frame(self, env: str, seq: int, image: np.ndarray, prior: tuple[float, ...] | None = None) -> BatchItem:
         return BatchItem.of(env, ObservationMsg(env, 1, seq, telemetry(seq), image, prior=prior))
 
     def take_latents(self, count: int, timeout_s: float = 20.0) -> list[LatentMsg]:
@@ -148,14 +153,34 @@ def test_a_tracking_encoder_reads_each_frames_prior_and_answers_the_next(
     image = images(1, seed=8)[0]
     priors = [None, 0.0, 25.0, -25.0]  # one frame seen with each; None: the image centre, as 0.0
     for seq, prior in enumerate(priors):
-        feeder.send(str(seq), feeder.frame(str(seq), seq, image, prior))
+        feeder.send(str(seq), feeder.frame(str(seq), seq, image, None if prior is None else (prior,)))
     by_seq = {msg.seq: msg for msg in feeder.take_latents(len(priors))}
     reference = LatentEncoder(tracking_checkpoint, threads=1)
     for seq, prior in enumerate(priors):
         expected, _, next_prior = reference.track(image[None], [prior or 0.0])
         np.testing.assert_allclose(by_seq[seq].mu, expected[0], rtol=1e-4, atol=1e-4)
-        assert by_seq[seq].next_prior == pytest.approx(next_prior[0], abs=1e-3)
+        assert by_seq[seq].next_prior == pytest.approx((next_prior[0],), abs=1e-3)
     assert not np.allclose(by_seq[2].mu, by_seq[1].mu, atol=1e-3)  # the prior changed what it described
+
+
+def test_a_pod_detector_serves_its_tracker_state_as_each_frames_prior(
+    start_service, feeder: Feeder, tmp_path: Path
+) -> None:
+    frames = load_pod_dataset(render_pod_dataset(tmp_path / "pod", count=3, shard_size=3))["images"]
+    start_service(checkpoint=str(SHIPPED_DETECTOR), max_wait_ms=20.0)
+    reference = PodEncoder(SHIPPED_DETECTOR)
+    _, _, engaged = reference.track(frames[:1])  # the state after an episode's first frame
+    feeder.send("0", feeder.frame("0", 1, frames[1]))  # a new episode's first frame: no prior
+    feeder.send("1", feeder.frame("1", 1, frames[1], tuple(engaged[0].tolist())))
+    by_env = {msg.env: msg for msg in feeder.take_latents(2)}
+    for env, prior in (("0", None), ("1", engaged)):
+        expected, _, state = reference.track(frames[1][None], prior)
+        np.testing.assert_allclose(by_env[env].mu, expected[0], atol=1e-5)
+        assert by_env[env].next_prior == pytest.approx(tuple(state[0].tolist()), abs=1e-5)
+    assert by_env["0"].next_prior != by_env["1"].next_prior  # the state carried, not the frame alone
+    feeder.send("2", feeder.frame("2", 1, frames[2], (1.0, 2.0)))
+    refused = feeder.errors.get(timeout=10)
+    assert refused.env == "2" and f"prior of 2 numbers; {SHIPPED_DETECTOR} reads {STATE_SIZE}" in refused.error
 
 
 def test_frames_arriving_together_are_encoded_in_batches(start_service, feeder: Feeder) -> None:

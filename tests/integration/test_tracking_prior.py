@@ -1,5 +1,5 @@
 """A tracking encoder's prior carried through the loop, across real processes: router, sim and tracking encoders
-(`swimm encoder` on a --track checkpoint), the learner's EnvLink in the test.
+(`swimm encoder` on a --track checkpoint or the pod detector), the learner's EnvLink in the test.
 
 The encoder keeps no state: the prior travels with each env's messages (the latent's next_prior, handed back on the
 next action, echoed by the sim into its observation), so an encoder killed mid-episode loses nothing.
@@ -15,13 +15,14 @@ import time
 import numpy as np
 import pytest
 
-from encoder_service.inference import LatentEncoder
+from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, open_encoder
 from services.messages import ActionMsg, LatentMsg, ObservationMsg, batch_messages
 from tests.integration.conftest import start_encoders, start_sim
 
 pytestmark = pytest.mark.slow
 
 STEP_TIMEOUT_S = 2.0
+SHIPPED_DETECTOR = DEFAULT_CHECKPOINT.parent / "pod_detector.pt"
 SURGE_AND_TURN = (0.0, 0.0, 0.5, 0.4)
 
 
@@ -96,12 +97,18 @@ def test_the_link_hands_each_next_prior_back_on_the_next_action_and_a_reset_clea
     np.testing.assert_allclose(tap.latents[("0", 2, 0)].mu, at_centre[0], atol=1e-4)
 
 
+@pytest.mark.parametrize("served", ["tracking-cmvae", "pod-detector"])
 def test_a_tracking_encoder_killed_mid_episode_loses_no_perception_state(
-    group, connect_client, namespace, tracking_checkpoint
+    group, connect_client, namespace, tracking_checkpoint, served
 ):
+    """A tracking CMVAE's prior (an azimuth) and the pod tracker's (its every track, 64 numbers, over a pod of 4)."""
+    checkpoint, world = {
+        "tracking-cmvae": (tracking_checkpoint, ()),
+        "pod-detector": (SHIPPED_DETECTOR, ("--dolphin-pod-size", "4")),
+    }[served]
     endpoint = group.start_router()
-    start_sim(group, endpoint, namespace, "--train-envs", "1", "--eval-envs", "0")
-    encoders = start_encoders(group, endpoint, namespace, tracking_checkpoint, ("enc-a", "enc-b"))
+    start_sim(group, endpoint, namespace, "--train-envs", "1", "--eval-envs", "0", *world)
+    encoders = start_encoders(group, endpoint, namespace, checkpoint, ("enc-a", "enc-b"))
     client = connect_client(endpoint)
     client.roster("sim").wait_for(1, timeout_s=60)
     roster = client.roster("encoder")
@@ -133,8 +140,10 @@ def test_a_tracking_encoder_killed_mid_episode_loses_no_perception_state(
     assert link.retries >= 1 and tap.latents[("0", 1, rounds + 1)].encoder == survivor
     observation = tap.observations[("0", 1, rounds + 1, survivor)]
     assert observation.prior == prior  # the retry carried the prior to the survivor
-    reference = LatentEncoder(tracking_checkpoint, threads=1)
-    expected, _ = reference.encode(observation.image[None], [prior])
+    reference = open_encoder(checkpoint, threads=1)
+    expected, _, state = reference.track(observation.image[None], np.reshape(prior, (1, *reference.prior_shape)))
     np.testing.assert_allclose(frame.mu, expected[0], atol=1e-4)
-    at_centre, _ = reference.encode(observation.image[None], [0.0])
-    assert not np.allclose(frame.mu, at_centre[0], atol=1e-3)  # what a fresh encoder without the prior would say
+    np.testing.assert_allclose(tap.latents[("0", 1, rounds + 1)].next_prior, state.ravel(), atol=1e-3)
+    # What a fresh encoder without the prior would say: the image centre's dolphin, or no track yet.
+    fresh, _, fresh_state = reference.track(observation.image[None])
+    assert not (np.allclose(frame.mu, fresh[0], atol=1e-3) and np.allclose(state, fresh_state, atol=1e-3))

@@ -89,7 +89,7 @@ def test_action_round_trips_every_field():
         route="enc-2",
         sender="learner-ab12",
         sent_at=1700000000.5,
-        prior=-12.5,
+        prior=(-12.5,),
     )
     assert ActionMsg.from_item(_wire(sent)) == sent
 
@@ -103,10 +103,10 @@ def test_action_defaults_to_depth_hold_and_direct_route():
 
 def test_observation_round_trips_image_bytes_and_telemetry():
     image = _image(seed=7)
-    sent = ObservationMsg(env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25, prior=7.5)
+    sent = ObservationMsg(env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25, prior=(7.5, 3.0))
     received = ObservationMsg.from_item(_wire(sent, "3"), expected_shape=(64, 64, 3))
     assert (received.env, received.ep, received.seq, received.sent_at) == ("3", 2, 99, 1700000001.25)
-    assert received.prior == 7.5
+    assert received.prior == (7.5, 3.0)
     assert received.telemetry == TELEMETRY
     assert received.image.dtype == np.uint8
     assert received.image.shape == (64, 64, 3)
@@ -138,7 +138,7 @@ def test_latent_round_trips_every_field():
         logvar=(-2.0,) * 10,
         encoder="enc-1",
         sent_at=1700000002.0,
-        next_prior=31.25,
+        next_prior=tuple(float(i) for i in range(64)),  # the pod tracker's whole state
     )
     assert LatentMsg.from_item(_wire(sent, "1")) == sent
 
@@ -314,15 +314,21 @@ def test_latent_with_mismatched_logvar_or_nan_mean_is_refused():
         LatentMsg.from_item(BatchItem("0", 0, 0, fields | {"mu": [math.nan, 0.0]}))
 
 
-@pytest.mark.parametrize("prior", ["left", True, math.nan, math.inf, [1.0]])
-def test_a_prior_that_is_not_a_finite_number_is_refused_naming_its_field(prior):
+@pytest.mark.parametrize(
+    "prior, reason",
+    [("left", "must be a list of 1 to 256 numbers"), (1.0, "must be a list of 1 to 256 numbers"),
+     ([], "must be a list of 1 to 256 numbers"), ([0.0] * 257, "must be a list of 1 to 256 numbers"),
+     ([True], "holds a non-number"), (["left"], "holds a non-number"), ([1.0, math.nan], "holds NaN or infinity"),
+     ([math.inf], "holds NaN or infinity")],
+)  # fmt: skip
+def test_a_prior_that_is_not_a_list_of_finite_numbers_is_refused_naming_its_field(prior, reason):
     latent = LatentMsg("0", 0, 0, TELEMETRY, (0.0,), (0.0,), "enc-1").fields()
     for read, fields, name in (
         (ActionMsg.from_item, _action_item().body, "prior"),
         (ObservationMsg.from_item, _observation_item().body, "prior"),
         (LatentMsg.from_item, latent, "next_prior"),
     ):
-        with pytest.raises(BadMessage, match=f"field '{name}' must be a finite number or absent"):
+        with pytest.raises(BadMessage, match=f"field '{name}' {reason}"):
             read(BatchItem("0", 1, 2, fields | {name: prior}))
 
 

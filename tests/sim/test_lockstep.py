@@ -21,7 +21,7 @@ def env():
     world.close()
 
 
-def action(seq: int, ep: int = 1, sender: str = HOLDER, values=SURGE, prior: float | None = None) -> ActionMsg:
+def action(seq: int, ep: int = 1, sender: str = HOLDER, values=SURGE, prior: tuple[float, ...] | None = None) -> ActionMsg:
     return ActionMsg(ep=ep, seq=seq, action=values, sender=sender, prior=prior)
 
 
@@ -88,10 +88,10 @@ def test_the_same_actions_give_the_same_steps_with_or_without_retries(env):
 
 def test_each_observation_carries_its_actions_prior_a_retrys_own_and_a_resets_none(env):
     assert started(env).prior is None
-    assert observed(env.act(action(1, prior=12.5)).item).prior == 12.5
+    assert observed(env.act(action(1, prior=(12.5, 4.0))).item).prior == (12.5, 4.0)
     # A retry after a failover goes to another encoder, which reads the prior the retry carries.
-    retry = env.act(action(1, prior=-3.0))
-    assert retry.replayed and observed(retry.item).prior == -3.0
+    retry = env.act(action(1, prior=(-3.0,)))
+    assert retry.replayed and observed(retry.item).prior == (-3.0,)
     assert observed(env.act(action(2)).item).prior is None  # an encoder that does not track sends none back
     assert observed(env.reset(HOLDER, 2, 7).item).prior is None
     assert observed(env.reset(HOLDER, 2, 7).item).prior is None  # the repeated reset's replay too
