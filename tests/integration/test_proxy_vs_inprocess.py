@@ -13,17 +13,20 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.inference import LatentEncoder
+from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
-from learner_service.inprocess_env import TrackingEnv
+from encoder_service.pod_encoder import PodEncoder
+from learner_service.inprocess_env import TrackingEnv, task_world
 from learner_service.proxy_env import ProxyEnv, ProxySettings
 from learner_service.task import TaskSettings
+from sim_service.settings import DolphinSettings, WorldSettings
 from tests.integration.conftest import start_sim
 
 pytestmark = pytest.mark.slow
 
 BASE_SEED = 101
 STEPS = 300
+SHIPPED_DETECTOR = DEFAULT_CHECKPOINT.parent / "pod_detector.pt"
 MAX_STEPS = 100  # short time limit, so the fixed actions meet truncations as well as early terminations
 
 
@@ -106,3 +109,26 @@ def test_cmvae_mode_over_zenoh_equals_in_process(group, namespace, zenoh_setting
         torch.set_num_threads(threads)
     assert_same_runs(remote, local)
     assert np.abs(np.array([row[0][:10] for row in local])).max() > 0  # real latents, not zeros
+
+
+def test_pod_detector_over_zenoh_equals_in_process(group, namespace, zenoh_settings) -> None:
+    """The pod tracker's state travels with each step (the encoder keeps none), so a `swimm encoder` on the pod
+    detector gives the latents the detector and tracker give in process, over a pod of 4, episode after episode."""
+    endpoint = group.start_router()
+    start_sim(group, endpoint, namespace, "--eval-envs", "0", "--dolphin-pod-size", "4")
+    group.start("encoder", "encoder", "--connect", endpoint, "--namespace", namespace, "--checkpoint",
+                str(SHIPPED_DETECTOR), "--threads", "1")  # fmt: skip
+    task = TaskSettings(obs="cmvae", max_steps=MAX_STEPS)
+    remote = record_run(ProxyEnv(task, ProxySettings(zenoh=zenoh_settings(endpoint)), base_seed=BASE_SEED))
+    pod = WorldSettings(dolphin=DolphinSettings(pod_size=4))
+    threads = torch.get_num_threads()
+    try:
+        world = task_world(task, base=pod)
+        local = record_run(
+            TrackingEnv(task, world, base_seed=BASE_SEED, encoder=PodEncoder(SHIPPED_DETECTOR, threads=1))
+        )
+    finally:
+        torch.set_num_threads(threads)
+    assert_same_runs(remote, local)
+    distances = np.array([row[0][0] for row in local])
+    assert np.unique(distances).size > 10  # the target read afresh frame after frame, not the unseen default
