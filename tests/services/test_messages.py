@@ -103,7 +103,9 @@ def test_action_defaults_to_depth_hold_and_direct_route():
 
 def test_observation_round_trips_image_bytes_and_telemetry():
     image = _image(seed=7)
-    sent = ObservationMsg(env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25, prior=(7.5, 3.0))
+    sent = ObservationMsg(
+        env="3", ep=2, seq=99, telemetry=TELEMETRY, image=image, sent_at=1700000001.25, prior=(7.5, 3.0)
+    )
     received = ObservationMsg.from_item(_wire(sent, "3"), expected_shape=(64, 64, 3))
     assert (received.env, received.ep, received.seq, received.sent_at) == ("3", 2, 99, 1700000001.25)
     assert received.prior == (7.5, 3.0)

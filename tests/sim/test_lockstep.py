@@ -21,7 +21,9 @@ def env():
     world.close()
 
 
-def action(seq: int, ep: int = 1, sender: str = HOLDER, values=SURGE, prior: tuple[float, ...] | None = None) -> ActionMsg:
+def action(
+    seq: int, ep: int = 1, sender: str = HOLDER, values=SURGE, prior: tuple[float, ...] | None = None
+) -> ActionMsg:
     return ActionMsg(ep=ep, seq=seq, action=values, sender=sender, prior=prior)
 
 
