@@ -245,8 +245,7 @@ def test_a_distance_tracker_reads_both_priors_and_hands_both_on(pod: Path, tmp_p
         encoder.encode(images, priors[:, 0])
     from encoder_service.service import EncoderSettings, check
 
-    with pytest.raises(ValueError, match=r"prior holds the target's distance .* swimm encoder carries an azimuth only"):
-        check(EncoderSettings(checkpoint=str(checkpoint)))  # the wire's prior is an azimuth: in process only so far
-    check(EncoderSettings(checkpoint=str(tracker)))
+    for served in (checkpoint, tracker):  # the wire's prior is a list of numbers: both serve (protocol 6)
+        check(EncoderSettings(checkpoint=str(served)))
     with pytest.raises(ValueError, match="--prior-distance is a tracking encoder's prior: give --track too"):
         run(_settings(pod, tmp_path / "untracked", track=False, prior_distance=True))
