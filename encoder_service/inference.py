@@ -28,7 +28,15 @@ import numpy as np
 import torch
 
 from encoder_service import DEFAULT_CHECKPOINT, ENGINES
-from encoder_service.model import CMVAE, PriorReader, check_images, denormalise_labels, images_to_tensor, load_model
+from encoder_service.model import (
+    CMVAE,
+    PriorReader,
+    check_images,
+    denormalise_labels,
+    images_to_tensor,
+    load_model,
+    read_checkpoint,
+)
 from encoder_service.pod_encoder import PodEncoder, is_detector
 from services.messages import IMAGE_SHAPE
 
@@ -204,3 +212,11 @@ def refuse_detector_engine(checkpoint: str | Path, engine: str, device: str) -> 
     if is_detector(checkpoint) and (engine, device) != ("torch", "cpu"):
         raise ValueError(f"{checkpoint} is a pod detector, which runs on the torch engine on the cpu only so far; "
                          f"got engine {engine!r} on device {device!r}")  # fmt: skip
+
+
+def check_encoder_file(checkpoint: str | Path, engine: str, device: str) -> None:
+    """What :func:`open_encoder` would refuse, without building the model: a file that is neither a CMVAE nor a pod
+    detector (named), or a detector on an engine it has not."""
+    refuse_detector_engine(checkpoint, engine, device)
+    if not is_detector(checkpoint):
+        read_checkpoint(checkpoint)

@@ -34,7 +34,7 @@ import numpy as np
 import zenoh
 
 from encoder_service import Engine
-from encoder_service.inference import DEFAULT_CHECKPOINT, check_engine, open_encoder, refuse_detector_engine
+from encoder_service.inference import DEFAULT_CHECKPOINT, check_encoder_file, check_engine, open_encoder
 from encoder_service.model import resolve_device
 from services.keys import Keys
 from services.lifecycle import Service, serve_until_signalled
@@ -294,7 +294,7 @@ def check(settings: EncoderSettings) -> None:
     opens."""
     check_engine(settings.engine, settings.device)
     resolve_device(settings.device)
-    refuse_detector_engine(settings.checkpoint or DEFAULT_CHECKPOINT, settings.engine, settings.device)
+    check_encoder_file(settings.checkpoint or DEFAULT_CHECKPOINT, settings.engine, settings.device)
 
 
 def run(settings: EncoderSettings) -> None:

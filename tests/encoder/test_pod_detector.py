@@ -23,6 +23,8 @@ from encoder_service.pod_detector import (
 from encoder_service.pod_detector_train import TrainDetectorSettings, check, load_pod_dataset, run
 from encoder_service.pod_encoder import PodEncoder
 from encoder_service.pod_tracker import STATE_SIZE
+from encoder_service.service import EncoderSettings
+from encoder_service.service import check as check_encoder
 from tests.encoder.pod_testdata import render_pod_dataset
 
 
@@ -102,6 +104,9 @@ def test_training_writes_an_encoder_the_loaders_take(detector: Path) -> None:
         read_checkpoint(detector)
     with pytest.raises(ValueError, match="pod detector"):
         LatentEncoder(detector)
+    check_encoder(EncoderSettings(checkpoint=str(detector)))  # `swimm encoder` serves it (protocol 6's prior)
+    with pytest.raises(ValueError, match=r"pod detector, which runs on the torch engine .* got engine 'onnx'"):
+        check_encoder(EncoderSettings(checkpoint=str(detector), engine="onnx"))
     summary = detector.with_suffix(".json")
     assert summary.is_file() and "history" in summary.read_text()
 
