@@ -30,7 +30,7 @@ from encoder_service.pod_detector import (
     seen_dolphins,
     to_pixels,
 )
-from encoder_service.pod_encoder import save_detector
+from encoder_service.pod_encoder import read_detector, save_detector
 from services.geometry import CAMERA_AHEAD_M
 from services.results import provenance, write_result
 
@@ -128,6 +128,7 @@ class TrainDetectorSettings:
     width: int = 16  # channels of the finest features; the coarser have 2x and 4x
     stride: int = 2  # pixels per heatmap cell: 2 or 4
     threshold: float = THRESHOLD  # a peak's least score to count as a dolphin, saved in the checkpoint
+    init: str = ""  # a detector checkpoint to start from (its width and stride); default: fresh weights
 
 
 def check(settings: TrainDetectorSettings) -> None:
@@ -146,6 +147,12 @@ def check(settings: TrainDetectorSettings) -> None:
                         ("--val-frames", settings.val_frames), ("--width", settings.width)):  # fmt: skip
         if value < 1:
             raise ValueError(f"{flag} {value}: must be at least 1")
+    if settings.init:
+        saved = read_detector(settings.init, "--init")
+        for flag, mine, theirs in (("--width", settings.width, saved["width"]), ("--stride", settings.stride,
+                                                                                   saved["stride"])):  # fmt: skip
+            if mine != theirs:
+                raise ValueError(f"{flag} {mine} differs from --init {settings.init}'s {theirs}")
     if Path(settings.out).exists() and not settings.overwrite:
         raise FileExistsError(f"--out {settings.out} exists: give --overwrite to replace it, or another --out")
 
@@ -160,6 +167,8 @@ def run(settings: TrainDetectorSettings) -> int:
         raise ValueError(f"--val-frames {settings.val_frames}: the datasets hold only {count} frames")
     train_rows, val_rows = np.arange(count - settings.val_frames), np.arange(count - settings.val_frames, count)
     model = PodDetector(width=settings.width, stride=settings.stride)
+    if settings.init:
+        model.load_state_dict(read_detector(settings.init, "--init")["state_dict"])
     optimiser = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=1e-4)
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)

@@ -38,6 +38,19 @@ def is_detector(path: str | Path) -> bool:
     return isinstance(checkpoint, dict) and checkpoint.get("format") == DETECTOR_FORMAT
 
 
+def read_detector(path: str | Path, what: str = "the checkpoint") -> dict[str, Any]:
+    """A pod detector checkpoint's contents; ``what`` (a flag) names it in the error for a file that is none."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{what} {path} does not exist (make one with `swimm train-detector`)")
+    if not is_detector(path):
+        raise ValueError(f"{what} {path} is not a {DETECTOR_FORMAT} checkpoint")
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    if saved.get("version") != DETECTOR_VERSION:
+        raise ValueError(f"{what} {path} is a {DETECTOR_FORMAT} checkpoint of version {saved.get('version')!r}; this "
+                         f"code reads version {DETECTOR_VERSION}")  # fmt: skip
+    return saved
+
+
 def save_detector(model: PodDetector, path: Path, threshold: float, history: list[dict[str, Any]]) -> None:
     torch.save({"format": DETECTOR_FORMAT, "version": DETECTOR_VERSION, "width": model.width, "stride": model.stride,
                 "threshold": threshold, "state_dict": model.state_dict(), "history": history}, path)  # fmt: skip
@@ -54,9 +67,7 @@ class PodEncoder:
     def __init__(self, checkpoint: str | Path, tracker: PodTracker | None = None, threads: int | None = None) -> None:
         if threads is not None:
             torch.set_num_threads(threads)  # process-wide, as a CMVAE's LatentEncoder does
-        saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        if saved.get("format") != DETECTOR_FORMAT or saved.get("version") != DETECTOR_VERSION:
-            raise ValueError(f"{checkpoint} is not a {DETECTOR_FORMAT} checkpoint of version {DETECTOR_VERSION}")
+        saved = read_detector(checkpoint)
         self.model = PodDetector(width=int(saved["width"]), stride=int(saved["stride"]))
         self.model.load_state_dict(saved["state_dict"])
         self.model.eval()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.inference import LatentEncoder, open_encoder
+from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, open_encoder
 from encoder_service.model import read_checkpoint
 from encoder_service.pod_detector import (
     PodDetector,
@@ -130,6 +130,31 @@ def test_bad_settings_are_refused_by_flag(pod: Path, tmp_path: Path) -> None:
     (tmp_path / "d.pt").write_bytes(b"")
     with pytest.raises(FileExistsError, match="--overwrite"):
         check(TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "d.pt")))
+
+
+def test_a_run_from_init_starts_from_its_weights(detector: Path, pod: Path, tmp_path: Path) -> None:
+    out = tmp_path / "again.pt"
+    settings = TrainDetectorSettings(dataset=[str(pod)], out=str(out), epochs=1, batch_size=16, val_frames=16,
+                                     lr=1e-12, init=str(detector))  # fmt: skip
+    assert run(settings) == 0
+    started, again = (torch.load(path, weights_only=True)["state_dict"] for path in (detector, out))
+    fresh = PodDetector().state_dict()
+    for name, weights in started.items():
+        if weights.is_floating_point() and "running" not in name:  # batch norm's statistics move at any lr
+            torch.testing.assert_close(again[name], weights, atol=1e-6, rtol=0)
+    assert any(not torch.equal(fresh[name], started[name]) for name in fresh)
+
+
+def test_a_bad_init_is_refused_by_flag(detector: Path, pod: Path, tmp_path: Path) -> None:
+    def settings(**overrides) -> TrainDetectorSettings:
+        return TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "d.pt"), **overrides)
+
+    with pytest.raises(FileNotFoundError, match="--init .*missing.pt does not exist"):
+        check(settings(init=str(tmp_path / "missing.pt")))
+    with pytest.raises(ValueError, match="--init .*cmvae.pt is not a swimm-pod-detector checkpoint"):
+        check(settings(init=str(DEFAULT_CHECKPOINT)))
+    with pytest.raises(ValueError, match="--stride 4 differs from --init .*'s 2"):
+        check(settings(init=str(detector), stride=4))
 
 
 def test_the_detector_runs_both_strides() -> None:
