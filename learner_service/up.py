@@ -437,6 +437,8 @@ def what_the_run_saved(run_dir: Path, learn: LearnCommandSettings) -> str:
         evaluate += f" --encoder-checkpoint {learn.encoder_checkpoint}"
     if learn.task != "planar":  # the default: planar runs' command stays as it always read
         evaluate += f" --task {learn.task}"
+    if learn.sim_config:  # the world it trained in: a pod, a noise, a scenery
+        evaluate += f" --sim-config {learn.sim_config}"
     resume_from = run_dir / (LIVE_MODEL if (run_dir / LIVE_MODEL).is_file() else FINAL_MODEL)
     lines.append(f"evaluate the policy: {evaluate} --episodes 20 --seed 127")
     lines.append(f"resume training: swimm up --config {run_dir / UP_CONFIG} --resume {resume_from}")

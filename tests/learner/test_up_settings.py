@@ -86,6 +86,8 @@ def test_a_runs_end_names_every_file_it_saved_and_the_command_that_resumes_it(tm
         assert line in text, text
     three_d = dataclasses.replace(settings.learn, task="3d")
     assert f"--checkpoint {run_dir}/best_model.zip --task 3d --episodes 20" in what_the_run_saved(run_dir, three_d)
+    pod = dataclasses.replace(settings.learn, sim_config="sim_service/configs/pod4.yaml")
+    assert "best_model.zip --sim-config sim_service/configs/pod4.yaml --episodes 20" in what_the_run_saved(run_dir, pod)
     resumed = from_command_line(
         UpSettings, ["--config", str(run_dir / "up.yaml"), "--resume", str(run_dir / "final_model.zip")]
     )

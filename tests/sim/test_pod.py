@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from services.settings import load
 from services.telemetry import Telemetry
 from sim_service.pod import PodParams
 from sim_service.scenery_model import part_names
-from sim_service.settings import MAX_POD_SIZE, DolphinSettings, WorldSettings
+from sim_service.settings import MAX_POD_SIZE, DolphinSettings, WorldSettings, world_of_file
 from sim_service.world import CAMERA, TARGET_BOX, World
 
 
@@ -199,3 +200,10 @@ def test_a_crossing_pod_replays_from_its_seed():
 def test_crossing_needs_a_companion_and_says_so():
     with pytest.raises(ValueError, match="--dolphin-pod-crossing needs a companion to cross: --dolphin-pod-size 1"):
         pod_world(1, render=False, crossing=True)
+
+
+def test_the_shipped_pod_configs_describe_a_pod_of_4_and_its_crossing_split():
+    configs = Path(__file__).resolve().parents[2] / "sim_service" / "configs"
+    plain, crossing = (world_of_file(configs / name).dolphin for name in ("pod4.yaml", "pod4_crossing.yaml"))
+    assert (plain.pod_size, plain.pod_crossing) == (4, False)
+    assert (crossing.pod_size, crossing.pod_crossing) == (4, True)
