@@ -21,6 +21,7 @@ import pytest
 import torch
 import zenoh
 
+from encoder_service import POD_DETECTOR
 from encoder_service.inference import DEFAULT_CHECKPOINT as SHIPPED_CMVAE
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
@@ -38,7 +39,6 @@ from services.telemetry import Telemetry
 from tests.encoder.pod_testdata import render_pod_dataset
 
 IDENT = "enc-test"
-SHIPPED_DETECTOR = SHIPPED_CMVAE.parent / "pod_detector.pt"
 BLOCK = zenoh.CongestionControl.BLOCK
 
 
@@ -167,8 +167,8 @@ def test_a_pod_detector_serves_its_tracker_state_as_each_frames_prior(
     start_service, feeder: Feeder, tmp_path: Path
 ) -> None:
     frames = load_pod_dataset(render_pod_dataset(tmp_path / "pod", count=3, shard_size=3))["images"]
-    start_service(checkpoint=str(SHIPPED_DETECTOR), max_wait_ms=20.0)
-    reference = PodEncoder(SHIPPED_DETECTOR)
+    start_service(checkpoint=str(POD_DETECTOR), max_wait_ms=20.0)
+    reference = PodEncoder(POD_DETECTOR)
     _, _, engaged = reference.track(frames[:1])  # the state after an episode's first frame
     feeder.send("0", feeder.frame("0", 1, frames[1]))  # a new episode's first frame: no prior
     feeder.send("1", feeder.frame("1", 1, frames[1], tuple(engaged[0].tolist())))
@@ -180,7 +180,7 @@ def test_a_pod_detector_serves_its_tracker_state_as_each_frames_prior(
     assert by_env["0"].next_prior != by_env["1"].next_prior  # the state carried, not the frame alone
     feeder.send("2", feeder.frame("2", 1, frames[2], (1.0, 2.0)))
     refused = feeder.errors.get(timeout=10)
-    assert refused.env == "2" and f"prior of 2 numbers; {SHIPPED_DETECTOR} reads {STATE_SIZE}" in refused.error
+    assert refused.env == "2" and f"prior of 2 numbers; {POD_DETECTOR} reads {STATE_SIZE}" in refused.error
 
 
 def test_frames_arriving_together_are_encoded_in_batches(start_service, feeder: Feeder) -> None:

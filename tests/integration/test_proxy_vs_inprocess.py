@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
+from encoder_service import POD_DETECTOR
+from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.pod_encoder import PodEncoder
 from learner_service.inprocess_env import TrackingEnv, task_world
@@ -26,7 +27,6 @@ pytestmark = pytest.mark.slow
 
 BASE_SEED = 101
 STEPS = 300
-SHIPPED_DETECTOR = DEFAULT_CHECKPOINT.parent / "pod_detector.pt"
 MAX_STEPS = 100  # short time limit, so the fixed actions meet truncations as well as early terminations
 
 
@@ -117,16 +117,14 @@ def test_pod_detector_over_zenoh_equals_in_process(group, namespace, zenoh_setti
     endpoint = group.start_router()
     start_sim(group, endpoint, namespace, "--eval-envs", "0", "--dolphin-pod-size", "4")
     group.start("encoder", "encoder", "--connect", endpoint, "--namespace", namespace, "--checkpoint",
-                str(SHIPPED_DETECTOR), "--threads", "1")  # fmt: skip
+                str(POD_DETECTOR), "--threads", "1")  # fmt: skip
     task = TaskSettings(obs="cmvae", max_steps=MAX_STEPS)
     remote = record_run(ProxyEnv(task, ProxySettings(zenoh=zenoh_settings(endpoint)), base_seed=BASE_SEED))
     pod = WorldSettings(dolphin=DolphinSettings(pod_size=4))
     threads = torch.get_num_threads()
     try:
         world = task_world(task, base=pod)
-        local = record_run(
-            TrackingEnv(task, world, base_seed=BASE_SEED, encoder=PodEncoder(SHIPPED_DETECTOR, threads=1))
-        )
+        local = record_run(TrackingEnv(task, world, base_seed=BASE_SEED, encoder=PodEncoder(POD_DETECTOR, threads=1)))
     finally:
         torch.set_num_threads(threads)
     assert_same_runs(remote, local)

@@ -15,14 +15,14 @@ import time
 import numpy as np
 import pytest
 
-from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, open_encoder
+from encoder_service import POD_DETECTOR
+from encoder_service.inference import LatentEncoder, open_encoder
 from services.messages import ActionMsg, LatentMsg, ObservationMsg, batch_messages
 from tests.integration.conftest import start_encoders, start_sim
 
 pytestmark = pytest.mark.slow
 
 STEP_TIMEOUT_S = 2.0
-SHIPPED_DETECTOR = DEFAULT_CHECKPOINT.parent / "pod_detector.pt"
 SURGE_AND_TURN = (0.0, 0.0, 0.5, 0.4)
 
 
@@ -104,7 +104,7 @@ def test_a_tracking_encoder_killed_mid_episode_loses_no_perception_state(
     """A tracking CMVAE's prior (an azimuth) and the pod tracker's (its every track, 64 numbers, over a pod of 4)."""
     checkpoint, world = {
         "tracking-cmvae": (tracking_checkpoint, ()),
-        "pod-detector": (SHIPPED_DETECTOR, ("--dolphin-pod-size", "4")),
+        "pod-detector": (POD_DETECTOR, ("--dolphin-pod-size", "4")),
     }[served]
     endpoint = group.start_router()
     start_sim(group, endpoint, namespace, "--train-envs", "1", "--eval-envs", "0", *world)
