@@ -279,9 +279,9 @@ def test_the_sim_echoes_each_actions_prior_into_its_observation_a_retrys_too(gro
         client.session.put(client.keys.action("train", "0"), BatchMsg.alone(BatchItem("0", 1, seq, action)).encode())
         return answers.get(timeout=10)
 
-    assert ObservationMsg.from_item(answer(1, 12.5)).prior == 12.5
-    assert ObservationMsg.from_item(answer(1, -4.0)).prior == -4.0  # a retry, answered from the cache
-    assert "field 'prior' must be a finite number" in answer(2, "left").error
+    assert ObservationMsg.from_item(answer(1, [12.5, 6.0])).prior == (12.5, 6.0)
+    assert ObservationMsg.from_item(answer(1, [-4.0])).prior == (-4.0,)  # a retry, answered from the cache
+    assert "field 'prior' must be a list of 1 to 256 numbers" in answer(2, "left").error
     sub.undeclare()
     link.close()
 
