@@ -201,22 +201,23 @@ def open_encoder(
 ) -> LatentEncoder | PodEncoder:
     """The encoder a checkpoint holds: a CMVAE's :class:`LatentEncoder`, or for a pod detector's checkpoint its
     detector and tracker (encoder_service.pod_encoder), which run on the torch engine on the cpu only."""
-    refuse_detector_engine(checkpoint, engine, device)
     if is_detector(checkpoint):
+        refuse_detector_engine(checkpoint, engine, device)
         return PodEncoder(checkpoint, threads=threads)
     return LatentEncoder(checkpoint, device, threads, engine)
 
 
-def refuse_detector_engine(checkpoint: str | Path, engine: str, device: str) -> None:
+def refuse_detector_engine(detector: str | Path, engine: str, device: str) -> None:
     """A pod detector runs on the torch engine on the cpu only so far: refuse any other for one by name."""
-    if is_detector(checkpoint) and (engine, device) != ("torch", "cpu"):
-        raise ValueError(f"{checkpoint} is a pod detector, which runs on the torch engine on the cpu only so far; "
+    if (engine, device) != ("torch", "cpu"):
+        raise ValueError(f"{detector} is a pod detector, which runs on the torch engine on the cpu only so far; "
                          f"got engine {engine!r} on device {device!r}")  # fmt: skip
 
 
 def check_encoder_file(checkpoint: str | Path, engine: str, device: str) -> None:
     """What :func:`open_encoder` would refuse, without building the model: a file that is neither a CMVAE nor a pod
     detector (named), or a detector on an engine it has not."""
-    refuse_detector_engine(checkpoint, engine, device)
-    if not is_detector(checkpoint):
+    if is_detector(checkpoint):
+        refuse_detector_engine(checkpoint, engine, device)
+    else:
         read_checkpoint(checkpoint)

@@ -869,8 +869,8 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         ) from exc
     if isinstance(checkpoint, dict) and checkpoint.get("format") == DETECTOR_FORMAT:
         raise ValueError(
-            f"{path} is a pod detector, not a CMVAE: it runs in process only so far (--backend inprocess), the wire "
-            "carrying no tracker state yet"
+            f"{path} is a pod detector, not a CMVAE: `swimm encoder` and `--encoder-checkpoint` open one, "
+            "but this command reads CMVAEs only"
         )
     if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path} is not a {CHECKPOINT_FORMAT} checkpoint")
@@ -880,12 +880,12 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 def refuse_distance_prior(path: str | Path, where: str) -> None:
-    """A tracking CMVAE whose prior holds the target's distance runs in process only so far (the wire carries an
+    """A tracking CMVAE whose prior holds the target's distance has no exported form yet (the ONNX file's prior is an
     azimuth): ``where`` refuses one by name."""
     if read_checkpoint(path)["config"].get("prior_distance", False):
         raise ValueError(
             f"{path} is a tracking CMVAE whose prior holds the target's distance (--prior-distance): "
-            f"{where} carries an azimuth only so far; run it in process (--backend inprocess)"
+            f"{where} carries an azimuth prior only so far; `swimm eval` and `swimm encoder` run it"
         )
 
 

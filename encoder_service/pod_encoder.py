@@ -29,22 +29,28 @@ N_Z = 10  # a CMVAE's latent size, so the same policies' observation fits
 UNSEEN = (OPT_D, 0.0)
 
 
+def _load(path: str | Path) -> Any:
+    """The object a torch file holds, or None for a file torch cannot read (the CMVAE loader names what is wrong)."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # torch has no one error for a file not its own
+        return None
+
+
 def is_detector(path: str | Path) -> bool:
     """Whether ``path`` is a pod detector checkpoint (rather than a CMVAE's)."""
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:  # torch has no one error for a file not its own; the CMVAE loader names what is wrong
-        return False
-    return isinstance(checkpoint, dict) and checkpoint.get("format") == DETECTOR_FORMAT
+    saved = _load(path)
+    return isinstance(saved, dict) and saved.get("format") == DETECTOR_FORMAT
 
 
 def read_detector(path: str | Path, what: str = "the checkpoint") -> dict[str, Any]:
-    """A pod detector checkpoint's contents; ``what`` (a flag) names it in the error for a file that is none."""
+    """A pod detector checkpoint's contents, read once; ``what`` (a flag) names it in the error for a file that is
+    none."""
     if not Path(path).is_file():
         raise FileNotFoundError(f"{what} {path} does not exist (make one with `swimm train-detector`)")
-    if not is_detector(path):
+    saved = _load(path)
+    if not isinstance(saved, dict) or saved.get("format") != DETECTOR_FORMAT:
         raise ValueError(f"{what} {path} is not a {DETECTOR_FORMAT} checkpoint")
-    saved = torch.load(path, map_location="cpu", weights_only=True)
     if saved.get("version") != DETECTOR_VERSION:
         raise ValueError(f"{what} {path} is a {DETECTOR_FORMAT} checkpoint of version {saved.get('version')!r}; this "
                          f"code reads version {DETECTOR_VERSION}")  # fmt: skip

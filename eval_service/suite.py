@@ -7,9 +7,10 @@
 The splits are sim_service.splits' (``--suite-splits`` picks some), played after two references inside the
 training range, clean and murky frames, so each split's drop is read against them. Every contender plays the same
 episodes (same seeds) in every condition, on one env: a live sim's eval env (each reset carries the condition, so
-the sim's other envs are untouched) or an in-process world. Beside the policies, the CMVAE named by
-``--encoder-checkpoint`` (default: the shipped one) reads ``--suite-frames`` reset frames of each condition in
-process: its d, theta and psi errors say whether a failing split is perception or control.
+the sim's other envs are untouched) or an in-process world. Beside the policies, the encoder named by
+``--encoder-checkpoint`` (default: the shipped CMVAE; a pod detector reads too) reads ``--suite-frames`` reset
+frames of each condition in process: its d, theta and psi errors say whether a failing split is perception or
+control.
 
 The run folder holds ``suite.csv`` (one row per contender and condition), ``encoder.csv`` (one row per
 condition), ``episodes.csv`` (one row per episode: the per-episode returns an interval needs), ``suite.json``
@@ -26,7 +27,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from encoder_service.inference import LatentEncoder
+from encoder_service.inference import open_encoder
 from encoder_service.model import label_errors
 from eval_service.engine import (
     EvaluationSettings,
@@ -85,11 +86,11 @@ def run_suite(settings: EvaluationSettings, suite: SuiteSettings, out: Path) -> 
     plan = [({"condition": split.name}, split.reset_options()) for split in conditions]
     rows, episodes, wall_s = play_plan(settings, entries, policies, plan, desc="suite")
     table = pd.DataFrame(rows, columns=[*SUITE_COLUMNS, *vertical_columns(settings)])
-    encoder = encoder_errors(settings, conditions, suite.frames)
     out.mkdir(parents=True, exist_ok=True)
-    table.to_csv(out / "suite.csv", index=False)
-    encoder.to_csv(out / "encoder.csv", index=False)
+    table.to_csv(out / "suite.csv", index=False)  # the play's results first: the encoder's reads come after
     pd.DataFrame(episodes).to_csv(out / "episodes.csv", index=False)
+    encoder = encoder_errors(settings, conditions, suite.frames)
+    encoder.to_csv(out / "encoder.csv", index=False)
     about = run_provenance(settings, entries, cmvae_reads=suite.frames > 0)
     record = {"rows": rows, "encoder": encoder.to_dict("records"), "episodes": episodes, "wall_s": wall_s,
               "conditions": [{"name": s.name, "about": s.about, **s.reset_options()} for s in conditions],
@@ -112,7 +113,7 @@ def encoder_errors(settings: EvaluationSettings, conditions: list[Split], count:
     from sim_service.dataset import labels_and_pose  # MuJoCo: not in the torch image, which attaches only
     from sim_service.world import World
 
-    encoder = LatentEncoder(cmvae_in_use(settings))
+    encoder = open_encoder(cmvae_in_use(settings))
     world = World(WorldSettings())
     seeds = [episode_seed(settings.seed, frame) for frame in range(1, count + 1)]
     rows = []

@@ -73,3 +73,12 @@ def test_bad_suite_settings_are_refused_by_name(tmp_path, overrides, message) ->
     with pytest.raises(ValueError, match=message):
         command.check(settings(tmp_path, **overrides))
     assert not Path(settings(tmp_path).out).exists()
+
+
+def test_a_suite_reads_frames_with_a_pod_detector_too(tmp_path) -> None:
+    given = settings(tmp_path, episodes=1, steps=5, encoder_checkpoint="encoder_service/models/pod_detector.pt",
+                     suite_plan=SuiteSettings(splits=["dark"], frames=6))  # fmt: skip
+    run_suite(given, given.suite_plan, Path(given.out))
+    errors = pd.read_csv(Path(given.out) / "encoder.csv").set_index("condition")
+    assert list(errors.index) == ["clean", "murky", "dark"]
+    assert errors.loc["clean", "theta_mae_deg"] < 3.0  # a lone dolphin in clean water, read by its centre's peak
