@@ -1,4 +1,4 @@
-"""`swimm train-detector`: fit the pod detector (encoder_service.pod_detector) on pod datasets.
+"""`swimm train-detector`: fit the pod detector (encoder_service.pod_detector) on pod datasets (and lone dolphins').
 
     swimm dataset --out data/pod4 --count 40000 --seed 3 --workers 2 --masks --dolphin-pod-size 4
     swimm train-detector --dataset data/pod4 --out runs/pod_detector.pt
@@ -45,21 +45,23 @@ def pod_dataset_meta(folder: Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"--dataset {folder}: no meta.json (write one with `swimm dataset`)")
     meta = json.loads(path.read_text())
-    if not meta.get("masks") or not meta.get("pod"):
-        raise ValueError(f"--dataset {folder}: the detector needs a pod dataset with masks "
-                         "(`swimm dataset --dolphin-pod-size N --masks`)")  # fmt: skip
+    if not meta.get("masks"):
+        raise ValueError(f"--dataset {folder}: the detector needs a dataset with masks "
+                         "(`swimm dataset --masks`, with --dolphin-pod-size N for a pod)")  # fmt: skip
     return meta
 
 
 def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
-    """Images, poses, companions and target mask sizes of every shard of a pod dataset with masks."""
+    """Images, poses, companions (none for a lone dolphin's dataset) and target mask sizes of every shard of a
+    dataset with masks."""
     meta = pod_dataset_meta(folder)
     parts: dict[str, list[np.ndarray]] = {"images": [], "poses": [], "companions": [], "target_pixels": []}
     for shard in meta["shards"]:
         stem = folder / shard
         parts["images"].append(np.load(f"{stem}.images.npy"))
         parts["poses"].append(np.load(f"{stem}.poses.npy"))
-        parts["companions"].append(np.load(f"{stem}.companions.npy"))
+        alone = np.zeros((len(parts["poses"][-1]), 0, 6), np.float32)
+        parts["companions"].append(np.load(f"{stem}.companions.npy") if meta.get("pod") else alone)
         parts["target_pixels"].append(np.load(f"{stem}.masks.npy", mmap_mode="r").sum(axis=(1, 2)))
     data = {name: np.concatenate(arrays) for name, arrays in parts.items()}
     points = dolphin_points(data["poses"].astype(np.float64), data["companions"].astype(np.float64))

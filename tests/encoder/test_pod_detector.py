@@ -11,6 +11,7 @@ import torch
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, open_encoder
 from encoder_service.model import read_checkpoint
 from encoder_service.pod_detector import (
+    MIN_TARGET_PIXELS,
     PodDetector,
     decode,
     dolphin_points,
@@ -130,6 +131,14 @@ def test_bad_settings_are_refused_by_flag(pod: Path, tmp_path: Path) -> None:
     (tmp_path / "d.pt").write_bytes(b"")
     with pytest.raises(FileExistsError, match="--overwrite"):
         check(TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "d.pt")))
+
+
+def test_a_lone_dolphins_dataset_with_masks_is_read_too(tmp_path: Path) -> None:
+    """A lone dolphin's frames (no companions) label the target alone, seen where its mask shows it."""
+    alone = load_pod_dataset(render_pod_dataset(tmp_path / "alone", count=16, shard_size=16, pod_size=1))
+    assert alone["companions"].shape == (16, 0, 6) and alone["seen"].shape == (16, 1)
+    seen = alone["seen"][:, 0]
+    assert seen.sum() >= 8 and np.all(alone["target_pixels"][seen] >= MIN_TARGET_PIXELS)
 
 
 def test_a_run_from_init_starts_from_its_weights(detector: Path, pod: Path, tmp_path: Path) -> None:
