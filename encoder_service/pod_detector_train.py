@@ -4,7 +4,7 @@
     swimm train-detector --dataset data/pod4 --out runs/pod_detector.pt
 
 Every dolphin's label comes from the stored poses (encoder_service.pod_detector); frames are mirrored at random
-(the pod's geometry is left-right symmetric). Validation is a fixed tail of the dataset: the share of seen targets
+(the pod's geometry is left-right symmetric). Validation is a fixed tail of each dataset: the share of seen targets
 found (a peak within 2 pixels of the target's centre) and those detections' azimuth and distance errors.
 """
 
@@ -73,6 +73,33 @@ def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
     return data
 
 
+def join_datasets(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Several datasets as one; pods of fewer dolphins (a lone dolphin's too) padded with dolphins never seen."""
+    widest = max(part["seen"].shape[1] for part in parts)
+    padded = []
+    for part in parts:
+        extra = widest - part["seen"].shape[1]
+        pad = {name: np.pad(value, [(0, 0), (0, extra)] + [(0, 0)] * (value.ndim - 2), constant_values=fill)
+               for name, fill in (("seen", False), ("ignored", False), ("pixels", 0.0), ("azimuths", 0.0),
+                                  ("distances", 1.0), ("companions", 0.0)) for value in [part[name]]}  # fmt: skip
+        padded.append(part | pad)
+    return {name: np.concatenate([part[name] for part in padded]) for name in padded[0]}
+
+
+def split_rows(counts: list[int], val_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Training and validation rows of datasets of ``counts`` frames joined in order: the last ``val_frames``
+    frames held out, shared evenly among the datasets (each one's tail), so every kind of frame is validated."""
+    shares = [val_frames // len(counts) + (index < val_frames % len(counts)) for index in range(len(counts))]
+    train, val, start = [], [], 0
+    for count, share in zip(counts, shares, strict=True):
+        if share >= count:
+            raise ValueError(f"--val-frames {val_frames}: a dataset of {count} frames cannot hold out {share}")
+        train.append(np.arange(start, start + count - share))
+        val.append(np.arange(start + count - share, start + count))
+        start += count
+    return np.concatenate(train), np.concatenate(val)
+
+
 def batch(data: dict[str, np.ndarray], rows: np.ndarray, stride: int, mirror: np.ndarray | None = None) -> tuple:
     """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows."""
     images = data["images"][rows].copy()
@@ -118,14 +145,14 @@ def validate(model: PodDetector, data: dict[str, np.ndarray], rows: np.ndarray, 
 
 @dataclass
 class TrainDetectorSettings:
-    dataset: list[str] = field(default_factory=list)  # pod datasets with masks (`swimm dataset --dolphin-pod-size N
-    # --masks`); several are read as one
+    dataset: list[str] = field(default_factory=list)  # datasets with masks (`swimm dataset --masks`, a pod's with
+    # --dolphin-pod-size N); several are read as one
     out: str = "runs/pod_detector.pt"  # the checkpoint, written after every epoch
     overwrite: bool = False  # replace an existing --out
     epochs: int = 10
     batch_size: int = 128
     lr: float = 2e-3  # the one-cycle schedule's peak
-    val_frames: int = 2000  # the last frames of the datasets, held out to validate each epoch
+    val_frames: int = 2000  # frames held out to validate each epoch: each dataset's last, shared evenly
     seed: int = 0
     width: int = 16  # channels of the finest features; the coarser have 2x and 4x
     stride: int = 2  # pixels per heatmap cell: 2 or 4
@@ -163,11 +190,8 @@ def run(settings: TrainDetectorSettings) -> int:
     check(settings)
     torch.manual_seed(settings.seed)
     parts = [load_pod_dataset(Path(folder)) for folder in settings.dataset]
-    data = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
-    count = len(data["images"])
-    if settings.val_frames >= count:
-        raise ValueError(f"--val-frames {settings.val_frames}: the datasets hold only {count} frames")
-    train_rows, val_rows = np.arange(count - settings.val_frames), np.arange(count - settings.val_frames, count)
+    data = join_datasets(parts)
+    train_rows, val_rows = split_rows([len(part["images"]) for part in parts], settings.val_frames)
     model = PodDetector(width=settings.width, stride=settings.stride)
     if settings.init:
         model.load_state_dict(read_detector(settings.init, "--init")["state_dict"])

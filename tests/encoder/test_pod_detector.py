@@ -21,8 +21,15 @@ from encoder_service.pod_detector import (
     seen_dolphins,
     to_pixels,
 )
-from encoder_service.pod_detector_train import TrainDetectorSettings, check, load_pod_dataset, run
-from encoder_service.pod_encoder import PodEncoder
+from encoder_service.pod_detector_train import (
+    TrainDetectorSettings,
+    check,
+    join_datasets,
+    load_pod_dataset,
+    run,
+    split_rows,
+)
+from encoder_service.pod_encoder import PodEncoder, read_detector
 from encoder_service.pod_tracker import STATE_SIZE
 from encoder_service.service import EncoderSettings
 from encoder_service.service import check as check_encoder
@@ -133,12 +140,26 @@ def test_bad_settings_are_refused_by_flag(pod: Path, tmp_path: Path) -> None:
         check(TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "d.pt")))
 
 
-def test_a_lone_dolphins_dataset_with_masks_is_read_too(tmp_path: Path) -> None:
-    """A lone dolphin's frames (no companions) label the target alone, seen where its mask shows it."""
-    alone = load_pod_dataset(render_pod_dataset(tmp_path / "alone", count=16, shard_size=16, pod_size=1))
+def test_a_lone_dolphins_dataset_trains_beside_a_pods(pod: Path, tmp_path: Path) -> None:
+    """A lone dolphin's frames (no companions) label the target alone, seen where its mask shows it; joined with a
+    pod's, the lone frames' missing companions are never seen, and each dataset gives frames to validation."""
+    folder = render_pod_dataset(tmp_path / "alone", count=16, shard_size=16, pod_size=1)
+    alone = load_pod_dataset(folder)
     assert alone["companions"].shape == (16, 0, 6) and alone["seen"].shape == (16, 1)
     seen = alone["seen"][:, 0]
     assert seen.sum() >= 8 and np.all(alone["target_pixels"][seen] >= MIN_TARGET_PIXELS)
+    joined = join_datasets([alone, load_pod_dataset(pod)])
+    assert joined["seen"].shape == (80, 3) and joined["companions"].shape == (80, 2, 6)
+    assert np.array_equal(joined["seen"][:16, 0], seen) and not joined["seen"][:16, 1:].any()
+    train, val = split_rows([16, 64], 9)
+    assert list(val) == [11, 12, 13, 14, 15, *range(76, 80)] and len(train) == 80 - 9
+    with pytest.raises(ValueError, match="--val-frames 40: a dataset of 16 frames cannot hold out 20"):
+        split_rows([16, 64], 40)
+    out = tmp_path / "both.pt"
+    assert run(TrainDetectorSettings(dataset=[str(folder), str(pod)], out=str(out), epochs=1, batch_size=16,
+                                     val_frames=8)) == 0  # fmt: skip
+    (scores,) = read_detector(out)["history"]
+    assert 0.0 <= scores["target_recall"] <= 1.0 and np.isfinite(scores["extra_peaks_per_frame"])
 
 
 def test_a_run_from_init_starts_from_its_weights(detector: Path, pod: Path, tmp_path: Path) -> None:
