@@ -31,6 +31,24 @@ SHAFT_LIGHT = (150.0, 255.0)  # the shafts' grey level U[lo, hi], 0-255 units: s
 SHAFT_TINT = 20.0  # per-channel tint U[-t, t] on that grey
 
 
+def augment(
+    images: np.ndarray, rng: np.random.Generator, jitter_share: float, bands_share: float, shafts_share: float
+) -> np.ndarray:
+    """Frames through :func:`jitter`, :func:`bands` and :func:`shafts` in turn, each on its share of them (0: off;
+    ``images`` itself when all are off)."""
+    for change, share in ((jitter, jitter_share), (bands, bands_share), (shafts, shafts_share)):
+        if share > 0:
+            images = change(images, rng, share)
+    return images
+
+
+def check_shares(shares: dict[str, float]) -> None:
+    """Refuse an augmentation share outside [0, 1], naming its flag (the keys)."""
+    for flag, share in shares.items():
+        if not 0.0 <= share <= 1.0:
+            raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
+
+
 def jitter(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
     """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them carry a random photometric jitter."""
     return _on_share(images, rng, share, _jitter_one)

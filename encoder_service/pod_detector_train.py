@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from encoder_service.augment import augment, check_shares
 from encoder_service.model import images_to_tensor
 from encoder_service.pod_detector import (
     PodDetector,
@@ -100,9 +101,14 @@ def split_rows(counts: list[int], val_frames: int) -> tuple[np.ndarray, np.ndarr
     return np.concatenate(train), np.concatenate(val)
 
 
-def batch(data: dict[str, np.ndarray], rows: np.ndarray, stride: int, mirror: np.ndarray | None = None) -> tuple:
-    """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows."""
+def batch(
+    data: dict[str, np.ndarray], rows: np.ndarray, stride: int, mirror: np.ndarray | None = None, photometric=None
+) -> tuple:
+    """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows, and
+    ``photometric`` (frames -> frames) changes their look, never where the dolphins are."""
     images = data["images"][rows].copy()
+    if photometric is not None:
+        images = photometric(images)
     pixels = data["pixels"][rows].copy()
     size = images.shape[1]
     if mirror is not None:
@@ -158,6 +164,9 @@ class TrainDetectorSettings:
     stride: int = 2  # pixels per heatmap cell: 2 or 4
     threshold: float = THRESHOLD  # a peak's least score to count as a dolphin, saved in the checkpoint
     init: str = ""  # a detector checkpoint to start from (its width and stride); default: fresh weights
+    augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
+    augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
+    augment_shafts: float = 0.0  # share of training frames crossed by a sun's pale, near-parallel light shafts
 
 
 def check(settings: TrainDetectorSettings) -> None:
@@ -170,6 +179,8 @@ def check(settings: TrainDetectorSettings) -> None:
         pod_dataset_meta(Path(folder))
     if settings.stride not in (2, 4):
         raise ValueError(f"--stride {settings.stride}: the detector reads 2 or 4 pixels a heatmap cell")
+    check_shares({"--augment": settings.augment, "--augment-bands": settings.augment_bands,
+                  "--augment-shafts": settings.augment_shafts})  # fmt: skip
     if not 0.0 < settings.threshold < 1.0:
         raise ValueError(f"--threshold {settings.threshold}: a peak's score lies in (0, 1)")
     for flag, value in (("--epochs", settings.epochs), ("--batch-size", settings.batch_size),
@@ -199,6 +210,8 @@ def run(settings: TrainDetectorSettings) -> int:
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
     rng = np.random.default_rng(settings.seed)
+    shares = (settings.augment, settings.augment_bands, settings.augment_shafts)
+    photometric = (lambda images: augment(images, rng, *shares)) if any(shares) else None
     history: list[dict[str, float]] = []
     out = Path(settings.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -208,7 +221,8 @@ def run(settings: TrainDetectorSettings) -> int:
         bar = tqdm(range(batches), desc=f"epoch {epoch}/{settings.epochs}", mininterval=5)
         for step in bar:
             rows = order[step * settings.batch_size : (step + 1) * settings.batch_size]
-            frames, targets = batch(data, rows, model.stride, mirror=rng.random(len(rows)) < 0.5)
+            frames, targets = batch(data, rows, model.stride, mirror=rng.random(len(rows)) < 0.5,
+                                    photometric=photometric)  # fmt: skip
             loss, parts_of_loss = detector_loss(*model(frames), targets)
             optimiser.zero_grad()
             loss.backward()

@@ -22,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 from encoder_service import figures
-from encoder_service.augment import bands, jitter, shafts
+from encoder_service.augment import augment, check_shares
 from encoder_service.data import (
     AnyDataset,
     Batch,
@@ -269,12 +269,8 @@ def _loss(
     """The batch's loss parts: the CMVAE loss, or with a ``teacher`` the distillation loss; ``jitter_rng`` jitters
     a share of the inputs (never the targets); ``priors`` draws a tracking model's priors."""
     inputs, targets = inputs_and_targets(batch, feed_clean)
-    if jitter_rng is not None and settings.augment > 0:
-        inputs = jitter(inputs, jitter_rng, settings.augment)
-    if jitter_rng is not None and settings.augment_bands > 0:
-        inputs = bands(inputs, jitter_rng, settings.augment_bands)
-    if jitter_rng is not None and settings.augment_shafts > 0:
-        inputs = shafts(inputs, jitter_rng, settings.augment_shafts)
+    if jitter_rng is not None:
+        inputs = augment(inputs, jitter_rng, settings.augment, settings.augment_bands, settings.augment_shafts)
     labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
     images = encoder_input(model, inputs, batch.labels, device, priors, batch.centred)
     masks = _masks_tensor(batch, settings.mask_weight, device)
@@ -586,11 +582,8 @@ def check(settings: TrainEncoderSettings) -> None:
     settings.state_loss()  # checked before the dataset is read, not at the first batch
     if settings.input_norm not in INPUT_NORMS:
         raise ValueError(f"--input-norm must be one of {', '.join(INPUT_NORMS)}, got {settings.input_norm!r}")
-    shares = {"--augment": settings.augment, "--augment-bands": settings.augment_bands,
-              "--augment-shafts": settings.augment_shafts}  # fmt: skip
-    for flag, share in shares.items():
-        if not 0.0 <= share <= 1.0:
-            raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
+    check_shares({"--augment": settings.augment, "--augment-bands": settings.augment_bands,
+                  "--augment-shafts": settings.augment_shafts})  # fmt: skip
     if not 0 <= settings.shift_pixels <= MAX_SHIFT_PIXELS:
         raise ValueError(f"--shift-pixels must be 0 (off) to {MAX_SHIFT_PIXELS}, got {settings.shift_pixels}")
     if not (math.isfinite(settings.mask_weight) and settings.mask_weight >= 0):

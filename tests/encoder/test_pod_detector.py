@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from encoder_service.augment import augment
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, open_encoder
 from encoder_service.model import read_checkpoint
 from encoder_service.pod_detector import (
@@ -23,6 +24,7 @@ from encoder_service.pod_detector import (
 )
 from encoder_service.pod_detector_train import (
     TrainDetectorSettings,
+    batch,
     check,
     join_datasets,
     load_pod_dataset,
@@ -135,9 +137,21 @@ def test_bad_settings_are_refused_by_flag(pod: Path, tmp_path: Path) -> None:
         check(TrainDetectorSettings(dataset=[str(pod)], stride=3, out=str(tmp_path / "d.pt")))
     with pytest.raises(FileNotFoundError, match="no meta.json"):
         check(TrainDetectorSettings(dataset=[str(tmp_path)], out=str(tmp_path / "d.pt")))
+    with pytest.raises(ValueError, match="--augment-shafts is a share of frames"):
+        check(TrainDetectorSettings(dataset=[str(pod)], augment_shafts=1.5, out=str(tmp_path / "d.pt")))
     (tmp_path / "d.pt").write_bytes(b"")
     with pytest.raises(FileExistsError, match="--overwrite"):
         check(TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "d.pt")))
+
+
+def test_augmentation_changes_the_look_not_the_labels(pod: Path) -> None:
+    data = load_pod_dataset(pod)
+    rows = np.arange(8)
+    plain_frames, plain_targets = batch(data, rows, 2)
+    rng = np.random.default_rng(0)
+    frames, targets = batch(data, rows, 2, photometric=lambda images: augment(images, rng, 1.0, 0.0, 1.0))
+    assert not torch.equal(frames, plain_frames)
+    assert all(torch.equal(targets[name], plain_targets[name]) for name in plain_targets)
 
 
 def test_a_lone_dolphins_dataset_trains_beside_a_pods(pod: Path, tmp_path: Path) -> None:
