@@ -1,0 +1,66 @@
+"""A detector's peaks on a lone dolphin's reset frames, per suite condition: frames with no peak, peaks a frame,
+and the errors of the peak nearest the dolphin and of the strongest one (docs/encoder.md, "A detector for a lone
+dolphin"). A diagnostic, not a result; the suite's own encoder check reads through the tracker's engagement rule:
+
+    MUJOCO_GL=egl python docs/encoder/selection/detector_frames.py runs/det-aug.pt --out det-aug-frames.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pandas as pd
+import torch
+
+from encoder_service.model import images_to_tensor
+from encoder_service.pod_detector import PodDetector, decode
+from encoder_service.pod_encoder import read_detector
+from eval_service.suite import SuiteSettings, suite_conditions
+from learner_service.task import episode_seed
+from sim_service.dataset import labels_and_pose
+from sim_service.settings import WorldSettings
+from sim_service.world import World
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("detector")
+    parser.add_argument("--seed", type=int, default=211)
+    parser.add_argument("--frames", type=int, default=200)
+    parser.add_argument("--out", required=True)
+    args = parser.parse_args()
+    saved = read_detector(args.detector)
+    model = PodDetector(width=saved["width"], stride=saved["stride"])
+    model.load_state_dict(saved["state_dict"])
+    model.eval()
+    world = World(WorldSettings())
+    rows = []
+    for split in suite_conditions(SuiteSettings()):
+        frames, labels = [], []
+        for index in range(1, args.frames + 1):
+            noise = split.noise if split.noise.enabled else False
+            telemetry, frame = world.reset(episode_seed(args.seed, index), noise=noise, scene=split.scene)
+            frames.append(frame)
+            labels.append(labels_and_pose(telemetry)[0])
+        with torch.no_grad():
+            found = decode(*model(images_to_tensor(np.stack(frames))), saved["threshold"], 64, saved["stride"])
+        nearest, strongest = [], []
+        for peaks, (distance, azimuth, _) in zip(found, labels, strict=True):
+            if len(peaks):
+                k = int(np.argmin(np.abs(peaks.azimuth - azimuth)))
+                nearest.append((abs(peaks.azimuth[k] - azimuth), peaks.distance[k] - distance))
+                strongest.append(abs(peaks.azimuth[0] - azimuth))
+        near = np.array(nearest)
+        rows.append({"condition": split.name, "frames": len(frames), "no_peak": sum(len(p) == 0 for p in found),
+                     "peaks_per_frame": np.mean([len(p) for p in found]), "nearest_theta_mae_deg": near[:, 0].mean(),
+                     "nearest_theta_median_deg": np.median(near[:, 0]), "nearest_d_mae_m": np.abs(near[:, 1]).mean(),
+                     "nearest_d_bias_m": near[:, 1].mean(), "strongest_theta_mae_deg": np.mean(strongest),
+                     "strongest_within_2_5_deg": np.mean(np.array(strongest) < 2.5)})  # fmt: skip
+        print(rows[-1], flush=True)
+    world.close()
+    pd.DataFrame(rows).to_csv(args.out, index=False, float_format="%.3f")
+
+
+if __name__ == "__main__":
+    main()
