@@ -3,7 +3,8 @@
 The detector (encoder_service.pod_detector) says where the dolphins are in one frame; identity lives across frames.
 Each track holds a dolphin's azimuth and log distance with their rates (an alpha-beta filter), and detections join
 tracks by the nearest gated match in both, the cheapest pairs first. The target is the track the first frame's
-dolphin nearest the image centre started (the engagement rule, docs/physics.md, "Pods").
+dolphin nearest the image centre started (the engagement rule, docs/physics.md, "Pods"), among the peaks at least
+half as strong as the frame's strongest.
 
 Distance is what tells a companion passing in front from the target: the one in front is nearer. While the target
 has no detection and a nearer dolphin covers where it was, the target is *behind* it: its azimuth is held within
@@ -52,6 +53,7 @@ class TrackerParams:
     reacquire_azimuth_sigma_deg: float = 10.0
     nearer: float = 0.92  # a dolphin covers the target when nearer than this share of its distance...
     cover_margin_deg: float = 1.0  # ...and its disc, widened by this, holds the target's centre
+    engage_score_share: float = 0.5  # at engagement, a peak weaker than this share of the strongest is no candidate
 
 
 class PodTracker:
@@ -172,7 +174,9 @@ class PodTracker:
         """New tracks for detections no track took; at engagement the one nearest the image centre is the target."""
         fresh = [j for j in range(len(frame)) if j not in used and not self._explained(tracks, frame, log_d, j)]
         if engage and fresh:
-            off_axis = np.hypot(frame.azimuth[fresh], frame.elevation[fresh])
+            # a stray peak (marine snow, a shaft's edge) near the centre must not outbid a dolphin seen plainly
+            weak = frame.score[fresh] < self.params.engage_score_share * frame.score[fresh].max()
+            off_axis = np.where(weak, np.inf, np.hypot(frame.azimuth[fresh], frame.elevation[fresh]))
             fresh.insert(0, fresh.pop(int(np.argmin(off_axis))))
         for order, detection in enumerate(fresh):
             free = np.nonzero(tracks[:, ALIVE] == 0)[0]

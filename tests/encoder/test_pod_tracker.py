@@ -32,6 +32,13 @@ def test_engages_on_the_dolphin_nearest_the_image_centre() -> None:
     assert tracks[:, TARGET].sum() == 1
 
 
+def test_a_weak_stray_peak_at_the_centre_does_not_win_the_engagement() -> None:
+    scores = np.array([0.35, 0.9, 0.8])  # a faint peak dead ahead, two dolphins seen plainly off the axis
+    detections = Detections(scores, np.array([0.5, 25.0, -15.0]), np.zeros(3), np.array([6.0, 5.0, 7.0]))
+    _, readings = run(PodTracker(), [detections])
+    assert readings[0] == pytest.approx((7.0, -15.0))  # the strong peak nearest the centre
+
+
 def test_no_dolphin_no_target_until_one_is_seen() -> None:
     state, readings = run(PodTracker(), [frame(), frame(), frame((5.0, 6.0))])
     assert readings[:2] == [None, None]
