@@ -42,8 +42,10 @@ def augment(
     return images
 
 
-def check_shares(shares: dict[str, float]) -> None:
-    """Refuse an augmentation share outside [0, 1], naming its flag (the keys)."""
+def check_shares(jitter_share: float, bands_share: float, shafts_share: float) -> None:
+    """Refuse an augmentation share outside [0, 1], naming its flag (the trainers' --augment, --augment-bands and
+    --augment-shafts)."""
+    shares = {"--augment": jitter_share, "--augment-bands": bands_share, "--augment-shafts": shafts_share}
     for flag, share in shares.items():
         if not 0.0 <= share <= 1.0:
             raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")

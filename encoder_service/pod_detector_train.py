@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -74,17 +75,23 @@ def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
     return data
 
 
+#: How a dolphin that a smaller pod's frames lack is filled in when datasets join: never seen, nowhere.
+MISSING_DOLPHIN = {"seen": False, "ignored": False, "pixels": 0.0, "azimuths": 0.0, "distances": 1.0, "companions": 0.0}
+
+
 def join_datasets(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     """Several datasets as one; pods of fewer dolphins (a lone dolphin's too) padded with dolphins never seen."""
     widest = max(part["seen"].shape[1] for part in parts)
     padded = []
     for part in parts:
         extra = widest - part["seen"].shape[1]
-        pad = {name: np.pad(value, [(0, 0), (0, extra)] + [(0, 0)] * (value.ndim - 2), constant_values=fill)
-               for name, fill in (("seen", False), ("ignored", False), ("pixels", 0.0), ("azimuths", 0.0),
-                                  ("distances", 1.0), ("companions", 0.0)) for value in [part[name]]}  # fmt: skip
-        padded.append(part | pad)
+        padded.append(part | {name: _pad_dolphins(part[name], extra, fill) for name, fill in MISSING_DOLPHIN.items()})
     return {name: np.concatenate([part[name] for part in padded]) for name in padded[0]}
+
+
+def _pad_dolphins(values: np.ndarray, extra: int, fill: float | bool) -> np.ndarray:
+    """``values`` (frames, dolphins, ...) with ``extra`` more dolphins of ``fill``."""
+    return np.pad(values, [(0, 0), (0, extra)] + [(0, 0)] * (values.ndim - 2), constant_values=fill)
 
 
 def split_rows(counts: list[int], val_frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -102,7 +109,11 @@ def split_rows(counts: list[int], val_frames: int) -> tuple[np.ndarray, np.ndarr
 
 
 def batch(
-    data: dict[str, np.ndarray], rows: np.ndarray, stride: int, mirror: np.ndarray | None = None, photometric=None
+    data: dict[str, np.ndarray],
+    rows: np.ndarray,
+    stride: int,
+    mirror: np.ndarray | None = None,
+    photometric: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple:
     """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows, and
     ``photometric`` (frames -> frames) changes their look, never where the dolphins are."""
@@ -179,8 +190,7 @@ def check(settings: TrainDetectorSettings) -> None:
         pod_dataset_meta(Path(folder))
     if settings.stride not in (2, 4):
         raise ValueError(f"--stride {settings.stride}: the detector reads 2 or 4 pixels a heatmap cell")
-    check_shares({"--augment": settings.augment, "--augment-bands": settings.augment_bands,
-                  "--augment-shafts": settings.augment_shafts})  # fmt: skip
+    check_shares(settings.augment, settings.augment_bands, settings.augment_shafts)
     if not 0.0 < settings.threshold < 1.0:
         raise ValueError(f"--threshold {settings.threshold}: a peak's score lies in (0, 1)")
     for flag, value in (("--epochs", settings.epochs), ("--batch-size", settings.batch_size),

@@ -582,8 +582,7 @@ def check(settings: TrainEncoderSettings) -> None:
     settings.state_loss()  # checked before the dataset is read, not at the first batch
     if settings.input_norm not in INPUT_NORMS:
         raise ValueError(f"--input-norm must be one of {', '.join(INPUT_NORMS)}, got {settings.input_norm!r}")
-    check_shares({"--augment": settings.augment, "--augment-bands": settings.augment_bands,
-                  "--augment-shafts": settings.augment_shafts})  # fmt: skip
+    check_shares(settings.augment, settings.augment_bands, settings.augment_shafts)
     if not 0 <= settings.shift_pixels <= MAX_SHIFT_PIXELS:
         raise ValueError(f"--shift-pixels must be 0 (off) to {MAX_SHIFT_PIXELS}, got {settings.shift_pixels}")
     if not (math.isfinite(settings.mask_weight) and settings.mask_weight >= 0):
