@@ -11,6 +11,7 @@ training settings (sim_service/splits.py), which this jitter does not set.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -29,26 +30,38 @@ SHAFTS = (2, 6)  # light shafts per frame with shafts, U{lo..hi}
 SHAFT_SPREAD_DEG = 6.0  # a shaft's direction within this many degrees of the set's
 SHAFT_LIGHT = (150.0, 255.0)  # the shafts' grey level U[lo, hi], 0-255 units: sunlight is pale
 SHAFT_TINT = 20.0  # per-channel tint U[-t, t] on that grey
+CONTRAST_LOG_RANGE = 0.9  # the dolphin's contrast to its water times exp(U[-r, r]): about 0.4x to 2.5x
+WATER_SIGMA_PX = 4.0  # the water behind the dolphin: its surroundings blurred over this many pixels
 
 
-def augment(
-    images: np.ndarray, rng: np.random.Generator, jitter_share: float, bands_share: float, shafts_share: float
-) -> np.ndarray:
-    """Frames through :func:`jitter`, :func:`bands` and :func:`shafts` in turn, each on its share of them (0: off;
-    ``images`` itself when all are off)."""
-    for change, share in ((jitter, jitter_share), (bands, bands_share), (shafts, shafts_share)):
-        if share > 0:
-            images = change(images, rng, share)
-    return images
+@dataclass
+class AugmentSettings:
+    """The trainers' image jitter: the share of training frames each change is drawn on (0: off)."""
+
+    augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
+    augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
+    augment_shafts: float = 0.0  # share of training frames crossed by a sun's pale, near-parallel light shafts
+
+    def check_shares(self) -> None:
+        """Refuse a share outside [0, 1], naming its flag."""
+        shares = (("--augment", self.augment), ("--augment-bands", self.augment_bands),
+                  ("--augment-shafts", self.augment_shafts))  # fmt: skip
+        for flag, share in shares:
+            check_share(flag, share)
+
+    def augmented(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Frames through :func:`jitter`, :func:`bands` and :func:`shafts` in turn, each on its share of them
+        (``images`` itself when all are off)."""
+        for change, share in ((jitter, self.augment), (bands, self.augment_bands), (shafts, self.augment_shafts)):
+            if share > 0:
+                images = change(images, rng, share)
+        return images
 
 
-def check_shares(jitter_share: float, bands_share: float, shafts_share: float) -> None:
-    """Refuse an augmentation share outside [0, 1], naming its flag (the trainers' --augment, --augment-bands and
-    --augment-shafts)."""
-    shares = {"--augment": jitter_share, "--augment-bands": bands_share, "--augment-shafts": shafts_share}
-    for flag, share in shares.items():
-        if not 0.0 <= share <= 1.0:
-            raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
+def check_share(flag: str, share: float) -> None:
+    """Refuse an augmentation share outside [0, 1], naming its flag."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"{flag} is a share of frames: it must lie in [0, 1], got {share}")
 
 
 def jitter(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
@@ -155,3 +168,32 @@ def _band(
     if colour is None:
         colour = rng.uniform(0.0, 255.0, 3).astype(np.float32)
     return pixels * (1.0 - alpha) + colour * alpha
+
+
+def contrast(images: np.ndarray, masks: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
+    """A copy of uint8 frames (N, H, W, 3) in which, on a ``share`` of them, the dolphin's pixels (``masks``, N x H
+    x W) stand out from the water behind them more or less than rendered.
+
+    The sim's water fades a far dolphin into its colour, so an encoder can read distance off how faded the dolphin
+    is rather than off how big it is, and in clearer water it then reads every dolphin near. Scaling the contrast
+    at random, its size unchanged, leaves size the one cue that holds.
+    """
+    out = images.copy()
+    for index in np.flatnonzero(rng.random(len(images)) < share):
+        if masks[index].any():
+            out[index] = _contrast_one(images[index], masks[index], rng)
+    return out
+
+
+def _contrast_one(image: np.ndarray, mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    pixels = image.astype(np.float32)
+    body = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), 0.7)[..., None]  # soft edges, no seam
+    around = 1.0 - cv2.dilate(mask.astype(np.float32), np.ones((3, 3), np.float32))[..., None]  # water alone
+    mean_water = (pixels * around).sum(axis=(0, 1)) / max(float(around.sum()), 1.0)
+    # The surroundings' colour, leaning on the frame's mean water deep inside a dolphin that fills the blur.
+    water = (cv2.GaussianBlur(pixels * around, (0, 0), WATER_SIGMA_PX) + 0.01 * mean_water) / (
+        cv2.GaussianBlur(around[..., 0], (0, 0), WATER_SIGMA_PX)[..., None] + 0.01
+    )
+    gain = np.exp(rng.uniform(-CONTRAST_LOG_RANGE, CONTRAST_LOG_RANGE))
+    pixels += body * (gain - 1.0) * (pixels - water)
+    return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from encoder_service.augment import augment, check_shares
+from encoder_service.augment import AugmentSettings, check_share, contrast
 from encoder_service.model import images_to_tensor
 from encoder_service.pod_detector import (
     PodDetector,
@@ -54,18 +54,19 @@ def pod_dataset_meta(folder: Path) -> dict:
 
 
 def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
-    """Images, poses, companions (none for a lone dolphin's dataset) and target mask sizes of every shard of a
-    dataset with masks."""
+    """Images, poses, companions (none for a lone dolphin's dataset), the target's masks and their sizes of every
+    shard of a dataset with masks."""
     meta = pod_dataset_meta(folder)
-    parts: dict[str, list[np.ndarray]] = {"images": [], "poses": [], "companions": [], "target_pixels": []}
+    parts: dict[str, list[np.ndarray]] = {"images": [], "poses": [], "companions": [], "masks": []}
     for shard in meta["shards"]:
         stem = folder / shard
         parts["images"].append(np.load(f"{stem}.images.npy"))
         parts["poses"].append(np.load(f"{stem}.poses.npy"))
         alone = np.zeros((len(parts["poses"][-1]), 0, 6), np.float32)
         parts["companions"].append(np.load(f"{stem}.companions.npy") if meta.get("pod") else alone)
-        parts["target_pixels"].append(np.load(f"{stem}.masks.npy", mmap_mode="r").sum(axis=(1, 2)))
+        parts["masks"].append(np.load(f"{stem}.masks.npy"))
     data = {name: np.concatenate(arrays) for name, arrays in parts.items()}
+    data["target_pixels"] = data["masks"].sum(axis=(1, 2))
     points = dolphin_points(data["poses"].astype(np.float64), data["companions"].astype(np.float64))
     data["seen"], data["ignored"] = seen_dolphins(points, data["target_pixels"])
     data["pixels"] = to_pixels(points, data["images"].shape[1])
@@ -113,13 +114,13 @@ def batch(
     rows: np.ndarray,
     stride: int,
     mirror: np.ndarray | None = None,
-    photometric: Callable[[np.ndarray], np.ndarray] | None = None,
+    photometric: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> tuple:
     """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows, and
-    ``photometric`` (frames -> frames) changes their look, never where the dolphins are."""
+    ``photometric`` (frames, the target's masks -> frames) changes their look, never where the dolphins are."""
     images = data["images"][rows].copy()
     if photometric is not None:
-        images = photometric(images)
+        images = photometric(images, data["masks"][rows])
     pixels = data["pixels"][rows].copy()
     size = images.shape[1]
     if mirror is not None:
@@ -161,7 +162,7 @@ def validate(model: PodDetector, data: dict[str, np.ndarray], rows: np.ndarray, 
 
 
 @dataclass
-class TrainDetectorSettings:
+class TrainDetectorSettings(AugmentSettings):
     dataset: list[str] = field(default_factory=list)  # datasets with masks (`swimm dataset --masks`, a pod's with
     # --dolphin-pod-size N); several are read as one
     out: str = "runs/pod_detector.pt"  # the checkpoint, written after every epoch
@@ -175,9 +176,9 @@ class TrainDetectorSettings:
     stride: int = 2  # pixels per heatmap cell: 2 or 4
     threshold: float = THRESHOLD  # a peak's least score to count as a dolphin, saved in the checkpoint
     init: str = ""  # a detector checkpoint to start from (its width and stride); default: fresh weights
-    augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
-    augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
-    augment_shafts: float = 0.0  # share of training frames crossed by a sun's pale, near-parallel light shafts
+    # share of training frames whose target stands out from its water more or less than rendered, its size
+    # unchanged (encoder_service.augment.contrast): distance read off size, not off how faded the dolphin is
+    augment_contrast: float = 0.0
 
 
 def check(settings: TrainDetectorSettings) -> None:
@@ -190,7 +191,8 @@ def check(settings: TrainDetectorSettings) -> None:
         pod_dataset_meta(Path(folder))
     if settings.stride not in (2, 4):
         raise ValueError(f"--stride {settings.stride}: the detector reads 2 or 4 pixels a heatmap cell")
-    check_shares(settings.augment, settings.augment_bands, settings.augment_shafts)
+    settings.check_shares()
+    check_share("--augment-contrast", settings.augment_contrast)
     if not 0.0 < settings.threshold < 1.0:
         raise ValueError(f"--threshold {settings.threshold}: a peak's score lies in (0, 1)")
     for flag, value in (("--epochs", settings.epochs), ("--batch-size", settings.batch_size),
@@ -220,8 +222,12 @@ def run(settings: TrainDetectorSettings) -> int:
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
     rng = np.random.default_rng(settings.seed)
-    shares = (settings.augment, settings.augment_bands, settings.augment_shafts)
-    photometric = (lambda images: augment(images, rng, *shares)) if any(shares) else None
+    photometric = None
+    if any((settings.augment, settings.augment_bands, settings.augment_shafts, settings.augment_contrast)):
+
+        def photometric(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
+            return settings.augmented(contrast(images, masks, rng, settings.augment_contrast), rng)
+
     history: list[dict[str, float]] = []
     out = Path(settings.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -22,7 +22,7 @@ import torch
 from tqdm import tqdm
 
 from encoder_service import figures
-from encoder_service.augment import augment, check_shares
+from encoder_service.augment import AugmentSettings
 from encoder_service.data import (
     AnyDataset,
     Batch,
@@ -68,7 +68,7 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class TrainEncoderSettings:
+class TrainEncoderSettings(AugmentSettings):
     dataset: list[str] = field(default_factory=list)  # folders written by `swimm dataset`; several are read as one
     out: str = "runs/cmvae"
     epochs: int = 100
@@ -93,9 +93,6 @@ class TrainEncoderSettings:
     # of d, theta, psi (and the elevation, for a --vertical dataset) in the state error
     state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
     input_norm: str = "none"  # none | channel: white-balance | local: and even out the light | light: local + light
-    augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
-    augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
-    augment_shafts: float = 0.0  # share of training frames crossed by a sun's pale, near-parallel light shafts
     mask_weight: float = 0.0  # > 0: a mask head learns where the dolphin is (needs `swimm dataset --masks`); 0 = none
     locate: bool = False  # the encoder reads where the dolphin is off a locator the masks train (needs --mask-weight)
     track: bool = False  # the encoder reads a prior, where the target was last seen, beside each frame: pods
@@ -270,7 +267,7 @@ def _loss(
     a share of the inputs (never the targets); ``priors`` draws a tracking model's priors."""
     inputs, targets = inputs_and_targets(batch, feed_clean)
     if jitter_rng is not None:
-        inputs = augment(inputs, jitter_rng, settings.augment, settings.augment_bands, settings.augment_shafts)
+        inputs = settings.augmented(inputs, jitter_rng)
     labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
     images = encoder_input(model, inputs, batch.labels, device, priors, batch.centred)
     masks = _masks_tensor(batch, settings.mask_weight, device)
@@ -582,7 +579,7 @@ def check(settings: TrainEncoderSettings) -> None:
     settings.state_loss()  # checked before the dataset is read, not at the first batch
     if settings.input_norm not in INPUT_NORMS:
         raise ValueError(f"--input-norm must be one of {', '.join(INPUT_NORMS)}, got {settings.input_norm!r}")
-    check_shares(settings.augment, settings.augment_bands, settings.augment_shafts)
+    settings.check_shares()
     if not 0 <= settings.shift_pixels <= MAX_SHIFT_PIXELS:
         raise ValueError(f"--shift-pixels must be 0 (off) to {MAX_SHIFT_PIXELS}, got {settings.shift_pixels}")
     if not (math.isfinite(settings.mask_weight) and settings.mask_weight >= 0):

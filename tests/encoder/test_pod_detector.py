@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
-from encoder_service.augment import augment
+from encoder_service.augment import CONTRAST_LOG_RANGE, AugmentSettings, contrast
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder, open_encoder
 from encoder_service.model import read_checkpoint
 from encoder_service.pod_detector import (
@@ -139,6 +140,8 @@ def test_bad_settings_are_refused_by_flag(pod: Path, tmp_path: Path) -> None:
         check(TrainDetectorSettings(dataset=[str(tmp_path)], out=str(tmp_path / "d.pt")))
     with pytest.raises(ValueError, match="--augment-shafts is a share of frames"):
         check(TrainDetectorSettings(dataset=[str(pod)], augment_shafts=1.5, out=str(tmp_path / "d.pt")))
+    with pytest.raises(ValueError, match="--augment-contrast is a share of frames"):
+        check(TrainDetectorSettings(dataset=[str(pod)], augment_contrast=-0.5, out=str(tmp_path / "d.pt")))
     (tmp_path / "d.pt").write_bytes(b"")
     with pytest.raises(FileExistsError, match="--overwrite"):
         check(TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "d.pt")))
@@ -149,9 +152,43 @@ def test_augmentation_changes_the_look_not_the_labels(pod: Path) -> None:
     rows = np.arange(8)
     plain_frames, plain_targets = batch(data, rows, 2)
     rng = np.random.default_rng(0)
-    frames, targets = batch(data, rows, 2, photometric=lambda images: augment(images, rng, 1.0, 0.0, 1.0))
+    jitter = AugmentSettings(augment=1.0, augment_shafts=1.0)
+
+    def photometric(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
+        return jitter.augmented(contrast(images, masks, rng, 1.0), rng)
+
+    frames, targets = batch(data, rows, 2, photometric=photometric)
     assert not torch.equal(frames, plain_frames)
     assert all(torch.equal(targets[name], plain_targets[name]) for name in plain_targets)
+
+
+def test_contrast_moves_the_dolphin_from_its_water_and_nothing_else(pod: Path) -> None:
+    """In even water the dolphin's every pixel moves from the water by one factor a frame, drawn from the seed
+    within the range; on real frames pixels well clear of its mask keep their values."""
+    frames = np.empty((8, 64, 64, 3), np.uint8)
+    frames[:] = (60, 70, 80)
+    masks = np.zeros((8, 64, 64), bool)
+    for mask in masks:
+        cv2.ellipse(mask.view(np.uint8), (32, 30), (12, 4), 10, 0, 360, 1, -1)
+    frames[masks] = (110, 120, 130)
+    changed = contrast(frames, masks, np.random.default_rng(3), 1.0)
+    np.testing.assert_array_equal(changed, contrast(frames, masks, np.random.default_rng(3), 1.0))
+    np.testing.assert_array_equal(contrast(frames, masks, np.random.default_rng(3), 0.0), frames)
+    inside = cv2.erode(masks[0].view(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    factors = (changed[:, inside].astype(float) - (60, 70, 80)) / 50.0
+    per_frame = factors.reshape(8, -1)
+    np.testing.assert_allclose(
+        per_frame, np.broadcast_to(per_frame[:, :1], per_frame.shape), atol=0.02
+    )  # one factor a frame, up to rounding
+    assert np.all((per_frame > np.exp(-CONTRAST_LOG_RANGE) - 0.02) & (per_frame < np.exp(CONTRAST_LOG_RANGE) + 0.02))
+    assert np.ptp(per_frame[:, 0]) > 0.3  # drawn anew for each frame
+    data = load_pod_dataset(pod)
+    rows = np.flatnonzero(data["target_pixels"] >= 40)[:6]
+    real = contrast(data["images"][rows], data["masks"][rows], np.random.default_rng(3), 1.0)
+    for before, after, mask in zip(data["images"][rows], real, data["masks"][rows], strict=True):
+        clear = cv2.dilate(mask.view(np.uint8), np.ones((7, 7), np.uint8)) == 0
+        np.testing.assert_array_equal(after[clear], before[clear])
+        assert not np.array_equal(after, before)
 
 
 def test_a_lone_dolphins_dataset_trains_beside_a_pods(pod: Path, tmp_path: Path) -> None:
