@@ -54,19 +54,21 @@ def pod_dataset_meta(folder: Path) -> dict:
 
 
 def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
-    """Images, poses, companions (none for a lone dolphin's dataset), the target's masks and their sizes of every
-    shard of a dataset with masks."""
+    """Images, poses, companions (none for a lone dolphin's dataset), every dolphin's pixels and the target's
+    pixel count of every shard of a dataset with masks."""
     meta = pod_dataset_meta(folder)
-    parts: dict[str, list[np.ndarray]] = {"images": [], "poses": [], "companions": [], "masks": []}
+    parts: dict[str, list[np.ndarray]] = {"images": [], "poses": [], "companions": [], "masks": [], "target_pixels": []}
     for shard in meta["shards"]:
         stem = folder / shard
         parts["images"].append(np.load(f"{stem}.images.npy"))
         parts["poses"].append(np.load(f"{stem}.poses.npy"))
         alone = np.zeros((len(parts["poses"][-1]), 0, 6), np.float32)
         parts["companions"].append(np.load(f"{stem}.companions.npy") if meta.get("pod") else alone)
-        parts["masks"].append(np.load(f"{stem}.masks.npy"))
+        target = np.load(f"{stem}.masks.npy")
+        parts["target_pixels"].append(target.sum(axis=(1, 2)))
+        others = Path(f"{stem}.others.npy")  # a pod's companions' pixels
+        parts["masks"].append(target | np.load(others) if others.is_file() else target)
     data = {name: np.concatenate(arrays) for name, arrays in parts.items()}
-    data["target_pixels"] = data["masks"].sum(axis=(1, 2))
     points = dolphin_points(data["poses"].astype(np.float64), data["companions"].astype(np.float64))
     data["seen"], data["ignored"] = seen_dolphins(points, data["target_pixels"])
     data["pixels"] = to_pixels(points, data["images"].shape[1])
@@ -117,7 +119,7 @@ def batch(
     photometric: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> tuple:
     """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows, and
-    ``photometric`` (frames, the target's masks -> frames) changes their look, never where the dolphins are."""
+    ``photometric`` (frames, every dolphin's pixels -> frames) changes their look, never where the dolphins are."""
     images = data["images"][rows].copy()
     if photometric is not None:
         images = photometric(images, data["masks"][rows])
@@ -176,7 +178,7 @@ class TrainDetectorSettings(AugmentSettings):
     stride: int = 2  # pixels per heatmap cell: 2 or 4
     threshold: float = THRESHOLD  # a peak's least score to count as a dolphin, saved in the checkpoint
     init: str = ""  # a detector checkpoint to start from (its width and stride); default: fresh weights
-    # share of training frames whose target stands out from its water more or less than rendered, its size
+    # share of training frames whose dolphins stand out from their water more or less than rendered, its size
     # unchanged (encoder_service.augment.contrast): distance read off size, not off how faded the dolphin is
     augment_contrast: float = 0.0
 
