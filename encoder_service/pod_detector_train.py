@@ -178,8 +178,8 @@ class TrainDetectorSettings(AugmentSettings):
     stride: int = 2  # pixels per heatmap cell: 2 or 4
     threshold: float = THRESHOLD  # a peak's least score to count as a dolphin, saved in the checkpoint
     init: str = ""  # a detector checkpoint to start from (its width and stride); default: fresh weights
-    # share of training frames whose dolphins stand out from their water more or less than rendered, its size
-    # unchanged (encoder_service.augment.contrast): distance read off size, not off how faded the dolphin is
+    # share of training frames whose dolphins stand out from their water more or less than rendered, their size
+    # unchanged (encoder_service.augment.contrast): distance read off size, not off how faded it is
     augment_contrast: float = 0.0
 
 
