@@ -17,7 +17,6 @@ bit the same alone or in any batch, which the trace's is not).
 
 from __future__ import annotations
 
-import io
 import logging
 import warnings
 from collections.abc import Callable
@@ -37,6 +36,7 @@ from encoder_service.model import (
     load_model,
     read_checkpoint,
 )
+from encoder_service.onnx_engine import onnx_runtime
 from encoder_service.pod_encoder import PodEncoder, is_detector
 from services.messages import IMAGE_SHAPE
 
@@ -75,28 +75,9 @@ def _as_encoder(module: Callable[..., Any], tracks: bool) -> Encoder:
 
 def _onnx_runtime(model: CMVAE, threads: int | None) -> Encoder:
     """The encoder exported to ONNX in memory and run by onnxruntime on ``threads`` CPU threads (default 1)."""
-    try:
-        import onnxruntime
-    except ImportError as exc:
-        raise ValueError("the onnx engine needs onnxruntime: pip install 'swimm[export]'") from exc
     encoder, example, names = _inputs(model.cpu(), "cpu")
     outputs = ["mu", "logvar", "next_prior"] if model.tracks else ["mu", "logvar"]
-    graph = io.BytesIO()
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")  # torch's notes on its TorchScript-based exporter
-        batch_axis = {name: {0: "batch"} for name in (*names, *outputs)}
-        torch.onnx.export(encoder, example, graph, input_names=names, output_names=outputs,
-                          dynamic_axes=batch_axis, dynamo=False)  # fmt: skip
-    options = onnxruntime.SessionOptions()
-    options.intra_op_num_threads = threads or 1
-    options.inter_op_num_threads = 1
-    session = onnxruntime.InferenceSession(graph.getvalue(), options, providers=["CPUExecutionProvider"])
-
-    def encode(images: torch.Tensor, prior: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        feeds = {"images": np.ascontiguousarray(images.numpy()), "prior": np.ascontiguousarray(prior.numpy())}
-        return tuple(torch.from_numpy(output) for output in session.run(None, {name: feeds[name] for name in names}))
-
-    return encode
+    return _as_encoder(onnx_runtime(encoder, example, names, outputs, threads), model.tracks)
 
 
 def check_engine(engine: str, device: str) -> None:
@@ -200,18 +181,19 @@ def open_encoder(
     checkpoint: str | Path = DEFAULT_CHECKPOINT, device: str = "cpu", threads: int | None = None, engine: str = "torch"
 ) -> LatentEncoder | PodEncoder:
     """The encoder a checkpoint holds: a CMVAE's :class:`LatentEncoder`, or for a pod detector's checkpoint its
-    detector and tracker (encoder_service.pod_encoder), which run on the torch engine on the cpu only."""
+    detector and tracker (encoder_service.pod_encoder), which run on the cpu only."""
     if is_detector(checkpoint):
         refuse_detector_engine(checkpoint, engine, device)
-        return PodEncoder(checkpoint, threads=threads)
+        return PodEncoder(checkpoint, threads=threads, engine=engine)
     return LatentEncoder(checkpoint, device, threads, engine)
 
 
 def refuse_detector_engine(detector: str | Path, engine: str, device: str) -> None:
-    """A pod detector runs on the torch engine on the cpu only so far: refuse any other for one by name."""
-    if (engine, device) != ("torch", "cpu"):
-        raise ValueError(f"{detector} is a pod detector, which runs on the torch engine on the cpu only so far; "
-                         f"got engine {engine!r} on device {device!r}")  # fmt: skip
+    """A pod detector runs on the cpu only so far, under either engine: refuse another device (or an engine this
+    code has not) by name."""
+    if engine not in ENGINES or device != "cpu":
+        raise ValueError(f"{detector} is a pod detector, which runs on the cpu only so far (engine "
+                         f"{' or '.join(ENGINES)}); got engine {engine!r} on device {device!r}")  # fmt: skip
 
 
 def check_encoder_file(checkpoint: str | Path, engine: str, device: str) -> None:

@@ -9,17 +9,20 @@ them (normalised as the labels are; target yaw and the rest 0), so the camera-on
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from encoder_service import DETECTOR_FORMAT
+from encoder_service import DETECTOR_FORMAT, ENGINES
 from encoder_service.model import LABEL_NAMES, check_images, denormalise_labels, images_to_tensor, normalise_labels
+from encoder_service.onnx_engine import onnx_runtime
 from encoder_service.pod_detector import PodDetector, decode
 from encoder_service.pod_tracker import STATE_SIZE, PodTracker
 from services.geometry import OPT_D
+from services.messages import IMAGE_SHAPE
 
 log = logging.getLogger(__name__)
 
@@ -70,17 +73,30 @@ class PodEncoder:
     labels = LABEL_NAMES
     prior_shape = (STATE_SIZE,)
 
-    def __init__(self, checkpoint: str | Path, tracker: PodTracker | None = None, threads: int | None = None) -> None:
+    def __init__(
+        self,
+        checkpoint: str | Path,
+        tracker: PodTracker | None = None,
+        threads: int | None = None,
+        engine: str = "torch",
+    ) -> None:
+        if engine not in ENGINES:
+            raise ValueError(f"encoder engine must be one of {', '.join(ENGINES)}, got {engine!r}")
         if threads is not None:
             torch.set_num_threads(threads)  # process-wide, as a CMVAE's LatentEncoder does
         saved = read_detector(checkpoint)
         self.model = PodDetector(width=int(saved["width"]), stride=int(saved["stride"]))
         self.model.load_state_dict(saved["state_dict"])
         self.model.eval()
+        self.engine = engine
+        self._detect: Callable[[torch.Tensor], tuple[torch.Tensor, ...]] = self.model
+        if engine == "onnx":
+            example = (images_to_tensor(np.zeros((1, *IMAGE_SHAPE), np.uint8)),)
+            self._detect = onnx_runtime(self.model, example, ["images"], ["heat", "regression"], threads)
         self.threshold = float(saved["threshold"])
         self.tracker = tracker or PodTracker()
         self.checkpoint = Path(checkpoint)
-        log.info("pod detector %s loaded (threshold %.2f)", checkpoint, self.threshold)
+        log.info("pod detector %s loaded (threshold %.2f), %s engine", checkpoint, self.threshold, engine)
 
     @torch.inference_mode()
     def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -90,7 +106,7 @@ class PodEncoder:
         if priors is not None and (np.shape(priors) != (len(images), STATE_SIZE) or not np.isfinite(priors).all()):
             raise ValueError(f"priors must be {len(images)} finite pod tracker states of {STATE_SIZE} numbers, one "
                              f"per frame, got an array shaped {np.shape(priors)}")  # fmt: skip
-        detections = decode(*self.model(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride)
+        detections = decode(*self._detect(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride)
         states = np.zeros((len(images), STATE_SIZE), np.float32)
         readings = np.zeros((len(images), 3))  # d, theta and psi (unread: 0) of each frame's target
         for row, frame in enumerate(detections):
