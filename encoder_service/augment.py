@@ -30,6 +30,7 @@ SHAFTS = (2, 6)  # light shafts per frame with shafts, U{lo..hi}
 SHAFT_SPREAD_DEG = 6.0  # a shaft's direction within this many degrees of the set's
 SHAFT_LIGHT = (150.0, 255.0)  # the shafts' grey level U[lo, hi], 0-255 units: sunlight is pale
 SHAFT_TINT = 20.0  # per-channel tint U[-t, t] on that grey
+DEFOCUS_SIGMA = (0.5, 3.0)  # --augment-blur: Gaussian blur, sigma U[lo, hi] pixels
 CONTRAST_LOG_RANGE = 0.9  # the dolphin's contrast to its water times exp(U[-r, r]): about 0.4x to 2.5x
 WATER_SIGMA_PX = 4.0  # the water behind the dolphin: its surroundings blurred over this many pixels
 
@@ -41,18 +42,21 @@ class AugmentSettings:
     augment: float = 0.0  # share of training frames fed with a random photometric jitter (encoder_service.augment)
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     augment_shafts: float = 0.0  # share of training frames crossed by a sun's pale, near-parallel light shafts
+    augment_blur: float = 0.0  # share of training frames blurred as by a camera out of focus (encoder_service.augment)
 
     def check_shares(self) -> None:
         """Refuse a share outside [0, 1], naming its flag."""
         shares = (("--augment", self.augment), ("--augment-bands", self.augment_bands),
-                  ("--augment-shafts", self.augment_shafts))  # fmt: skip
+                  ("--augment-shafts", self.augment_shafts), ("--augment-blur", self.augment_blur))  # fmt: skip
         for flag, share in shares:
             check_share(flag, share)
 
     def augmented(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Frames through :func:`jitter`, :func:`bands` and :func:`shafts` in turn, each on its share of them
-        (``images`` itself when all are off)."""
-        for change, share in ((jitter, self.augment), (bands, self.augment_bands), (shafts, self.augment_shafts)):
+        """Frames through :func:`jitter`, :func:`bands`, :func:`shafts` and :func:`defocus` in turn, each on its
+        share of them (``images`` itself when all are off)."""
+        changes = ((jitter, self.augment), (bands, self.augment_bands), (shafts, self.augment_shafts),
+                   (defocus, self.augment_blur))  # fmt: skip
+        for change, share in changes:
             if share > 0:
                 images = change(images, rng, share)
         return images
@@ -168,6 +172,17 @@ def _band(
     if colour is None:
         colour = rng.uniform(0.0, 255.0, 3).astype(np.float32)
     return pixels * (1.0 - alpha) + colour * alpha
+
+
+def defocus(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
+    """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them are blurred, sigma :data:`DEFOCUS_SIGMA`.
+
+    Blur swells a small dolphin's blob, and a detector that reads distance off the blob's size then reads a far
+    dolphin near (docs/encoder.md); the jitter's own blur stops at :data:`BLUR_SIGMA_MAX`.
+    """
+    return _on_share(
+        images, rng, share, lambda image, rng: cv2.GaussianBlur(image, (0, 0), rng.uniform(*DEFOCUS_SIGMA))
+    )
 
 
 def contrast(images: np.ndarray, masks: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:

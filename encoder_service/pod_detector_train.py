@@ -225,7 +225,8 @@ def run(settings: TrainDetectorSettings) -> int:
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
     rng = np.random.default_rng(settings.seed)
     photometric = None
-    if any((settings.augment, settings.augment_bands, settings.augment_shafts, settings.augment_contrast)):
+    shares = (settings.augment, settings.augment_bands, settings.augment_shafts, settings.augment_blur)
+    if any(shares) or settings.augment_contrast:
 
         def photometric(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
             return settings.augmented(contrast(images, masks, rng, settings.augment_contrast), rng)

@@ -12,7 +12,7 @@ import onnxruntime
 import pytest
 import torch
 
-from encoder_service.augment import BANDS_MAX, SHAFT_TINT, bands, jitter, shafts
+from encoder_service.augment import BANDS_MAX, DEFOCUS_SIGMA, SHAFT_TINT, bands, defocus, jitter, shafts
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import (
     CMVAE,
@@ -166,6 +166,16 @@ def test_shafts_are_seeded_pale_near_parallel_and_touch_only_their_share() -> No
     # one direction per frame: their edges line up far more than those of bands at random angles
     banded = bands(frames, np.random.default_rng(5), 1.0)
     assert np.mean([_edge_coherence(image) for image in lit]) > np.mean([_edge_coherence(i) for i in banded]) + 0.1
+
+
+def test_defocus_spreads_a_point_by_its_drawn_sigma_and_touches_only_its_share() -> None:
+    frames = np.zeros((200, 64, 64, 3), dtype=np.uint8)
+    frames[:, 32, 32] = 255
+    for image in _changed_share(defocus, frames):
+        spot = image[..., 0].astype(float)
+        rows = np.arange(64)[:, None]
+        sigma = np.sqrt((spot * (rows - 32) ** 2).sum() / spot.sum())  # the blur's spread about the point
+        assert DEFOCUS_SIGMA[0] - 0.25 < sigma < DEFOCUS_SIGMA[1] + 0.25 and spot.sum() == pytest.approx(255, rel=0.2)
 
 
 def _edge_coherence(image: np.ndarray) -> float:

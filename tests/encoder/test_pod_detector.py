@@ -159,6 +159,8 @@ def test_bad_settings_are_refused_by_flag(pod: Path, tmp_path: Path) -> None:
         check(TrainDetectorSettings(dataset=[str(tmp_path)], out=str(tmp_path / "d.pt")))
     with pytest.raises(ValueError, match="--augment-shafts is a share of frames"):
         check(TrainDetectorSettings(dataset=[str(pod)], augment_shafts=1.5, out=str(tmp_path / "d.pt")))
+    with pytest.raises(ValueError, match="--augment-blur is a share of frames"):
+        check(TrainDetectorSettings(dataset=[str(pod)], augment_blur=1.01, out=str(tmp_path / "d.pt")))
     with pytest.raises(ValueError, match="--augment-contrast is a share of frames"):
         check(TrainDetectorSettings(dataset=[str(pod)], augment_contrast=-0.5, out=str(tmp_path / "d.pt")))
     (tmp_path / "d.pt").write_bytes(b"")
@@ -171,7 +173,7 @@ def test_augmentation_changes_the_look_not_the_labels(pod: Path) -> None:
     rows = np.arange(8)
     plain_frames, plain_targets = batch(data, rows, 2)
     rng = np.random.default_rng(0)
-    jitter = AugmentSettings(augment=1.0, augment_shafts=1.0)
+    jitter = AugmentSettings(augment=1.0, augment_shafts=1.0, augment_blur=1.0)
 
     def photometric(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
         return jitter.augmented(contrast(images, masks, rng, 1.0), rng)
