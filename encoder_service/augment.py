@@ -32,6 +32,7 @@ SHAFT_LIGHT = (150.0, 255.0)  # the shafts' grey level U[lo, hi], 0-255 units: s
 SHAFT_TINT = 20.0  # per-channel tint U[-t, t] on that grey
 DEFOCUS_SIGMA = (0.5, 3.0)  # --augment-blur: Gaussian blur, sigma U[lo, hi] pixels
 CONTRAST_LOG_RANGE = 0.9  # the dolphin's contrast to its water times exp(U[-r, r]): about 0.4x to 2.5x
+CONTRAST_FLIP_SHARE = 0.3  # of those, this share also turned around: a dark dolphin on a pale, bright water
 WATER_SIGMA_PX = 4.0  # the water behind the dolphin: its surroundings blurred over this many pixels
 
 
@@ -187,7 +188,8 @@ def defocus(images: np.ndarray, rng: np.random.Generator, share: float) -> np.nd
 
 def contrast(images: np.ndarray, masks: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
     """A copy of uint8 frames (N, H, W, 3) in which, on a ``share`` of them, the dolphin's pixels (``masks``, N x H
-    x W) stand out from the water behind them more or less than rendered.
+    x W) stand out from the water behind them more or less than rendered, and on some of them the other way round
+    (darker than the water where it was lighter, or the reverse).
 
     The sim's water fades a far dolphin into its colour, so an encoder can read distance off how faded the dolphin
     is rather than off how big it is, and in clearer water it then reads every dolphin near. Scaling the contrast
@@ -210,5 +212,7 @@ def _contrast_one(image: np.ndarray, mask: np.ndarray, rng: np.random.Generator)
         cv2.GaussianBlur(around[..., 0], (0, 0), WATER_SIGMA_PX)[..., None] + 0.01
     )
     gain = np.exp(rng.uniform(-CONTRAST_LOG_RANGE, CONTRAST_LOG_RANGE))
+    if rng.random() < CONTRAST_FLIP_SHARE:
+        gain = -gain
     pixels += body * (gain - 1.0) * (pixels - water)
     return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)

@@ -187,22 +187,26 @@ def test_contrast_moves_the_dolphin_from_its_water_and_nothing_else(pod: Path) -
     """In even water the dolphin's every pixel moves from the water by one factor a frame, drawn from the seed
     within the range; on real frames pixels well clear of its mask keep their values."""
     frames = np.empty((8, 64, 64, 3), np.uint8)
-    frames[:] = (60, 70, 80)
+    frames[:] = (110, 120, 130)
     masks = np.zeros((8, 64, 64), bool)
     for mask in masks:
         cv2.ellipse(mask.view(np.uint8), (32, 30), (12, 4), 10, 0, 360, 1, -1)
-    frames[masks] = (110, 120, 130)
+    frames[masks] = (150, 160, 170)
     changed = contrast(frames, masks, np.random.default_rng(3), 1.0)
     np.testing.assert_array_equal(changed, contrast(frames, masks, np.random.default_rng(3), 1.0))
     np.testing.assert_array_equal(contrast(frames, masks, np.random.default_rng(3), 0.0), frames)
     inside = cv2.erode(masks[0].view(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    factors = (changed[:, inside].astype(float) - (60, 70, 80)) / 50.0
+    factors = (changed[:, inside].astype(float) - (110, 120, 130)) / 40.0
     per_frame = factors.reshape(8, -1)
     np.testing.assert_allclose(
         per_frame, np.broadcast_to(per_frame[:, :1], per_frame.shape), atol=0.02
     )  # one factor a frame, up to rounding
-    assert np.all((per_frame > np.exp(-CONTRAST_LOG_RANGE) - 0.02) & (per_frame < np.exp(CONTRAST_LOG_RANGE) + 0.02))
+    size = np.abs(per_frame)
+    assert np.all((size > np.exp(-CONTRAST_LOG_RANGE) - 0.02) & (size < np.exp(CONTRAST_LOG_RANGE) + 0.02))
     assert np.ptp(per_frame[:, 0]) > 0.3  # drawn anew for each frame
+    flipped = contrast(np.repeat(frames, 8, axis=0), np.repeat(masks, 8, axis=0), np.random.default_rng(4), 1.0)
+    turned = (flipped[:, inside][:, :, 0].astype(float) < 110).all(axis=1)  # darker than the water: turned round
+    assert 0.1 < turned.mean() < 0.5
     data = load_pod_dataset(pod)
     rows = np.flatnonzero(data["target_pixels"] >= 40)[:6]
     real = contrast(data["images"][rows], data["masks"][rows], np.random.default_rng(3), 1.0)
