@@ -60,6 +60,14 @@ def read_detector(path: str | Path, what: str = "the checkpoint") -> dict[str, A
     return saved
 
 
+def load_detector(path: str | Path) -> tuple[PodDetector, dict[str, Any]]:
+    """A pod detector checkpoint's network in eval mode, and the checkpoint's contents (threshold, history)."""
+    saved = read_detector(path)
+    model = PodDetector(width=int(saved["width"]), stride=int(saved["stride"]))
+    model.load_state_dict(saved["state_dict"])
+    return model.eval(), saved
+
+
 def save_detector(model: PodDetector, path: Path, threshold: float, history: list[dict[str, Any]]) -> None:
     torch.save({"format": DETECTOR_FORMAT, "version": DETECTOR_VERSION, "width": model.width, "stride": model.stride,
                 "threshold": threshold, "state_dict": model.state_dict(), "history": history}, path)  # fmt: skip
@@ -84,10 +92,7 @@ class PodEncoder:
             raise ValueError(f"encoder engine must be one of {', '.join(ENGINES)}, got {engine!r}")
         if threads is not None:
             torch.set_num_threads(threads)  # process-wide, as a CMVAE's LatentEncoder does
-        saved = read_detector(checkpoint)
-        self.model = PodDetector(width=int(saved["width"]), stride=int(saved["stride"]))
-        self.model.load_state_dict(saved["state_dict"])
-        self.model.eval()
+        self.model, saved = load_detector(checkpoint)
         self.engine = engine
         self._detect: Callable[[torch.Tensor], tuple[torch.Tensor, ...]] = self.model
         if engine == "onnx":

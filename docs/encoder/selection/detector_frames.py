@@ -16,8 +16,8 @@ import pandas as pd
 import torch
 
 from encoder_service.model import images_to_tensor
-from encoder_service.pod_detector import PodDetector, decode
-from encoder_service.pod_encoder import read_detector
+from encoder_service.pod_detector import decode
+from encoder_service.pod_encoder import load_detector
 from eval_service.suite import SuiteSettings, suite_conditions
 from learner_service.task import episode_seed
 from sim_service.dataset import SamplingRanges, labels_and_pose, sample_pose
@@ -33,10 +33,7 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     parser.add_argument("--sampled", action="store_true", help="frames at the datasets' poses, not reset frames")
     args = parser.parse_args()
-    saved = read_detector(args.detector)
-    model = PodDetector(width=saved["width"], stride=saved["stride"])
-    model.load_state_dict(saved["state_dict"])
-    model.eval()
+    model, saved = load_detector(args.detector)
     world = World(WorldSettings())
     rows = []
     for split in suite_conditions(SuiteSettings()):

@@ -17,9 +17,9 @@ import pandas as pd
 import torch
 
 from encoder_service.model import images_to_tensor
-from encoder_service.pod_detector import PodDetector, decode
+from encoder_service.pod_detector import decode
 from encoder_service.pod_detector_train import load_pod_dataset
-from encoder_service.pod_encoder import read_detector
+from encoder_service.pod_encoder import load_detector
 
 
 def changes(rng: np.random.Generator) -> dict:
@@ -46,10 +46,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=2000)
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
-    saved = read_detector(args.detector)
-    model = PodDetector(width=saved["width"], stride=saved["stride"])
-    model.load_state_dict(saved["state_dict"])
-    model.eval()
+    model, saved = load_detector(args.detector)
     data = load_pod_dataset(Path(args.dataset))
     rows = np.flatnonzero(data["seen"][:, 0])[: args.frames]
     distances, azimuths = data["distances"][rows, 0], data["azimuths"][rows, 0]
