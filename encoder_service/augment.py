@@ -189,12 +189,14 @@ def defocus(images: np.ndarray, rng: np.random.Generator, share: float) -> np.nd
 def contrast(images: np.ndarray, masks: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
     """A copy of uint8 frames (N, H, W, 3) in which, on a ``share`` of them, the dolphin's pixels (``masks``, N x H
     x W) stand out from the water behind them more or less than rendered, and on some of them the other way round
-    (darker than the water where it was lighter, or the reverse).
+    (darker than the water where it was lighter, or the reverse); ``images`` itself at share 0, drawing nothing.
 
-    The sim's water fades a far dolphin into its colour, so an encoder can read distance off how faded the dolphin
-    is rather than off how big it is, and in clearer water it then reads every dolphin near. Scaling the contrast
-    at random, its size unchanged, leaves size the one cue that holds.
+    A far dolphin fades into its water, and in a pale, bright water shows darker than it: scaling and turning its
+    contrast at random, its size unchanged, keeps neither from standing in for distance (docs/encoder.md measures
+    what it does to the read).
     """
+    if share <= 0:
+        return images
     out = images.copy()
     for index in np.flatnonzero(rng.random(len(images)) < share):
         if masks[index].any():

@@ -224,12 +224,9 @@ def run(settings: TrainDetectorSettings) -> int:
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
     rng = np.random.default_rng(settings.seed)
-    photometric = None
-    shares = (settings.augment, settings.augment_bands, settings.augment_shafts, settings.augment_blur)
-    if any(shares) or settings.augment_contrast:
 
-        def photometric(images: np.ndarray, masks: np.ndarray) -> np.ndarray:
-            return settings.augmented(contrast(images, masks, rng, settings.augment_contrast), rng)
+    def photometric(images: np.ndarray, masks: np.ndarray) -> np.ndarray:  # the frames themselves when all are off
+        return settings.augmented(contrast(images, masks, rng, settings.augment_contrast), rng)
 
     history: list[dict[str, float]] = []
     out = Path(settings.out)
