@@ -32,7 +32,7 @@ from encoder_service.pod_detector import (
     seen_dolphins,
     to_pixels,
 )
-from encoder_service.pod_encoder import read_detector, save_detector
+from encoder_service.pod_encoder import load_detector, read_detector, save_detector
 from services.geometry import CAMERA_AHEAD_M
 from services.results import provenance, write_result
 
@@ -217,9 +217,7 @@ def run(settings: TrainDetectorSettings) -> int:
     parts = [load_pod_dataset(Path(folder)) for folder in settings.dataset]
     data = join_datasets(parts)
     train_rows, val_rows = split_rows([len(part["images"]) for part in parts], settings.val_frames)
-    model = PodDetector(width=settings.width, stride=settings.stride)
-    if settings.init:
-        model.load_state_dict(read_detector(settings.init, "--init")["state_dict"])
+    model = load_detector(settings.init)[0].train() if settings.init else PodDetector(settings.width, settings.stride)
     optimiser = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=1e-4)
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
