@@ -3,7 +3,7 @@
 A CMVAE reads *the* dolphin, which a pod leaves undefined. The detector reads all of them: a heatmap of dolphin
 centres on a coarse grid (one cell per ``stride`` pixels), with each cell's sub-cell offset and the log of
 that dolphin's distance (CenterNet's recipe, Zhou et al. 2019, shrunk to 64x64 frames). Which detection is the
-target is the tracker's business (encoder_service.pod_tracker), across frames.
+target is the tracker's business (services.pod_tracker), across frames.
 
 Labels come from a pod dataset's stored poses (``swimm dataset --dolphin-pod-size N --masks``): every dolphin's
 body centre projected by the pinhole camera; a dolphin counts as seen when its centre is in view and no nearer
@@ -14,36 +14,19 @@ but hidden are left out of the heatmap's loss rather than taught as background.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from services.geometry import ALPHA_DEG, BETA_DEG, CAMERA_AHEAD_M
+from services.detections import TAN_ALPHA, TAN_BETA, Detections, read_peaks
 from services.identity import hidden, in_view, level_camera_points
 
 #: Heatmap peaks' spread in pixels: about the blur of a centre read to a pixel or two.
 PEAK_SIGMA_PX = 2.4
 #: A target mask with fewer pixels than this is a dolphin the frame does not show.
 MIN_TARGET_PIXELS = 4
-TAN_ALPHA = math.tan(math.radians(ALPHA_DEG))
-TAN_BETA = math.tan(math.radians(BETA_DEG))
-
-
-@dataclass(frozen=True)
-class Detections:
-    """One frame's dolphins, strongest first: score in (0, 1), azimuth and elevation in degrees (+ = left, above),
-    distance in metres."""
-
-    score: np.ndarray
-    azimuth: np.ndarray
-    elevation: np.ndarray
-    distance: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.score)
 
 
 def to_pixels(points: np.ndarray, size: int) -> np.ndarray:
@@ -52,22 +35,6 @@ def to_pixels(points: np.ndarray, size: int) -> np.ndarray:
     x = (1.0 - points[..., 1] / forward / TAN_ALPHA) * size / 2
     y = (1.0 - points[..., 2] / forward / TAN_BETA) * size / 2
     return np.stack([x, y], axis=-1)
-
-
-def from_pixels(x: np.ndarray, y: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Image (x, y) in pixels -> (azimuth, elevation) in degrees of the ray through them."""
-    left = (1.0 - 2.0 * np.asarray(x) / size) * TAN_ALPHA
-    up = (1.0 - 2.0 * np.asarray(y) / size) * TAN_BETA
-    return np.degrees(np.arctan(left)), np.degrees(np.arctan2(up, np.hypot(1.0, left)))
-
-
-def rover_azimuth(camera_azimuth: np.ndarray, distance: np.ndarray) -> np.ndarray:
-    """The task's azimuth (from the rover's centre, degrees) of a dolphin the camera, :data:`CAMERA_AHEAD_M` ahead
-    of that centre, sees at ``camera_azimuth`` degrees, ``distance`` metres from the rover's centre."""
-    alpha = np.radians(camera_azimuth)
-    sin, cos = np.sin(alpha), np.cos(alpha)
-    from_camera = -CAMERA_AHEAD_M * cos + np.sqrt(np.maximum(distance**2 - (CAMERA_AHEAD_M * sin) ** 2, 0.0))
-    return np.degrees(np.arctan2(from_camera * sin, from_camera * cos + CAMERA_AHEAD_M))
 
 
 def dolphin_points(poses: np.ndarray, companions: np.ndarray) -> np.ndarray:
@@ -186,18 +153,5 @@ def decode(
     heat_logits: torch.Tensor, regression: torch.Tensor, threshold: float, size: int, stride: int
 ) -> list[Detections]:
     """Peaks above ``threshold`` (3x3 local maxima of the sigmoid heat) as each frame's :class:`Detections`."""
-    heat = torch.sigmoid(heat_logits[:, 0])
-    peaks = (heat == F.max_pool2d(heat[:, None], 3, 1, 1)[:, 0]) & (heat > threshold)
-    frames = []
-    for n in range(len(heat)):
-        iy, ix = torch.nonzero(peaks[n], as_tuple=True)
-        order = torch.argsort(heat[n, iy, ix], descending=True)
-        iy, ix = iy[order], ix[order]
-        r = regression[n][:, iy, ix].detach().cpu().numpy()
-        x = (ix.cpu().numpy() + r[0]) * stride
-        y = (iy.cpu().numpy() + r[1]) * stride
-        azimuth, elevation = from_pixels(x, y, size)
-        distance = np.exp(r[2])
-        score = heat[n, iy, ix].detach().cpu().numpy()
-        frames.append(Detections(score, rover_azimuth(azimuth, distance), elevation, distance))
-    return frames
+    heat = torch.sigmoid(heat_logits[:, 0]).detach().cpu().numpy()
+    return read_peaks(heat, regression.detach().cpu().numpy(), threshold, size, stride)

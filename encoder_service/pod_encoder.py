@@ -1,7 +1,7 @@
 """The pod detector and tracker as an encoder: frames and the loop's tracker state in, the target's latent out.
 
 It answers as a tracking CMVAE does (``track(images, priors) -> (mu, logvar, next priors)``), its prior the
-tracker's whole state (encoder_service.pod_tracker), so the loops that carry a tracking CMVAE's prior carry it and
+tracker's whole state (services.pod_tracker), so the loops that carry a tracking CMVAE's prior carry it and
 keep the encoder stateless. The latent holds the target's distance and azimuth where a CMVAE's state decoders read
 them (normalised as the labels are; target yaw and the rest 0), so the camera-only scripted tracker flies on it.
 """
@@ -20,9 +20,9 @@ from encoder_service import DETECTOR_FORMAT, ENGINES
 from encoder_service.model import LABEL_NAMES, check_images, denormalise_labels, images_to_tensor, normalise_labels
 from encoder_service.onnx_engine import onnx_runtime
 from encoder_service.pod_detector import PodDetector, decode
-from encoder_service.pod_tracker import STATE_SIZE, PodTracker
 from services.geometry import OPT_D
 from services.messages import IMAGE_SHAPE
+from services.pod_tracker import STATE_SIZE, PodTracker
 
 log = logging.getLogger(__name__)
 

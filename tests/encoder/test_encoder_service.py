@@ -27,11 +27,11 @@ from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, make_checkpoint
 from encoder_service.pod_detector_train import load_pod_dataset
 from encoder_service.pod_encoder import PodEncoder
-from encoder_service.pod_tracker import STATE_SIZE
 from encoder_service.service import EncoderService, EncoderSettings, LatentBatcher, _Frame
 from learner_service.live_encoders import check_live_encoders
 from services.keys import Keys
 from services.messages import BatchItem, BatchMsg, LatentMsg, ObservationMsg, image_to_fields
+from services.pod_tracker import STATE_SIZE
 from services.presence import Roster, ask_about
 from services.results import file_sha256
 from services.settings import ZenohSettings

@@ -17,9 +17,7 @@ from encoder_service.pod_detector import (
     PodDetector,
     decode,
     dolphin_points,
-    from_pixels,
     heatmap_targets,
-    rover_azimuth,
     seen_dolphins,
     to_pixels,
 )
@@ -33,9 +31,10 @@ from encoder_service.pod_detector_train import (
     split_rows,
 )
 from encoder_service.pod_encoder import PodEncoder, read_detector
-from encoder_service.pod_tracker import STATE_SIZE
 from encoder_service.service import EncoderSettings
 from encoder_service.service import check as check_encoder
+from services.detections import from_pixels, rover_azimuth
+from services.pod_tracker import STATE_SIZE
 from tests.encoder.pod_testdata import render_pod_dataset
 
 

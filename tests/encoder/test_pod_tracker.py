@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from encoder_service.pod_detector import Detections
-from encoder_service.pod_tracker import BEHIND, FIELDS, MAX_TRACKS, STATE_SIZE, TARGET, PodTracker
+from services.detections import Detections
+from services.pod_tracker import BEHIND, FIELDS, MAX_TRACKS, STATE_SIZE, TARGET, PodTracker
 
 
 def frame(*dolphins: tuple[float, float]) -> Detections:

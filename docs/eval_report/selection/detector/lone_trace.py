@@ -12,10 +12,10 @@ import argparse
 import numpy as np
 
 from encoder_service.pod_encoder import PodEncoder
-from encoder_service.pod_tracker import ALIVE, AZIMUTH, FIELDS, LOG_D, MAX_TRACKS, MISSES, TARGET
 from learner_service.inprocess_env import TrackingEnv, task_world
 from learner_service.registry import load_policy
 from learner_service.task import TaskSettings
+from services.pod_tracker import ALIVE, AZIMUTH, FIELDS, LOG_D, MAX_TRACKS, MISSES, TARGET
 from sim_service.settings import WorldSettings
 from sim_service.splits import resolve_splits
 

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from encoder_service.pod_encoder import PodEncoder
-from encoder_service.pod_tracker import AZIMUTH, BEHIND, FIELDS, LOG_D, MAX_TRACKS, MISSES, TARGET
 from learner_service.inprocess_env import TrackingEnv, task_world
 from learner_service.registry import load_policy
 from learner_service.task import TaskSettings
+from services.pod_tracker import AZIMUTH, BEHIND, FIELDS, LOG_D, MAX_TRACKS, MISSES, TARGET
 from sim_service.settings import DolphinSettings, WorldSettings
 
 DETECTOR = "encoder_service/models/pod_detector.pt"

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from encoder_service.pod_detector import Detections
+from services.detections import Detections
 from services.identity import DOLPHIN_RADIUS_M
 
 FIELDS = ("alive", "target", "azimuth", "log_d", "rate", "log_d_rate", "misses", "behind")
