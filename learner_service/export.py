@@ -34,8 +34,11 @@ import torch
 from encoder_service import DEFAULT_CHECKPOINT
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import CMVAE, LABEL_RANGES, PriorReader, load_model, refuse_distance_prior
+from encoder_service.pod_encoder import is_detector
+from learner_service.export_detector import export_detector_policy
 from learner_service.identity import encoder_for, policy_task
-from learner_service.registry import deterministic_action, resolve_algorithm
+from learner_service.policy_graph import LatentToAction, play, write_onnx
+from learner_service.registry import resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
 from services.results import file_sha256
 from services.settings import FilePath, PosFloat, PosInt, check_ranges
@@ -52,7 +55,6 @@ TRACKING_OUTPUTS = ("next_prior",)
 #: The unit the check's tolerance is a share of, per output: actions span [-1, 1]; a next prior is in degrees, the
 #: state decoder's [-1, 1] stretched over the azimuth range (float32 rounding grows with it).
 CHECK_UNITS = {"action": 1.0, "next_prior": (LABEL_RANGES["theta"][1] - LABEL_RANGES["theta"][0]) / 2}
-OPSET = 17
 
 
 @dataclass
@@ -64,6 +66,9 @@ class ExportSettings:
     check_frames: PosInt = 1000  # frames of a real in-process episode both paths must agree on
     check_seed: int = 9001  # the episode's seed
     tolerance: PosFloat = 1e-4  # largest allowed |onnx - python| action difference (a next prior's: of its range)
+    # the same for a policy on the pod detector, its readings' of their ranges: the two runtimes place the peaks
+    # within a few thousandths of a cell, which the tracker carries on
+    detector_tolerance: PosFloat = 1e-2
     threads: int = 1  # torch CPU threads of the Python path (docs/eval.md: one is faster beside other work)
 
 
@@ -75,12 +80,8 @@ class CameraToAction(torch.nn.Module):
         super().__init__()
         self.tracks = cmvae.tracks
         self.encoder = PriorReader(cmvae) if self.tracks else cmvae.encoder
-        self.policy = policy
+        self.act = LatentToAction(policy, history_size)
         self.history_size = history_size
-        low, high = (torch.as_tensor(bound, dtype=torch.float32) for bound in (policy.action_space.low,
-                                                                              policy.action_space.high))  # fmt: skip
-        self.register_buffer("low", low)
-        self.register_buffer("high", high)
 
     @property
     def inputs(self) -> tuple[str, ...]:
@@ -100,13 +101,7 @@ class CameraToAction(torch.nn.Module):
         images = frame.permute(0, 3, 1, 2).float() / 127.5 - 1.0  # encoder_service.model.images_to_tensor
         # a tracking CMVAE's PriorReader gives the next prior after (mu, logvar): none without a prior
         mu, _, *next_prior = self.encoder(images) if prior is None else self.encoder(images, prior)
-        actions = deterministic_action(self.policy, torch.cat([mu, action_history], dim=1))
-        # What BasePolicy.predict does after the network: back from the squashed [-1, 1] or clip to the bounds.
-        if self.policy.squash_output:
-            actions = self.low + 0.5 * (actions + 1.0) * (self.high - self.low)
-        action = torch.minimum(torch.maximum(actions, self.low), self.high)
-        next_history = torch.cat([action_history[:, action.shape[1] :], action], dim=1)
-        return action, next_history, *next_prior
+        return *self.act(mu, action_history), *next_prior
 
 
 #: How the vehicle holds or changes depth under each task's actions (`swimm pilot` flies heave in ALT_HOLD only).
@@ -154,8 +149,6 @@ def contract(
 def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: int, seed: int) -> dict[str, np.ndarray]:
     """Play the model deterministically in-process for ``frames`` steps: every frame, its prior (zeros for a CMVAE
     that does not track) and the next prior the encoder gives, ActPrev and the chosen action."""
-    from learner_service.inprocess_env import TrackingEnv  # MuJoCo: not in the torch image, which attaches only
-
     seen: list[tuple[np.ndarray, np.float32, np.float32]] = []
 
     class Recording(LatentEncoder):
@@ -169,23 +162,9 @@ def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: i
             seen.append((images[0].copy(), np.float32(0.0 if priors is None else priors[0]), next_priors[0]))
             return mu, logvar, next_priors
 
-    env = TrackingEnv(task.settings, base_seed=seed, encoder=Recording(encoder_path))
-    histories, actions = [], []
-    try:
-        obs, _ = env.reset()
-        while len(actions) < frames:
-            action, _ = model.predict(obs, deterministic=True)
-            histories.append(obs[-task.history_size :].copy())
-            actions.append(np.asarray(action, dtype=np.float32))
-            obs, _, terminated, truncated, _ = env.step(action)
-            if terminated or truncated:
-                obs, _ = env.reset()
-                del seen[-2]  # the frame that ended the episode (the one before the reset's) is never acted on
-    finally:
-        env.close()
+    played = play(model, task, Recording(encoder_path), seen, frames, seed)
     frame, prior, next_prior = (np.stack(column) for column in zip(*seen[:frames], strict=True))
-    return {"frame": frame, "prior": prior, "next_prior": next_prior, "action_history": np.stack(histories),
-            "action": np.stack(actions)}  # fmt: skip
+    return {"frame": frame, "prior": prior, "next_prior": next_prior} | played
 
 
 def torch_latency_ms(model: Any, encoder_path: Path, recorded: dict[str, np.ndarray]) -> float:
@@ -229,7 +208,8 @@ def policy_files(settings: ExportSettings) -> tuple[Path, Path]:
     encoder_path = encoder_for(policy_path, settings.encoder_checkpoint or None) or DEFAULT_CHECKPOINT
     if not encoder_path.is_file():
         raise FileNotFoundError(f"CMVAE checkpoint {encoder_path} does not exist")
-    refuse_distance_prior(encoder_path, "swimm export")
+    if not is_detector(encoder_path):
+        refuse_distance_prior(encoder_path, "swimm export")
     return policy_path, encoder_path
 
 
@@ -251,27 +231,15 @@ def run(settings: ExportSettings) -> int:
     if model.observation_space.shape != expected:
         raise ValueError(f"{policy_path} observes {model.observation_space.shape}, not cmvae's {expected}: only "
                          "camera-only (cmvae) policies export")  # fmt: skip
-    cmvae, _ = load_model(encoder_path, "cpu")
-    graph = CameraToAction(cmvae.float(), model.policy.eval(), task.history_size).eval()
     out = Path(settings.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    if is_detector(encoder_path):
+        return export_on_detector(settings, model, task, policy_path, encoder_path, out)
+    cmvae, _ = load_model(encoder_path, "cpu")
+    graph = CameraToAction(cmvae.float(), model.policy.eval(), task.history_size).eval()
     partial = out.with_name(out.name + ".partial")
-    # Argument checks of torch.distributions (the actor builds one even for its deterministic action) would be traced
-    # as constant branches; the graph needs none of them.
-    torch.distributions.Distribution.set_default_validate_args(False)
-    try:
-        with torch.no_grad():
-            torch.onnx.export(graph, graph.example(), str(partial), input_names=list(graph.inputs),
-                              output_names=list(graph.outputs), opset_version=OPSET, dynamo=False,
-                              dynamic_axes={name: {0: "batch"} for name in graph.inputs + graph.outputs})  # fmt: skip
-    finally:
-        torch.distributions.Distribution.set_default_validate_args(__debug__)  # torch's default
-    import onnx  # the export extra: only where a file is written
-
-    onnx_model = onnx.load(str(partial))
-    for key, value in contract(settings, policy_path, encoder_path, task, graph.tracks).items():
-        onnx_model.metadata_props.add(key=key, value=value)
-    onnx.save(onnx_model, str(partial))
+    write_onnx(graph, graph.example(), graph.inputs, graph.outputs, partial,
+               contract(settings, policy_path, encoder_path, task, graph.tracks))  # fmt: skip
     log.info("checking %s against the Python path on %d frames (seed %d)", out, settings.check_frames,
              settings.check_seed)  # fmt: skip
     recorded = episode_frames(model, task, encoder_path, settings.check_frames, settings.check_seed)
@@ -287,4 +255,21 @@ def run(settings: ExportSettings) -> int:
     log.info("wrote %s (%.1f MB): actions agree to %.1e on %d frames; %.2f ms per frame under onnxruntime, %.2f "
              "through torch and stable-baselines3", out, report["bytes"] / 1e6, report["max_action_difference"],
              settings.check_frames, report["onnx_ms_per_frame"], report["torch_ms_per_frame"])  # fmt: skip
+    return 0
+
+
+def export_on_detector(
+    settings: ExportSettings, model: Any, task: TrackingTask, policy_path: Path, detector: Path, out: Path
+) -> int:
+    """A policy on the pod detector: the actor's file and the detector's beside it (learner_service.export_detector)."""
+    log.info("exporting %s on the pod detector %s, checked on %d frames (seed %d)", policy_path, detector,
+             settings.check_frames, settings.check_seed)  # fmt: skip
+    metadata = contract(settings, policy_path, detector, task, tracks=False)
+    report = export_detector_policy(model, task, detector, out, metadata, settings.check_frames, settings.check_seed,
+                                    settings.detector_tolerance)  # fmt: skip
+    report |= {"onnx": str(out), "bytes": out.stat().st_size, "frames_checked": settings.check_frames}
+    out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
+    log.info("wrote %s and %s: readings agree to %.1e and actions to %.1e on %d frames; %.2f ms per frame under "
+             "onnxruntime with the tracker", out, report["detector_onnx"], report["max_reading_difference"],
+             report["max_action_difference"], settings.check_frames, report["onnx_ms_per_frame"])  # fmt: skip
     return 0

@@ -201,8 +201,8 @@ def flyable_policy(settings: PilotSettings) -> OnnxPolicy:
     policy = OnnxPolicy(settings.policy, settings.threads)
     check_dive_mode(policy.action_names, settings.dive_mode)
     if settings.target_box and not policy.tracks:
-        raise ValueError(f"--target-box points a target out to a policy on a tracking CMVAE; {settings.policy} "
-                         "reads no prior: it follows the dolphin the camera is centred on")  # fmt: skip
+        raise ValueError(f"--target-box points a target out to a policy on a tracking CMVAE or the pod detector; "
+                         f"{settings.policy} reads no prior: it follows the dolphin centred in view")  # fmt: skip
     return policy
 
 
@@ -258,9 +258,9 @@ def fly(settings: PilotSettings, stop: threading.Event) -> Path:
                                 number)  # fmt: skip
                     policy.reset()
                 elif not used and settings.target_box:
-                    policy.reset(target_azimuth_deg(settings, frame))
-                    log.info("following the dolphin in %s, %+.1f deg off the axis", settings.target_box,
-                             policy.state["prior"][0])  # fmt: skip
+                    azimuth = target_azimuth_deg(settings, frame)
+                    policy.reset(azimuth)
+                    log.info("following the dolphin in %s, %+.1f deg off the axis", settings.target_box, azimuth)
                 stalled, used = False, number
                 seen = as_sim_frame(frame, settings.camera_hfov_deg, policy.image_size)
                 controls.frame(seen, number)

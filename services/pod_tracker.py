@@ -18,11 +18,13 @@ carries a tracking encoder's prior, and an encoder that reads frames keeps none.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from services.detections import Detections
+from services.detections import Detections, read_peaks
+from services.geometry import OPT_D
 from services.identity import DOLPHIN_RADIUS_M
 
 FIELDS = ("alive", "target", "azimuth", "log_d", "rate", "log_d_rate", "misses", "behind")
@@ -31,6 +33,8 @@ MAX_TRACKS = 8
 STATE_SIZE = MAX_TRACKS * len(FIELDS)
 NOT_MATCHED = math.inf
 PRIORITY_STEP = 100.0  # above any gated cost: a cascade level
+#: The reading before any dolphin is engaged: the task's optimum distance, dead ahead, so the rover holds still.
+UNSEEN = (OPT_D, 0.0)
 
 
 @dataclass(frozen=True)
@@ -62,7 +66,11 @@ class PodTracker:
     def __init__(self, params: TrackerParams | None = None) -> None:
         self.params = params or TrackerParams()
 
-    def update(self, state: np.ndarray | None, frame: Detections) -> tuple[np.ndarray, tuple[float, float] | None]:
+    def update(
+        self, state: np.ndarray | None, frame: Detections, engage_deg: float = 0.0
+    ) -> tuple[np.ndarray, tuple[float, float] | None]:
+        """The next state and the target's (distance, azimuth), None while no target is engaged; ``engage_deg`` is
+        the azimuth the engagement looks nearest to (the image centre unless an operator points elsewhere)."""
         blank = np.zeros(STATE_SIZE)
         tracks = np.array(blank if state is None else state, dtype=float).reshape(MAX_TRACKS, len(FIELDS))
         alive = tracks[:, ALIVE] > 0
@@ -76,7 +84,8 @@ class PodTracker:
             if track not in track_of.values():
                 self._coast(tracks, track, frame, log_d, track_of)
         tracks[(tracks[:, TARGET] == 0) & (tracks[:, MISSES] > self.params.companion_misses)] = 0.0
-        self._start_tracks(tracks, frame, log_d, set(track_of), engage=not np.any(tracks[:, TARGET] > 0))
+        engage = not np.any(tracks[:, TARGET] > 0)
+        self._start_tracks(tracks, frame, log_d, set(track_of), engage, engage_deg)
         self._reacquire(tracks)
         target = np.nonzero(tracks[:, TARGET] > 0)[0]
         reading = None if len(target) == 0 else (math.exp(tracks[target[0], LOG_D]), tracks[target[0], AZIMUTH])
@@ -169,14 +178,15 @@ class PodTracker:
         return int(np.argmin(np.where(covering, apart, np.inf)))
 
     def _start_tracks(
-        self, tracks: np.ndarray, frame: Detections, log_d: np.ndarray, used: set[int], engage: bool
+        self, tracks: np.ndarray, frame: Detections, log_d: np.ndarray, used: set[int], engage: bool, engage_deg: float
     ) -> None:
-        """New tracks for detections no track took; at engagement the one nearest the image centre is the target."""
+        """New tracks for detections no track took; at engagement the one nearest ``engage_deg`` on the horizon (the
+        image centre by default) is the target."""
         fresh = [j for j in range(len(frame)) if j not in used and not self._explained(tracks, frame, log_d, j)]
         if engage and fresh:
             # a stray peak (marine snow, a shaft's edge) near the centre must not outbid a dolphin seen plainly
             weak = frame.score[fresh] < self.params.engage_score_share * frame.score[fresh].max()
-            off_axis = np.where(weak, np.inf, np.hypot(frame.azimuth[fresh], frame.elevation[fresh]))
+            off_axis = np.where(weak, np.inf, np.hypot(frame.azimuth[fresh] - engage_deg, frame.elevation[fresh]))
             fresh.insert(0, fresh.pop(int(np.argmin(off_axis))))
         for order, detection in enumerate(fresh):
             free = np.nonzero(tracks[:, ALIVE] == 0)[0]
@@ -196,6 +206,36 @@ class PodTracker:
         sigma_azimuth, sigma_log_d = self._sigmas(tracks[alive])
         cost = _apart(tracks[alive], frame.azimuth[detection], log_d[detection], sigma_azimuth, sigma_log_d)
         return bool((cost < self.params.gate).any())
+
+
+class TargetReader:
+    """One camera's target, frame by frame: a detector's heat and regression (any runtime: ``detect(frame) -> (heat
+    (1, G, G) in (0, 1), regression (1, 3, G, G))``) read as peaks and tracked; for `swimm pilot` and the export's
+    check, which run an exported detector without torch."""
+
+    def __init__(
+        self,
+        detect: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+        threshold: float,
+        stride: int,
+        size: int,
+        params: TrackerParams | None = None,
+    ) -> None:
+        self.detect, self.threshold, self.stride, self.size = detect, threshold, stride, size
+        self.tracker = PodTracker(params)
+        self.reset()
+
+    def reset(self, engage_deg: float = 0.0) -> None:
+        """Track afresh: the next frame engages the dolphin nearest ``engage_deg`` (degrees, + = left)."""
+        self.state: np.ndarray | None = None
+        self.engage_deg = engage_deg
+
+    def read(self, frame: np.ndarray) -> tuple[float, float]:
+        """The target's (distance m, azimuth deg) in one uint8 frame (H, W, 3); :data:`UNSEEN` before engagement."""
+        heat, regression = self.detect(frame[None])
+        (detections,) = read_peaks(heat, regression, self.threshold, self.size, self.stride)
+        self.state, reading = self.tracker.update(self.state, detections, self.engage_deg)
+        return reading or UNSEEN
 
 
 def _angular_radius_deg(distance: np.ndarray | float) -> np.ndarray:

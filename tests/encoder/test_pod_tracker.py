@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.detections import Detections
-from services.pod_tracker import BEHIND, FIELDS, MAX_TRACKS, STATE_SIZE, TARGET, PodTracker
+from services.detections import Detections, local_maxima, read_peaks
+from services.pod_tracker import BEHIND, FIELDS, MAX_TRACKS, STATE_SIZE, TARGET, UNSEEN, PodTracker, TargetReader
 
 
 def frame(*dolphins: tuple[float, float]) -> Detections:
@@ -30,6 +30,41 @@ def test_engages_on_the_dolphin_nearest_the_image_centre() -> None:
     assert readings[0] == pytest.approx((7.0, -3.0))
     tracks = state.reshape(MAX_TRACKS, len(FIELDS))
     assert tracks[:, TARGET].sum() == 1
+
+
+def test_an_operator_can_point_the_engagement_elsewhere() -> None:
+    """``engage_deg`` (the pilot's --target-box) engages the dolphin nearest that bearing, then holds it as ever."""
+    pod = frame((12.0, 5.0), (-3.0, 7.0), (20.0, 4.0))
+    state, first = PodTracker().update(None, pod, engage_deg=18.0)
+    assert first == pytest.approx((4.0, 20.0))
+    assert PodTracker().update(state, pod)[1] == pytest.approx((4.0, 20.0))  # the engagement is over: kept
+
+
+def test_the_reader_tracks_frame_by_frame_through_any_runtime_and_starts_afresh_on_reset() -> None:
+    """TargetReader: a detector's (heat, regression) per frame read as peaks (3x3 local maxima above the threshold,
+    placed by their offsets) and tracked; UNSEEN until a dolphin shows; reset engages again."""
+    grid, stride = 16, 4
+    heat = np.zeros((1, grid, grid), np.float32)
+    regression = np.zeros((1, 3, grid, grid), np.float32)
+    for (iy, ix), distance in (((8, 3), 5.0), ((8, 12), 8.0)):  # a dolphin left of the centre, one right
+        heat[0, iy, ix] = 0.9
+        heat[0, iy, ix + 1] = 0.5  # a shoulder, not a peak
+        regression[0, :, iy, ix] = (0.5, 0.5, np.log(distance))
+    maxima = local_maxima(heat)
+    assert maxima[0, 8, 3] and maxima[0, 8, 12] and not maxima[0, 8, 4] and not maxima[0, 8, 13]
+    (peaks,) = read_peaks(heat, regression, 0.3, grid * stride, stride)
+    assert len(peaks) == 2 and peaks.distance == pytest.approx(
+        [5.0, 8.0]
+    )  # the flat zeros are maxima too, below the threshold
+    assert peaks.azimuth[0] > 0 > peaks.azimuth[1]  # + = left
+    frames = [np.zeros((64, 64, 3), np.uint8), np.ones((64, 64, 3), np.uint8)]
+    shown = {0: (np.zeros_like(heat), regression), 1: (heat, regression)}
+    reader = TargetReader(lambda batch: shown[int(batch[0, 0, 0, 0])], 0.3, stride, grid * stride)
+    assert reader.read(frames[0]) == UNSEEN
+    near = reader.read(frames[1])
+    assert near == pytest.approx((5.0, peaks.azimuth[0]))  # the nearer to the centre
+    reader.reset(engage_deg=peaks.azimuth[1])
+    assert reader.read(frames[1]) == pytest.approx((8.0, peaks.azimuth[1]))
 
 
 def test_a_weak_stray_peak_at_the_centre_does_not_win_the_engagement() -> None:

@@ -18,6 +18,7 @@ from learner_service.identity import policy_identity, stamp
 from learner_service.registry import make_model
 from learner_service.task import TaskSettings
 from services.geometry import HFOV_DEG
+from tests.learner.untrained import untrained_sac
 
 FRAMES = 120
 
@@ -118,25 +119,11 @@ def test_the_policy_to_fly_exports_with_the_cmvae_it_records(exported: Path) -> 
     assert meta["swimm.policy_sha256"] == file_sha256(SHIPPED_POLICY)
 
 
-def _untrained_sac(cmvae: Path, task: str, path: Path) -> None:
-    """Save an untrained camera-only SAC of ``task`` on ``cmvae``, stamped with it, at ``path``."""
-    from encoder_service.inference import LatentEncoder
-
-    settings = TaskSettings(obs="cmvae", task=task, max_steps=20)
-    env = make_vec_env("inprocess", settings, n_envs=1, base_seed=1, encoder=LatentEncoder(cmvae))
-    try:
-        model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
-        stamp(model, policy_identity(cmvae, "cmvae", "swimm2", task))
-        model.save(path)
-    finally:
-        env.close()
-
-
 def test_a_3d_policy_exports_its_three_actions_and_the_pilot_flies_them(tmp_path: Path) -> None:
     from encoder_service import DEFAULT_CHECKPOINT
     from pilot_service.policy import OnnxPolicy
 
-    _untrained_sac(DEFAULT_CHECKPOINT, "3d", tmp_path / "cmvae-3d.zip")
+    untrained_sac(DEFAULT_CHECKPOINT, "3d", tmp_path / "cmvae-3d.zip")
     out = tmp_path / "3d.onnx"
     assert run(ExportSettings(checkpoint=str(tmp_path / "cmvae-3d.zip"), out=str(out), check_frames=20)) == 0
     assert json.loads(out.with_suffix(".json").read_text())["max_action_difference"] <= 1e-4
@@ -156,7 +143,7 @@ def test_a_policy_on_a_mirror_averaging_cmvae_exports_reading_each_frame_twice(t
     checkpoint["config"]["mirror_average"] = True
     cmvae = tmp_path / "cmvae_light_mirror.pt"
     torch.save(checkpoint, cmvae)
-    _untrained_sac(cmvae, "planar", tmp_path / "mirror.zip")
+    untrained_sac(cmvae, "planar", tmp_path / "mirror.zip")
     out = tmp_path / "mirror.onnx"
     assert run(ExportSettings(checkpoint=str(tmp_path / "mirror.zip"), out=str(out), check_frames=20)) == 0
     assert json.loads(out.with_suffix(".json").read_text())["max_action_difference"] <= 1e-4
@@ -168,7 +155,6 @@ def tracking_export(tmp_path_factory) -> Path:
     random: the shipped weights start them at zero), exported and checked."""
     import torch
 
-    from encoder_service.inference import LatentEncoder
     from encoder_service.model import CMVAE, make_checkpoint
     from encoder_service.train import load_init_weights
 
@@ -178,14 +164,7 @@ def tracking_export(tmp_path_factory) -> Path:
     with torch.no_grad():
         cmvae.encoder.features[0].weight[:, 3] = torch.randn_like(cmvae.encoder.features[0].weight[:, 3]) * 0.1
     torch.save(make_checkpoint(cmvae.eval(), 8.0, 1, 0.0, {}), root / "tracking.pt")
-    task = TaskSettings(obs="cmvae", max_steps=20)
-    env = make_vec_env("inprocess", task, n_envs=1, base_seed=1, encoder=LatentEncoder(root / "tracking.pt"))
-    try:
-        model = make_model("sac", env, seed=1, overrides={"device": "cpu", "buffer_size": 100})
-        stamp(model, policy_identity(root / "tracking.pt", "cmvae", "swimm2", "planar"))
-        model.save(root / "cmvae-tracking.zip")
-    finally:
-        env.close()
+    untrained_sac(root / "tracking.pt", "planar", root / "cmvae-tracking.zip")
     out = root / "tracking.onnx"
     assert run(ExportSettings(checkpoint=str(root / "cmvae-tracking.zip"), out=str(out), check_frames=FRAMES)) == 0
     return out
