@@ -20,16 +20,13 @@ from encoder_service import DETECTOR_FORMAT, ENGINES
 from encoder_service.model import LABEL_NAMES, check_images, denormalise_labels, images_to_tensor, normalise_labels
 from encoder_service.onnx_engine import onnx_runtime
 from encoder_service.pod_detector import PodDetector, decode
-from services.geometry import OPT_D
 from services.messages import IMAGE_SHAPE
-from services.pod_tracker import STATE_SIZE, PodTracker
+from services.pod_tracker import STATE_SIZE, UNSEEN, PodTracker
 
 log = logging.getLogger(__name__)
 
 DETECTOR_VERSION = 1
 N_Z = 10  # a CMVAE's latent size, so the same policies' observation fits
-#: Distance read before any dolphin is engaged: the task's optimum, so the rover holds still until one is seen.
-UNSEEN = (OPT_D, 0.0)
 
 
 def _load(path: str | Path) -> Any:

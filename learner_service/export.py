@@ -66,9 +66,8 @@ class ExportSettings:
     check_frames: PosInt = 1000  # frames of a real in-process episode both paths must agree on
     check_seed: int = 9001  # the episode's seed
     tolerance: PosFloat = 1e-4  # largest allowed |onnx - python| action difference (a next prior's: of its range)
-    # the same for a policy on the pod detector, its readings' of their ranges: the two runtimes place the peaks
-    # within a few thousandths of a cell, which the tracker carries on
-    detector_tolerance: PosFloat = 1e-2
+    # the runtimes place a detector's peaks within a few thousandths of a cell, which the tracker carries on
+    detector_tolerance: PosFloat = 1e-2  # the same for a policy on the pod detector (its readings': of their ranges)
     threads: int = 1  # torch CPU threads of the Python path (docs/eval.md: one is faster beside other work)
 
 
