@@ -145,7 +145,7 @@ COMMANDS: dict[str, Command] = {
     "train-detector": Command(_train_detector, "train the pod detector that finds every dolphin in a frame"),
     "eval-encoder": Command(_eval_encoder, "evaluate a CMVAE"),
     "export-encoder": Command(_export_encoder, "shrink a CMVAE for shipping"),
-    "export": Command(_export, "a policy as an ONNX file, frame to action (two on the pod detector)", renders=True),
+    "export": Command(_export, "a policy as ONNX, frame to action (two files on a detector)", renders=True),
     "up": Command(
         _up,
         "launch router, sim, encoder, learner (shipped recipe)",
