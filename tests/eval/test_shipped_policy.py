@@ -60,12 +60,13 @@ SHIPPED = (
     "sac_cmvae_wide.zip",
     "sac_cmvae_3d.zip",
     "sac_cmvae_3d_robust.zip",
+    "sac_pod_detector.zip",
 )
 IDENTITY_OBS, IDENTITY_SEED = 8, 0
 #: Each shipped policy's deterministic actions (surge, yaw; the 3d ones' surge, heave, yaw) on those observations,
-#: measured at commit 9eb0b59 (sac_cmvae_wide.zip and the 3d ones at the commits that added or replaced them) by
-#: `PYTHONPATH=. python tests/eval/test_shipped_policy.py`, which prints this table. A planar policy's actions never
-#: match a 3d one's record: their shapes differ.
+#: measured at commit 9eb0b59 (sac_cmvae_wide.zip, the 3d ones and sac_pod_detector.zip at the commits that added or
+#: replaced them) by `PYTHONPATH=. python tests/eval/test_shipped_policy.py`, which prints this table. A planar
+#: policy's actions never match a 3d one's record: their shapes differ.
 ACTIONS = {
     "sac_cmvae.zip": [[0.2307, -0.3087], [-0.6881, -0.0515], [-0.0101, -0.3469], [0.3981, 0.6308],
                       [-0.5726, -0.259], [-0.7854, 0.172], [-0.5268, -0.4261], [-0.964, -0.1179]],
@@ -85,6 +86,8 @@ ACTIONS = {
     "sac_cmvae_3d_robust.zip": [[0.3519, 0.964, -0.1346], [0.1528, 0.6467, -0.1327], [0.6755, -0.7468, -0.0491],
                                 [-0.3171, -0.284, 0.0121], [-0.1312, -0.6819, -0.0821], [-0.3404, 0.8835, -0.1052],
                                 [-0.7487, 0.3156, 0.3195], [0.0139, 0.3423, 0.1261]],
+    "sac_pod_detector.zip": [[0.8503, 0.1198], [0.964, 0.1948], [-0.7849, -0.6855], [0.964, 0.5458],
+                             [-0.808, -0.3528], [-0.964, -0.5044], [0.964, -0.0266], [-0.964, 0.0008]],
 }  # fmt: skip
 #: Room for a float library that differs in the last bits; any two shipped policies of one task differ by at least
 #: 0.13 on some action, six times this.

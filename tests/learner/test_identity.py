@@ -26,7 +26,8 @@ MODELS = REPO_ROOT / "learner_service" / "models"
 ENCODERS = REPO_ROOT / "encoder_service" / "models"
 SHIPPED_PAIRS = {"sac_cmvae.zip": "cmvae.pt", "sac_cmvae_robust.zip": "cmvae_robust.pt",
                  "sac_cmvae_latency.zip": "cmvae_mixture.pt", "sac_cmvae_3d.zip": "cmvae_vertical.pt",
-                 "sac_cmvae_3d_robust.zip": "cmvae_vertical_robust.pt"}  # fmt: skip
+                 "sac_cmvae_3d_robust.zip": "cmvae_vertical_robust.pt",
+                 "sac_pod_detector.zip": "pod_detector.pt"}  # fmt: skip
 
 
 @pytest.mark.parametrize(("policy", "encoder"), SHIPPED_PAIRS.items())
