@@ -20,6 +20,7 @@ from encoder_service import DETECTOR_FORMAT, ENGINES
 from encoder_service.model import LABEL_NAMES, check_images, denormalise_labels, images_to_tensor, normalise_labels
 from encoder_service.onnx_engine import onnx_runtime
 from encoder_service.pod_detector import PodDetector, decode
+from services.detections import Detections
 from services.messages import IMAGE_SHAPE
 from services.pod_tracker import STATE_SIZE, UNSEEN, PodTracker
 
@@ -108,7 +109,7 @@ class PodEncoder:
         if priors is not None and (np.shape(priors) != (len(images), STATE_SIZE) or not np.isfinite(priors).all()):
             raise ValueError(f"priors must be {len(images)} finite pod tracker states of {STATE_SIZE} numbers, one "
                              f"per frame, got an array shaped {np.shape(priors)}")  # fmt: skip
-        detections = decode(*self._detect(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride)
+        detections = self.detect(images)
         states = np.zeros((len(images), STATE_SIZE), np.float32)
         readings = np.zeros((len(images), 3))  # d, theta and psi (unread: 0) of each frame's target
         for row, frame in enumerate(detections):
@@ -118,6 +119,11 @@ class PodEncoder:
         mu = np.zeros((len(images), N_Z), np.float32)
         mu[:, :3] = normalise_labels(readings)
         return mu, np.zeros_like(mu), states
+
+    @torch.inference_mode()
+    def detect(self, images: np.ndarray) -> list[Detections]:
+        """Every dolphin the detector finds in each frame (no tracking)."""
+        return decode(*self._detect(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride)
 
     def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         mu, logvar, _ = self.track(images, priors)
