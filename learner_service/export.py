@@ -37,12 +37,10 @@ from encoder_service.model import CMVAE, LABEL_RANGES, PriorReader, load_model, 
 from encoder_service.pod_encoder import is_detector
 from learner_service.export_detector import export_detector_policy
 from learner_service.identity import encoder_for, policy_task
-from learner_service.policy_graph import LatentToAction, play, write_onnx
+from learner_service.policy_graph import LatentToAction, contract, play, write_onnx
 from learner_service.registry import resolve_algorithm
 from learner_service.task import LATENT_SIZE, TaskSettings, TrackingTask
-from services.results import file_sha256
 from services.settings import FilePath, PosFloat, PosInt, check_ranges
-from sim_service.settings import WorldSettings
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +53,11 @@ TRACKING_OUTPUTS = ("next_prior",)
 #: The unit the check's tolerance is a share of, per output: actions span [-1, 1]; a next prior is in degrees, the
 #: state decoder's [-1, 1] stretched over the azimuth range (float32 rounding grows with it).
 CHECK_UNITS = {"action": 1.0, "next_prior": (LABEL_RANGES["theta"][1] - LABEL_RANGES["theta"][0]) / 2}
+
+#: What the frame and a tracking CMVAE's prior are, for the contract.
+FRAME = "uint8 NHWC (N, 64, 64, 3), RGB, the sim camera's 64x64 render (79.95 deg HFOV)"
+PRIOR = ("float32 (N,): degrees (+ = left) where the CMVAE's target was last seen, zeros at an episode's start (the "
+         "image centre: the target is the dolphin the camera is centred on)")  # fmt: skip
 
 
 @dataclass
@@ -101,48 +104,6 @@ class CameraToAction(torch.nn.Module):
         # a tracking CMVAE's PriorReader gives the next prior after (mu, logvar): none without a prior
         mu, _, *next_prior = self.encoder(images) if prior is None else self.encoder(images, prior)
         return *self.act(mu, action_history), *next_prior
-
-
-#: How the vehicle holds or changes depth under each task's actions (`swimm pilot` flies heave in ALT_HOLD only).
-DIVE_MODES = {
-    "planar": "depth_hold (sway and heave held at 0)",
-    "3d": "depth_hold (heave a climb rate, sway held at 0)",
-}
-
-
-def contract(
-    settings: ExportSettings, policy_path: Path, encoder_path: Path, task: TrackingTask, tracks: bool
-) -> dict[str, str]:
-    """The file's metadata: what a caller must feed it and where it came from (values are strings in ONNX)."""
-    names = task.settings.action_names
-    inputs = {
-        "frame": "uint8 NHWC (N, 64, 64, 3), RGB, the sim camera's 64x64 render (79.95 deg HFOV)",
-        "action_history": f"float32 (N, {task.history_size}): the last {task.settings.n_prev_actions} actions, "
-        "oldest first, zeros at an episode's start",
-    }
-    outputs = {"action": f"float32 (N, {len(names)}) in [-1, 1]", "next_history": "the next action_history"}
-    if tracks:
-        inputs["prior"] = (
-            "float32 (N,): degrees (+ = left) where the CMVAE's target was last seen, zeros at an "
-            "episode's start (the image centre: the target is the dolphin the camera is centred on)"
-        )
-        outputs["next_prior"] = "the next prior: the azimuth the latent decodes to"
-    return {
-        "swimm.contract": json.dumps(
-            {
-                "inputs": inputs,
-                "outputs": outputs,
-                "normalisation": "frame / 127.5 - 1, inside the graph",
-                "action_names": list(names),
-                "task": task.settings.task,
-                "dive_mode": DIVE_MODES[task.settings.task],
-                "control_rate_hz": round(1.0 / WorldSettings().physics_dt),
-            }
-        ),
-        "swimm.algo": settings.algo,
-        "swimm.policy_sha256": file_sha256(policy_path),
-        "swimm.encoder_sha256": file_sha256(encoder_path),
-    }
 
 
 def episode_frames(model: Any, task: TrackingTask, encoder_path: Path, frames: int, seed: int) -> dict[str, np.ndarray]:
@@ -237,8 +198,11 @@ def run(settings: ExportSettings) -> int:
     cmvae, _ = load_model(encoder_path, "cpu")
     graph = CameraToAction(cmvae.float(), model.policy.eval(), task.history_size).eval()
     partial = out.with_name(out.name + ".partial")
-    write_onnx(graph, graph.example(), graph.inputs, graph.outputs, partial,
-               contract(settings, policy_path, encoder_path, task, graph.tracks))  # fmt: skip
+    reads = {"frame": FRAME} | ({"prior": PRIOR} if graph.tracks else {})
+    more_outputs = {"next_prior": "the next prior: the azimuth the latent decodes to"} if graph.tracks else {}
+    metadata = contract(settings.algo, policy_path, encoder_path, task, reads, "frame / 127.5 - 1, inside the graph",
+                        more_outputs)  # fmt: skip
+    write_onnx(graph, graph.example(), graph.inputs, graph.outputs, partial, metadata)
     log.info("checking %s against the Python path on %d frames (seed %d)", out, settings.check_frames,
              settings.check_seed)  # fmt: skip
     recorded = episode_frames(model, task, encoder_path, settings.check_frames, settings.check_seed)
@@ -263,9 +227,8 @@ def export_on_detector(
     """A policy on the pod detector: the actor's file and the detector's beside it (learner_service.export_detector)."""
     log.info("exporting %s on the pod detector %s, checked on %d frames (seed %d)", policy_path, detector,
              settings.check_frames, settings.check_seed)  # fmt: skip
-    metadata = contract(settings, policy_path, detector, task, tracks=False)
-    report = export_detector_policy(model, task, detector, out, metadata, settings.check_frames, settings.check_seed,
-                                    settings.detector_tolerance)  # fmt: skip
+    report = export_detector_policy(model, task, detector, out, (settings.algo, policy_path), settings.check_frames,
+                                    settings.check_seed, settings.detector_tolerance)  # fmt: skip
     report |= {"onnx": str(out), "bytes": out.stat().st_size, "frames_checked": settings.check_frames}
     out.with_suffix(".json").write_text(json.dumps(report, indent=1) + "\n")
     log.info("wrote %s and %s: readings agree to %.1e and actions to %.1e on %d frames; %.2f ms per frame under "

@@ -17,7 +17,6 @@ same targets and choose the same actions.
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -29,7 +28,7 @@ import torch
 from encoder_service.model import LABEL_NAMES, label_ranges
 from encoder_service.pod_detector import PodDetector
 from encoder_service.pod_encoder import PodEncoder, load_detector
-from learner_service.policy_graph import LatentToAction, play, write_onnx
+from learner_service.policy_graph import LatentToAction, contract, play, write_onnx
 from learner_service.task import LATENT_SIZE, TrackingTask
 from services.messages import IMAGE_SHAPE
 from services.pod_tracker import TargetReader, TrackerParams
@@ -133,26 +132,25 @@ def verify_pair(actor: Path, detector: Path, saved: dict[str, Any], recorded: di
 
 
 def export_detector_policy(
-    model: Any, task: TrackingTask, detector: Path, out: Path, metadata: dict[str, Any], check_frames: int,
+    model: Any, task: TrackingTask, detector: Path, out: Path, source: tuple[str, Path], check_frames: int,
     check_seed: int, tolerance: float,
 ) -> dict[str, Any]:  # fmt: skip
-    """Write and check the pair for ``model`` on ``detector``; ``metadata`` is the actor file's (its contract
-    without the perception part). Nothing is left at ``out`` or beside it unless the check passes."""
+    """Write and check the pair for ``model`` on ``detector``; ``source`` is the algorithm and file the model was
+    loaded from, for the contract. Nothing is left at ``out`` or beside it unless the check passes."""
     network, saved = load_detector(detector)
     detector_out = detector_file(out)
     partials = [path.with_name(path.name + ".partial") for path in (detector_out, out)]
     example = torch.zeros(1, *IMAGE_SHAPE, dtype=torch.uint8)
     try:
         write_onnx(FrameToPeaks(network).eval(), (example,), ["frame"], ["heat", "regression"], partials[0], {})
-        contract = json.loads(metadata["swimm.contract"])
-        contract["inputs"].pop("frame")
-        contract["inputs"] = {"reading": "float32 (N, 2), see perception"} | contract["inputs"]
-        contract["normalisation"] = "frame / 127.5 - 1, inside the detector file's graph"
-        contract["perception"] = perception(detector_out.name, file_sha256(partials[0]), saved, TrackerParams())
+        reads = perception(detector_out.name, file_sha256(partials[0]), saved, TrackerParams())
+        metadata = contract(*source, detector, task, {"reading": "float32 (N, 2), see perception"},
+                            "frame / 127.5 - 1, inside the detector file's graph", perception=reads)  # fmt: skip
         actor = ReadingToAction(model.policy.eval(), task.history_size).eval()
         actor_example = (torch.zeros(1, 2), torch.zeros(1, task.history_size))
-        write_onnx(actor, actor_example, ["reading", "action_history"], ["action", "next_history"], partials[1],
-                   metadata | {"swimm.contract": json.dumps(contract)})  # fmt: skip
+        write_onnx(
+            actor, actor_example, ["reading", "action_history"], ["action", "next_history"], partials[1], metadata
+        )
         recorded = recorded_episode(model, task, detector, check_frames, check_seed)
         report = verify_pair(partials[1], partials[0], saved, recorded, tolerance)
     except BaseException:

@@ -1,8 +1,10 @@
 """The pieces `swimm export` builds its files from, whatever the encoder: the actor as a torch module of a latent,
-an ONNX writer that stamps the contract into the file, and a real in-process episode to check a file against."""
+the contract a file carries, an ONNX writer that stamps it into the file, and a real in-process episode to check a
+file against."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -12,8 +14,16 @@ import torch
 
 from learner_service.registry import deterministic_action
 from learner_service.task import TrackingTask
+from services.results import file_sha256
+from sim_service.settings import WorldSettings
 
 OPSET = 17
+
+#: How the vehicle holds or changes depth under each task's actions (`swimm pilot` flies heave in ALT_HOLD only).
+DIVE_MODES = {
+    "planar": "depth_hold (sway and heave held at 0)",
+    "3d": "depth_hold (heave a climb rate, sway held at 0)",
+}
 
 
 class LatentToAction(torch.nn.Module):
@@ -35,6 +45,40 @@ class LatentToAction(torch.nn.Module):
             actions = self.low + 0.5 * (actions + 1.0) * (self.high - self.low)
         action = torch.minimum(torch.maximum(actions, self.low), self.high)
         return action, torch.cat([action_history[:, action.shape[1] :], action], dim=1)
+
+
+def contract(
+    algo: str,
+    policy_path: Path,
+    encoder_path: Path,
+    task: TrackingTask,
+    reads: dict[str, str],
+    normalisation: str,
+    more_outputs: dict[str, str] | None = None,
+    perception: dict[str, Any] | None = None,
+) -> dict[str, str]:
+    """A file's metadata: what a caller must feed it and where it came from (values are strings in ONNX). ``reads``
+    names the inputs besides ActPrev, ``more_outputs`` the outputs besides the action and the next ActPrev, and
+    ``perception`` how frames become a reading where the file does not take frames itself."""
+    names = task.settings.action_names
+    history = (f"float32 (N, {task.history_size}): the last {task.settings.n_prev_actions} actions, oldest first, "
+               "zeros at an episode's start")  # fmt: skip
+    outputs = {"action": f"float32 (N, {len(names)}) in [-1, 1]", "next_history": "the next action_history"}
+    described = {
+        "inputs": reads | {"action_history": history},
+        "outputs": outputs | (more_outputs or {}),
+        "normalisation": normalisation,
+        "action_names": list(names),
+        "task": task.settings.task,
+        "dive_mode": DIVE_MODES[task.settings.task],
+        "control_rate_hz": round(1.0 / WorldSettings().physics_dt),
+    }
+    return {
+        "swimm.contract": json.dumps(described | ({"perception": perception} if perception else {})),
+        "swimm.algo": algo,
+        "swimm.policy_sha256": file_sha256(policy_path),
+        "swimm.encoder_sha256": file_sha256(encoder_path),
+    }
 
 
 def write_onnx(
