@@ -1,14 +1,16 @@
 """Selection diagnostic: one reading from the pod detector, the rest from the CMVAE. Runs `swimm eval` (the suite,
 usually) with the CMVAE's latent in which the azimuth dimension (`--take azimuth`, the detector says where and the
-CMVAE how far) or the distance dimension (`--take distance`) holds the pod detector's tracked reading wherever its
-tracker has a target (the CMVAE's own reading elsewhere), so a policy trained on that CMVAE flies on it unchanged.
+CMVAE how far), the distance dimension (`--take distance`) or both (`--take both`) hold the pod detector's tracked
+reading wherever its tracker has a target whose peak this frame scores at least `--min-score` (the CMVAE's own
+reading elsewhere), so a policy trained on that CMVAE flies on it unchanged.
 
     MUJOCO_GL=egl python docs/encoder/selection/fused_suite.py CMVAE DETECTOR --take azimuth -- eval --suite ... \
         --encoder-checkpoint CMVAE ...
 
 The latent's value is the one the CMVAE's own state decoder maps to the detector's reading (its inverse,
-tabulated: the decoder is monotonic, which is checked). Not a shipped encoder: the suite's machinery opens
-encoders by file, so the CMVAE's file is swapped for this one in the processes' loaders (in process only).
+tabulated over the decoder's monotonic span through 0, which must reach from -2 to 2). Not a shipped encoder: the
+suite's machinery opens encoders by file, so the CMVAE's file is swapped for this one in the processes' loaders (in
+process only).
 """
 
 from __future__ import annotations
@@ -23,10 +25,32 @@ import eval_service.suite as suite
 import learner_service.envs as envs
 import learner_service.registry as registry
 from encoder_service.pod_encoder import PodEncoder
-from services.pod_tracker import STATE_SIZE
+from services.detections import Detections
+from services.pod_tracker import AZIMUTH, FIELDS, MAX_TRACKS, MISSES, STATE_SIZE, TARGET
 
-#: The reading taken from the detector: its index in the tracker's (distance, azimuth) and in the CMVAE's latent.
-TAKEN = {"distance": 0, "azimuth": 1}
+#: The readings taken from the detector: their indices in the tracker's (distance, azimuth) and in the CMVAE's latent.
+TAKEN = {"distance": (0,), "azimuth": (1,), "both": (0, 1)}
+
+
+def monotonic_span(values: np.ndarray) -> tuple[int, int]:
+    """The first and last index of the longest strictly monotonic run of ``values`` through its middle."""
+    steps = np.sign(np.diff(values))
+    middle = len(steps) // 2
+    low = high = middle
+    while low > 0 and steps[low - 1] == steps[middle] != 0:
+        low -= 1
+    while high < len(steps) - 1 and steps[high + 1] == steps[middle] != 0:
+        high += 1
+    return low, high + 1
+
+
+def target_score(state: np.ndarray, frame: Detections) -> float:
+    """The score of the peak the target's track matched this frame (the one nearest its azimuth), 0 if none."""
+    tracks = state.reshape(MAX_TRACKS, len(FIELDS))
+    target = np.nonzero(tracks[:, TARGET] > 0)[0]
+    if len(target) == 0 or tracks[target[0], MISSES] > 0 or len(frame) == 0:
+        return 0.0
+    return float(frame.score[np.argmin(np.abs(frame.azimuth - tracks[target[0], AZIMUTH]))])
 
 
 class DetectorReading:
@@ -36,20 +60,26 @@ class DetectorReading:
     tracks = True
     prior_shape = (STATE_SIZE,)
 
-    def __init__(self, cmvae: str, detector: str, take: str) -> None:
-        self.column = TAKEN[take]
+    def __init__(self, cmvae: str, detector: str, take: str, min_score: float = 0.0) -> None:
+        self.columns, self.min_score = TAKEN[take], min_score
         self.cmvae = inference.LatentEncoder(cmvae)
         self.pod = PodEncoder(detector)
         self.n_z, self.labels = self.cmvae.n_z, self.cmvae.labels
+        self._inverse = {column: self._tabulate(column) for column in self.columns}
+        self.replaced = self.frames = 0
+
+    def _tabulate(self, column: int) -> tuple[np.ndarray, np.ndarray]:
+        """The CMVAE's decoder of one reading as (readings, latents), sorted, for :func:`np.interp`."""
         grid = np.linspace(-6.0, 6.0, 6001, dtype=np.float32)
         latents = np.zeros((len(grid), self.n_z), np.float32)
-        latents[:, self.column] = grid
-        read = self.cmvae.decode_state(latents)[self.column]
-        if not (np.all(np.diff(read) > 0) or np.all(np.diff(read) < 0)):
-            raise ValueError(f"{cmvae}'s {take} decoder is not monotonic over [-6, 6]: no inverse to tabulate")
-        order = np.argsort(read)
-        self._read, self._z = read[order], grid[order]
-        self.replaced = self.frames = 0
+        latents[:, column] = grid
+        read = self.cmvae.decode_state(latents)[column]
+        low, high = monotonic_span(read)
+        if grid[low] > -2.0 or grid[high] < 2.0:
+            raise ValueError(f"the CMVAE's decoder {column} is monotonic over [{grid[low]:.2f}, {grid[high]:.2f}] "
+                             "only, not over [-2, 2]: no inverse to tabulate")  # fmt: skip
+        order = np.argsort(read[low : high + 1])
+        return read[low : high + 1][order], grid[low : high + 1][order]
 
     def track(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         mu, logvar = self.cmvae.encode(images)
@@ -59,8 +89,9 @@ class DetectorReading:
         for row, frame in enumerate(detections):
             prior = None if priors is None or not np.any(priors[row]) else priors[row]
             states[row], reading = self.pod.tracker.update(prior, frame)
-            if reading is not None:
-                mu[row, self.column] = np.interp(reading[self.column], self._read, self._z)
+            if reading is not None and target_score(states[row], frame) >= self.min_score:
+                for column, (read, latent) in self._inverse.items():
+                    mu[row, column] = np.interp(reading[column], read, latent)
                 self.replaced += 1
         self.frames += len(images)
         return mu, logvar, states
@@ -76,11 +107,13 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("cmvae")
     parser.add_argument("detector")
-    parser.add_argument("--take", choices=sorted(TAKEN), default="azimuth", help="the reading the detector gives")
+    parser.add_argument("--take", choices=sorted(TAKEN), default="azimuth", help="the readings the detector gives")
+    parser.add_argument("--min-score", type=float, default=0.0,
+                        help="take them only where the target's peak scores at least this")  # fmt: skip
     argv = sys.argv[1:]
     split = argv.index("--") if "--" in argv else len(argv)
     args = parser.parse_args(argv[:split])  # after "--": the swimm command line
-    fused = DetectorReading(args.cmvae, args.detector, args.take)
+    fused = DetectorReading(args.cmvae, args.detector, args.take, args.min_score)
     opened = inference.open_encoder
 
     def open_encoder(checkpoint=None, *rest, **options):  # the CMVAE's file opens the fused encoder

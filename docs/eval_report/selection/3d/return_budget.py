@@ -8,9 +8,13 @@ Appends one row per episode to a CSV (docs/learner.md, "Where the 3d camera trac
 
     MUJOCO_GL=egl python docs/eval_report/selection/3d/return_budget.py OUT.csv --tracker camera \
         --checkpoint encoder_service/models/cmvae_vertical.pt --episodes 3 --seed 211
+
+With ``--detector FILE`` the CMVAE's azimuth is the pod detector's tracked reading instead
+(docs/encoder/selection/fused_suite.py).
 """
 
 import argparse
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -90,8 +94,14 @@ def main() -> None:
     parser.add_argument("--shifts", type=int, nargs="*", default=[], help="read each frame at these pixel shifts")
     parser.add_argument("--sim-config", help="the world of a `swimm sim` settings file (default: the plain world)")
     parser.add_argument("--render-scale", type=int, help="render this many times larger, then downsample")
+    parser.add_argument("--detector", help="a pod detector whose tracked azimuth replaces the CMVAE's")
     args = parser.parse_args()
     encoder = LatentEncoder(args.checkpoint)
+    if args.detector:
+        sys.path.insert(0, str(Path(__file__).parents[3] / "encoder" / "selection"))
+        from fused_suite import DetectorReading
+
+        encoder = DetectorReading(args.checkpoint, args.detector, "azimuth")
     world = world_of_file(args.sim_config) if args.sim_config else WorldSettings()
     if args.render_scale is not None:  # else the settings file's, so a file that sets it is not overridden
         world = replace(world, render_scale=args.render_scale)
@@ -113,7 +123,8 @@ def main() -> None:
             rows.append(
                 {
                     "tracker": args.tracker,
-                    "checkpoint": Path(args.checkpoint).name,
+                    "checkpoint": Path(args.checkpoint).name
+                    + (f"+{Path(args.detector).name}" if args.detector else ""),
                     "seed": args.seed,
                     "episode": episode,
                     "surge_gain": args.surge_gain,
@@ -138,6 +149,7 @@ def main() -> None:
         print(f"{args.out} has other columns than these rows; writing them to {out}")
     table.to_csv(out, mode="a", header=not out.is_file(), index=False)
     models = {"cmvae": args.checkpoint} if args.tracker == "camera" else {}
+    models |= {"detector": args.detector} if args.detector else {}
     write_provenance_beside(out, provenance(models, seeds=[args.seed], sim_config=args.sim_config or None), append=True)
 
 
