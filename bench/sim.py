@@ -21,8 +21,8 @@ they alternate with see the same drift, so each way's ratio compares like with l
 
 Each adds the msgpack codec, the Zenoh hops and the process switches to the in-process step, nothing else.
 One way at a time, because the others' idle processes are not idle enough: a polling sim that has run out of
-poll time still wakes every millisecond to look for work (services/polling.py), and three of them beside the
-headline way made its round trip 0.72-0.77 ms instead of 0.64-0.65. In a process of its own, each way's learner
+poll time still wakes every millisecond to look for work (services/polling.py), which slows the way measured
+(docs/benchmarks.md). In a process of its own, each way's learner
 also gets the Zenoh threads its setting asks for, which a process fixes when it opens its first session.
 
 Before the ways, the scenery's cost (the ``plain_*``/``varied_*`` keys): the plain world and the varied one
@@ -66,13 +66,12 @@ from sim_service.world import World
 GROUPED_NAMESPACE = "swimm/bench-grouped"
 POLL_MS = 2.0  # the polling run's wait before sleeping, each side: longer than a round trip (about 1 ms)
 ROUNDS = 8  # blocks per way of serving; each round measures the way and the in-process World once
-#: Untimed steps each way (and the in-process world) takes first. A fresh process's first few hundred frames
-#: are the slowest (Mesa compiles its shaders, caches fill): 1864 steps/s over the first 2000 in-process
-#: steps, 2427-2657 over the next ones.
+#: Untimed steps each way (and the in-process world) takes first: a fresh process's first few hundred frames
+#: are the slowest (Mesa compiles its shaders, caches fill; docs/benchmarks.md).
 WARMUP_STEPS = 200
 DEFAULT_SWITCH_INTERVAL_S = sys.getswitchinterval()  # what a blocking link runs with
-#: How long a way's learner process may take: a start-up allowance, and 50 ms a step (a step in-process and
-#: served takes about 2.3 ms on a slow day).
+#: How long a way's learner process may take: a start-up allowance, and 50 ms a step (some twenty times a
+#: served step's round trip on a slow host).
 LEARNER_START_S, LEARNER_S_PER_STEP = 120.0, 0.05
 SCENERY_EPISODE_STEPS = 100  # the scenery measurement's episode length: 20 scenes a world in 2000 steps
 SHARED_RENDERER_ENVS = 4  # the renderer measurement's group: a sim's share of 8 envs on two sims

@@ -12,8 +12,8 @@ first thing that reads it:
   needs (docs/benchmarks.md, one Zenoh thread). A positive ``zenoh_threads`` hands all five to one pool;
 - ``LP_NUM_THREADS``, Mesa llvmpipe's rasteriser threads, which Mesa reads when the process makes its first GL
   context (sim_service/world.py, ``render_threads``). By default it starts one per core; a 64 px frame is too
-  small to share out, so 0 (draw on the calling thread) renders twice as fast on a CPU (0.17 against 0.39 ms
-  per frame on 2 cores). A GPU's EGL driver ignores the variable.
+  small to share out, so 0 (draw on the calling thread) renders faster on a CPU (docs/physics.md). A GPU's EGL
+  driver ignores the variable.
 
 Library code (links, responders, sessions, the World) never sets them: `swimm`'s main (swimm/cli.py) calls
 :func:`configure_process` with :meth:`ProcessSettings.of` its command's settings before the command runs, and any
