@@ -22,7 +22,24 @@ from eval_service.suite import SuiteSettings, suite_conditions
 from learner_service.task import episode_seed
 from sim_service.dataset import SamplingRanges, labels_and_pose, sample_pose
 from sim_service.settings import WorldSettings
+from sim_service.splits import Split
 from sim_service.world import World
+
+
+def condition_frames(
+    world: World, split: Split, seed: int, count: int, sampled: bool = False
+) -> tuple[np.ndarray, ...]:
+    """``count`` frames of one suite condition and their (d, theta, psi) labels: the reset frames of ``seed``'s
+    episodes 1 to ``count``, or with ``sampled`` the condition's water and scenery at a dataset's poses."""
+    frames, labels = [], []
+    for index in range(1, count + 1):
+        noise = split.noise if split.noise.enabled else False
+        telemetry, frame = world.reset(episode_seed(seed, index), noise=noise, scene=split.scene)
+        if sampled:  # the split's water and scenery, set by the reset, at a dataset's pose
+            telemetry, frame = sample_pose(world, np.random.default_rng([seed, index]), SamplingRanges())
+        frames.append(frame)
+        labels.append(labels_and_pose(telemetry)[0])
+    return np.stack(frames), np.array(labels)
 
 
 def main() -> None:
@@ -37,16 +54,9 @@ def main() -> None:
     world = World(WorldSettings())
     rows = []
     for split in suite_conditions(SuiteSettings()):
-        frames, labels = [], []
-        for index in range(1, args.frames + 1):
-            noise = split.noise if split.noise.enabled else False
-            telemetry, frame = world.reset(episode_seed(args.seed, index), noise=noise, scene=split.scene)
-            if args.sampled:  # the split's water and scenery, set by the reset, at a dataset's pose
-                telemetry, frame = sample_pose(world, np.random.default_rng([args.seed, index]), SamplingRanges())
-            frames.append(frame)
-            labels.append(labels_and_pose(telemetry)[0])
+        frames, labels = condition_frames(world, split, args.seed, args.frames, args.sampled)
         with torch.no_grad():
-            found = decode(*model(images_to_tensor(np.stack(frames))), saved["threshold"], 64, saved["stride"])
+            found = decode(*model(images_to_tensor(frames)), saved["threshold"], 64, saved["stride"])
         nearest, strongest = [], []
         for peaks, (distance, azimuth, _) in zip(found, labels, strict=True):
             if len(peaks):

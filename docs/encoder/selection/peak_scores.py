@@ -13,12 +13,11 @@ import argparse
 
 import numpy as np
 import pandas as pd
+from detector_frames import condition_frames
 
 from encoder_service.inference import LatentEncoder
 from encoder_service.pod_encoder import PodEncoder
 from eval_service.suite import SuiteSettings, suite_conditions
-from learner_service.task import episode_seed
-from sim_service.dataset import labels_and_pose
 from sim_service.settings import WorldSettings
 from sim_service.world import World
 
@@ -73,13 +72,8 @@ def main() -> None:
     world = World(WorldSettings())
     rows = []
     for split in suite_conditions(SuiteSettings()):
-        frames, labels = [], []
-        for index in range(1, args.frames + 1):
-            noise = split.noise if split.noise.enabled else False
-            telemetry, frame = world.reset(episode_seed(args.seed, index), noise=noise, scene=split.scene)
-            frames.append(frame)
-            labels.append(labels_and_pose(telemetry)[0])
-        rows.append({"condition": split.name} | condition_row(cmvae, pod, np.stack(frames), np.array(labels)))
+        frames, labels = condition_frames(world, split, args.seed, args.frames)
+        rows.append({"condition": split.name} | condition_row(cmvae, pod, frames, labels))
         print({name: round(value, 3) if isinstance(value, float) else value for name, value in rows[-1].items()},
               flush=True)  # fmt: skip
     world.close()
