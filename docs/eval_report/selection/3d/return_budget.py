@@ -96,12 +96,14 @@ def main() -> None:
     parser.add_argument("--render-scale", type=int, help="render this many times larger, then downsample")
     parser.add_argument("--detector", help="a pod detector whose tracked azimuth replaces the CMVAE's")
     args = parser.parse_args()
-    encoder = LatentEncoder(args.checkpoint)
     if args.detector:
+        # another folder's diagnostic (docs/encoder/selection), on sys.path only when asked for
         sys.path.insert(0, str(Path(__file__).parents[3] / "encoder" / "selection"))
         from fused_suite import DetectorReading
 
         encoder = DetectorReading(args.checkpoint, args.detector, "azimuth")
+    else:
+        encoder = LatentEncoder(args.checkpoint)
     world = world_of_file(args.sim_config) if args.sim_config else WorldSettings()
     if args.render_scale is not None:  # else the settings file's, so a file that sets it is not overridden
         world = replace(world, render_scale=args.render_scale)
