@@ -30,6 +30,9 @@ SHAFTS = (2, 6)  # light shafts per frame with shafts, U{lo..hi}
 SHAFT_SPREAD_DEG = 6.0  # a shaft's direction within this many degrees of the set's
 SHAFT_LIGHT = (150.0, 255.0)  # the shafts' grey level U[lo, hi], 0-255 units: sunlight is pale
 SHAFT_TINT = 20.0  # per-channel tint U[-t, t] on that grey
+FAN_RAYS = (3, 7)  # rays per fanned frame, U{lo..hi}
+FAN_RAY_HALF_DEG = (0.7, 4.0)  # a ray's angular half width seen from its vanishing point, U[lo, hi] degrees
+FAN_ALPHA = (0.2, 0.5)  # a ray's opacity U[lo, hi]
 DEFOCUS_SIGMA = (0.5, 3.0)  # --augment-blur: Gaussian blur, sigma U[lo, hi] pixels
 CONTRAST_LOG_RANGE = 0.9  # the dolphin's contrast to its water times exp(U[-r, r]): about 0.4x to 2.5x
 CONTRAST_FLIP_SHARE = 0.3  # of those, this share also turned around: a dark dolphin on a pale, bright water
@@ -44,19 +47,21 @@ class AugmentSettings:
     augment_bands: float = 0.0  # share of training frames crossed by translucent bands (encoder_service.augment)
     augment_shafts: float = 0.0  # share of training frames crossed by a sun's pale, near-parallel light shafts
     augment_blur: float = 0.0  # share of training frames blurred as by a camera out of focus (encoder_service.augment)
+    augment_fans: float = 0.0  # share of training frames crossed by shafts seen in perspective: rays from one point
 
     def check_shares(self) -> None:
         """Refuse a share outside [0, 1], naming its flag."""
         shares = (("--augment", self.augment), ("--augment-bands", self.augment_bands),
-                  ("--augment-shafts", self.augment_shafts), ("--augment-blur", self.augment_blur))  # fmt: skip
+                  ("--augment-shafts", self.augment_shafts), ("--augment-blur", self.augment_blur),
+                  ("--augment-fans", self.augment_fans))  # fmt: skip
         for flag, share in shares:
             check_share(flag, share)
 
     def augmented(self, images: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Frames through :func:`jitter`, :func:`bands`, :func:`shafts` and :func:`defocus` in turn, each on its
-        share of them (``images`` itself when all are off)."""
+        """Frames through :func:`jitter`, :func:`bands`, :func:`shafts`, :func:`fans` and :func:`defocus` in turn,
+        each on its share of them (``images`` itself when all are off)."""
         changes = ((jitter, self.augment), (bands, self.augment_bands), (shafts, self.augment_shafts),
-                   (defocus, self.augment_blur))  # fmt: skip
+                   (fans, self.augment_fans), (defocus, self.augment_blur))  # fmt: skip
         for change, share in changes:
             if share > 0:
                 images = change(images, rng, share)
@@ -127,13 +132,55 @@ def shafts(images: np.ndarray, rng: np.random.Generator, share: float) -> np.nda
 
 def _shafts_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     direction = rng.uniform(0.0, np.pi)
-    colour = np.clip(rng.uniform(*SHAFT_LIGHT) + rng.uniform(-SHAFT_TINT, SHAFT_TINT, 3), 0.0, 255.0)
+    colour = _sunlight(rng)
     count = rng.integers(SHAFTS[0], SHAFTS[1] + 1)
 
     def near_direction() -> float:
         return direction + np.deg2rad(rng.uniform(-SHAFT_SPREAD_DEG, SHAFT_SPREAD_DEG))
 
-    return _banded(image, rng, count, near_direction, colour.astype(np.float32))
+    return _banded(image, rng, count, near_direction, colour)
+
+
+def _sunlight(rng: np.random.Generator) -> np.ndarray:
+    """A pale, slightly tinted grey: the colour of one sun's shafts."""
+    return np.clip(rng.uniform(*SHAFT_LIGHT) + rng.uniform(-SHAFT_TINT, SHAFT_TINT, 3), 0.0, 255.0).astype(np.float32)
+
+
+def fans(images: np.ndarray, rng: np.random.Generator, share: float) -> np.ndarray:
+    """A copy of uint8 frames (N, H, W, 3) in which a ``share`` of them carry a low sun's shafts in perspective.
+
+    Shafts are parallel in the water, so the camera sees them converge on one vanishing point, which a low sun
+    brings near or into the frame: pale rays fanning out from one point in or around it, crossing the frame
+    wherever the dolphin is. :func:`shafts` draws them parallel, as a high sun's look.
+    """
+    return _on_share(images, rng, share, _fan_one)
+
+
+def _fan_one(image: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    height, width = image.shape[:2]
+    return fan_from(image, rng, (rng.uniform(-width, 2 * width), rng.uniform(-1.5 * height, 2.5 * height)))
+
+
+def fan_from(image: np.ndarray, rng: np.random.Generator, point: tuple[float, float]) -> np.ndarray:
+    """``image`` (uint8) crossed by pale rays from the vanishing ``point`` (x, y in pixels)."""
+    height, width = image.shape[:2]
+    point_x, point_y = point
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float32)
+    bearing = np.arctan2(rows - point_y, cols - point_x)
+    reach = np.hypot(rows - point_y, cols - point_x)
+    to_centre = np.arctan2(height / 2 - point_y, width / 2 - point_x)
+    # rays aimed about as wide as the frame spans from the point, or anywhere when the point lies inside it
+    inside_frame = 0 <= point_x < width and 0 <= point_y < height
+    spread = np.pi if inside_frame else np.arctan2(width, np.hypot(height / 2 - point_y, width / 2 - point_x))
+    colour = _sunlight(rng)
+    pixels = image.astype(np.float32)
+    for _ in range(rng.integers(FAN_RAYS[0], FAN_RAYS[1] + 1)):
+        off_ray = np.angle(np.exp(1j * (bearing - to_centre - rng.uniform(-spread, spread))))  # wrapped to (-pi, pi]
+        half_width = np.deg2rad(rng.uniform(*FAN_RAY_HALF_DEG))
+        inside = np.clip((half_width - np.abs(off_ray)) * reach + 0.5, 0.0, 1.0)  # a one-pixel soft edge
+        alpha = (rng.uniform(*FAN_ALPHA) * inside)[..., None]
+        pixels = pixels * (1.0 - alpha) + colour * alpha
+    return np.rint(np.clip(pixels, 0.0, 255.0)).astype(np.uint8)
 
 
 def _banded(

@@ -12,7 +12,17 @@ import onnxruntime
 import pytest
 import torch
 
-from encoder_service.augment import BANDS_MAX, DEFOCUS_SIGMA, SHAFT_TINT, bands, defocus, jitter, shafts
+from encoder_service.augment import (
+    BANDS_MAX,
+    DEFOCUS_SIGMA,
+    SHAFT_TINT,
+    bands,
+    defocus,
+    fan_from,
+    fans,
+    jitter,
+    shafts,
+)
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import (
     CMVAE,
@@ -168,6 +178,20 @@ def test_shafts_are_seeded_pale_near_parallel_and_touch_only_their_share() -> No
     assert np.mean([_edge_coherence(image) for image in lit]) > np.mean([_edge_coherence(i) for i in banded]) + 0.1
 
 
+def test_fans_are_seeded_pale_rays_from_one_point_and_touch_only_their_share() -> None:
+    frames = np.full((200, 64, 64, 3), 40, dtype=np.uint8)
+    for image in _changed_share(fans, frames):
+        brightness = image.astype(int).mean(axis=-1)
+        assert 0.0 < np.mean(brightness > 40) < 1.0 and brightness.min() >= 40 - SHAFT_TINT
+    # rays from one point: each covers the same bearings seen from it at any distance, as a wedge from it does
+    bearings = np.linspace(-np.pi, np.pi, 720, endpoint=False)
+    for seed in range(5):
+        lit = fan_from(frames[0], np.random.default_rng(seed), (32.0, 32.0)).astype(int).mean(axis=-1) > 41
+        near, far = ([lit[np.rint(32 + radius * np.sin(b)).astype(int), np.rint(32 + radius * np.cos(b)).astype(int)]
+                      for b in bearings] for radius in (12, 28))  # fmt: skip
+        assert np.any(near) and np.mean(np.equal(near, far)) > 0.9
+
+
 def test_defocus_spreads_a_point_by_its_drawn_sigma_and_touches_only_its_share() -> None:
     frames = np.zeros((200, 64, 64, 3), dtype=np.uint8)
     frames[:, 32, 32] = 255
@@ -190,7 +214,7 @@ def test_a_run_with_norm_and_jitter_trains_and_refuses_bad_values(tmp_path: Path
     out = tmp_path / "run"
     settings = TrainEncoderSettings(dataset=[str(dataset)], out=str(out), epochs=1, val_fraction=0.25, device="cpu",
                                     tensorboard=False, input_norm="channel", augment=0.5,
-                                    augment_bands=0.5, augment_shafts=0.5)  # fmt: skip
+                                    augment_bands=0.5, augment_shafts=0.5, augment_fans=0.5)  # fmt: skip
     assert run(settings) == 0
     best = torch.load(out / "best.pt", weights_only=True)
     assert best["config"]["input_norm"] == "channel" and math.isfinite(best["val_loss"])
@@ -198,6 +222,7 @@ def test_a_run_with_norm_and_jitter_trains_and_refuses_bad_values(tmp_path: Path
         ({"augment": 1.5}, "--augment is a share"),
         ({"augment_bands": -0.1}, "--augment-bands is a share"),
         ({"augment_shafts": 2.0}, "--augment-shafts is a share"),
+        ({"augment_fans": 1.2}, "--augment-fans is a share"),
         ({"input_norm": "x"}, "--input-norm"),
     )
     for change, message in refusals:
