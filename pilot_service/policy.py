@@ -47,9 +47,8 @@ class OnnxPolicy:
         metadata = self.session.get_modelmeta().custom_metadata_map
         tracks = "prior" in inputs  # a policy on a tracking CMVAE
         reads = "reading" in inputs  # a policy on the pod detector
-        wanted_in, wanted_out = (INPUTS | {"prior"}, OUTPUTS | {"next_prior"}) if tracks else (INPUTS, OUTPUTS)
-        if reads:
-            wanted_in = READING_INPUTS
+        wanted_in = READING_INPUTS if reads else INPUTS | {"prior"} if tracks else INPUTS
+        wanted_out = OUTPUTS | {"next_prior"} if tracks else OUTPUTS
         if set(inputs) != wanted_in or not wanted_out <= outputs or "swimm.contract" not in metadata:
             raise ContractError(f"{path} is not a swimm policy: inputs {sorted(inputs)}, outputs {sorted(outputs)}, "
                                 f"metadata {sorted(metadata)}; expected inputs {sorted(wanted_in)} and outputs "
