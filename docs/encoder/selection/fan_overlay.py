@@ -12,30 +12,18 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
+from low_sun_ablation import SEED, reset_frames, write_table
 
 from encoder_service.augment import bands, fans, shafts
 from encoder_service.inference import LatentEncoder
-from learner_service.task import episode_seed
-from services.results import provenance, write_provenance_beside
-from sim_service.dataset import labels_and_pose
 from sim_service.scenery import PRESETS
 from sim_service.settings import WorldSettings
 from sim_service.splits import SPLITS
 from sim_service.world import World
 
-FRAMES, SEED = 300, 211
+FRAMES = 300
 EDGE_DEG = 15.0  # a dolphin this far off the axis or more is "near the edge", where the shafts' misreads are
 OVERLAYS = {"none": None, "fans": fans, "shafts": shafts, "bands": bands}
-
-
-def reset_frames(world: World, scene) -> tuple[np.ndarray, np.ndarray]:
-    frames, labels = [], []
-    for index in range(1, FRAMES + 1):
-        telemetry, frame = world.reset(episode_seed(SEED, index), noise=False, scene=scene)
-        frames.append(frame)
-        labels.append(labels_and_pose(telemetry)[0])
-    return np.stack(frames), np.stack(labels)
 
 
 def errors(encoder: LatentEncoder, frames: np.ndarray, labels: np.ndarray) -> dict[str, float]:
@@ -51,8 +39,8 @@ def errors(encoder: LatentEncoder, frames: np.ndarray, labels: np.ndarray) -> di
 
 def main(out: str, checkpoints: list[str]) -> None:
     world = World(WorldSettings())
-    frames, labels = reset_frames(world, PRESETS["wide"])
-    low_sun = reset_frames(world, SPLITS["low-sun"].scene)
+    frames, labels = reset_frames(world, PRESETS["wide"], FRAMES)
+    low_sun = reset_frames(world, SPLITS["low-sun"].scene, FRAMES)
     world.close()
     inputs = {name: frames if draw is None else draw(frames, np.random.default_rng(SEED), 1.0)
               for name, draw in OVERLAYS.items()}  # fmt: skip
@@ -63,10 +51,7 @@ def main(out: str, checkpoints: list[str]) -> None:
             frames_read = "wide" if name == "none" else f"wide + {name}"
             rows.append({"checkpoint": model, "frames": frames_read, **errors(encoder, images, labels)})
         rows.append({"checkpoint": model, "frames": "low-sun split", **errors(encoder, *low_sun)})
-    table = pd.DataFrame(rows)
-    table.to_csv(out, index=False)
-    write_provenance_beside(out, provenance({Path(c).name: c for c in checkpoints}, seeds=[SEED]))
-    print(table.to_string(index=False))
+    write_table(out, rows, checkpoints)
 
 
 if __name__ == "__main__":

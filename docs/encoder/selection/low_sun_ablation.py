@@ -18,7 +18,7 @@ from encoder_service.model import label_errors
 from learner_service.task import episode_seed
 from services.results import provenance, write_provenance_beside
 from sim_service.dataset import labels_and_pose
-from sim_service.scenery import PRESETS
+from sim_service.scenery import PRESETS, SceneSettings
 from sim_service.settings import WorldSettings
 from sim_service.splits import SPLITS
 from sim_service.world import World
@@ -41,18 +41,28 @@ def main(out: str, checkpoints: list[str]) -> None:
     for checkpoint in checkpoints:
         encoder = LatentEncoder(checkpoint)
         for name, ranges in VARIANTS.items():
-            scene = dataclasses.replace(SPLITS["low-sun"].scene, **ranges)
-            frames, labels = [], []
-            for index in range(1, FRAMES + 1):
-                telemetry, frame = world.reset(episode_seed(SEED, index), noise=False, scene=scene)
-                frames.append(frame)
-                labels.append(labels_and_pose(telemetry)[0])
-            mu, _ = encoder.encode(np.stack(frames))
-            d_error, theta_error, _ = label_errors(np.stack(encoder.decode_state(mu), axis=1), np.stack(labels)).mean(0)
+            frames, labels = reset_frames(world, dataclasses.replace(SPLITS["low-sun"].scene, **ranges))
+            mu, _ = encoder.encode(frames)
+            d_error, theta_error, _ = label_errors(np.stack(encoder.decode_state(mu), axis=1), labels).mean(0)
             rows.append({"checkpoint": Path(checkpoint).name, "variant": name, "frames": FRAMES,
                          "d_mae_m": round(float(d_error), 3),
                          "theta_mae_deg": round(float(theta_error), 2)})  # fmt: skip
     world.close()
+    write_table(out, rows, checkpoints)
+
+
+def reset_frames(world: World, scene: SceneSettings, count: int = FRAMES) -> tuple[np.ndarray, np.ndarray]:
+    """The first ``count`` reset frames of the selection seed in ``scene``, without noise, and their labels."""
+    frames, labels = [], []
+    for index in range(1, count + 1):
+        telemetry, frame = world.reset(episode_seed(SEED, index), noise=False, scene=scene)
+        frames.append(frame)
+        labels.append(labels_and_pose(telemetry)[0])
+    return np.stack(frames), np.stack(labels)
+
+
+def write_table(out: str, rows: list[dict], checkpoints: list[str]) -> None:
+    """``rows`` as a CSV at ``out``, the models' hashes beside it, and the table printed."""
     table = pd.DataFrame(rows)
     table.to_csv(out, index=False)
     write_provenance_beside(out, provenance({Path(c).name: c for c in checkpoints}, seeds=[SEED]))
