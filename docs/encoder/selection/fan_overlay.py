@@ -12,13 +12,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from low_sun_ablation import SEED, reset_frames, write_table
+from detector_frames import condition_frames
+from low_sun_ablation import SEED, write_table
 
 from encoder_service.augment import bands, fans, shafts
 from encoder_service.inference import LatentEncoder
 from sim_service.scenery import PRESETS
 from sim_service.settings import WorldSettings
-from sim_service.splits import SPLITS
+from sim_service.splits import SPLITS, Split
 from sim_service.world import World
 
 FRAMES = 300
@@ -39,8 +40,8 @@ def errors(encoder: LatentEncoder, frames: np.ndarray, labels: np.ndarray) -> di
 
 def main(out: str, checkpoints: list[str]) -> None:
     world = World(WorldSettings())
-    frames, labels = reset_frames(world, PRESETS["wide"], FRAMES)
-    low_sun = reset_frames(world, SPLITS["low-sun"].scene, FRAMES)
+    frames, labels = condition_frames(world, Split("wide", "the training scenery", scene=PRESETS["wide"]), SEED, FRAMES)
+    low_sun = condition_frames(world, SPLITS["low-sun"], SEED, FRAMES)
     world.close()
     inputs = {name: frames if draw is None else draw(frames, np.random.default_rng(SEED), 1.0)
               for name, draw in OVERLAYS.items()}  # fmt: skip

@@ -12,15 +12,14 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from detector_frames import condition_frames
 
 from encoder_service.inference import LatentEncoder
 from encoder_service.model import label_errors
-from learner_service.task import episode_seed
 from services.results import provenance, write_provenance_beside
-from sim_service.dataset import labels_and_pose
-from sim_service.scenery import PRESETS, SceneSettings
+from sim_service.scenery import PRESETS
 from sim_service.settings import WorldSettings
-from sim_service.splits import SPLITS
+from sim_service.splits import SPLITS, Split
 from sim_service.world import World
 
 FRAMES, SEED = 150, 211
@@ -41,7 +40,8 @@ def main(out: str, checkpoints: list[str]) -> None:
     for checkpoint in checkpoints:
         encoder = LatentEncoder(checkpoint)
         for name, ranges in VARIANTS.items():
-            frames, labels = reset_frames(world, dataclasses.replace(SPLITS["low-sun"].scene, **ranges))
+            scene = dataclasses.replace(SPLITS["low-sun"].scene, **ranges)
+            frames, labels = condition_frames(world, Split(name, "", scene=scene), SEED, FRAMES)
             mu, _ = encoder.encode(frames)
             d_error, theta_error, _ = label_errors(np.stack(encoder.decode_state(mu), axis=1), labels).mean(0)
             rows.append({"checkpoint": Path(checkpoint).name, "variant": name, "frames": FRAMES,
@@ -49,16 +49,6 @@ def main(out: str, checkpoints: list[str]) -> None:
                          "theta_mae_deg": round(float(theta_error), 2)})  # fmt: skip
     world.close()
     write_table(out, rows, checkpoints)
-
-
-def reset_frames(world: World, scene: SceneSettings, count: int = FRAMES) -> tuple[np.ndarray, np.ndarray]:
-    """The first ``count`` reset frames of the selection seed in ``scene``, without noise, and their labels."""
-    frames, labels = [], []
-    for index in range(1, count + 1):
-        telemetry, frame = world.reset(episode_seed(SEED, index), noise=False, scene=scene)
-        frames.append(frame)
-        labels.append(labels_and_pose(telemetry)[0])
-    return np.stack(frames), np.stack(labels)
 
 
 def write_table(out: str, rows: list[dict], checkpoints: list[str]) -> None:
