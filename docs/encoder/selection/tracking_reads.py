@@ -1,0 +1,60 @@
+"""How each CMVAE reads the dolphin while the rover follows it, rather than at an episode's first frame: one
+clean episode of the ground-truth tracker on the selection seed (211), its frames read by every model. Beside
+the errors, their jitter (the spread of one read's error minus the previous read's), which a late loop
+amplifies, and the dolphin's heading (psi), on which the distance read leans (docs/encoder.md, "A low sun's
+shafts in perspective").
+
+    MUJOCO_GL=egl python docs/encoder/selection/tracking_reads.py OUT.csv CHECKPOINT [CHECKPOINT ...]
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+from low_sun_ablation import SEED, write_table
+
+from encoder_service.inference import LatentEncoder
+from learner_service.inprocess_env import TrackingEnv
+from learner_service.scripted import ScriptedTracker
+from learner_service.task import TaskSettings
+
+STEPS = 3000
+
+
+def tracked_frames() -> tuple[np.ndarray, np.ndarray]:
+    """Every frame of one episode and its true (d, azimuth, psi)."""
+    env = TrackingEnv(TaskSettings(obs="image"), base_seed=SEED)
+    tracker, frames, truth = ScriptedTracker(), [], []
+    obs, info = env.reset()
+    for _ in range(STEPS):
+        frames.append(env.render())
+        truth.append((info["d"], info["azimuth"], info["psi"]))
+        obs, _, terminated, truncated, info = env.step(tracker.act(obs, info))
+        if terminated or truncated:
+            break
+    env.close()
+    return np.stack(frames), np.array(truth)
+
+
+def errors(encoder: LatentEncoder, frames: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    d, theta, psi = encoder.decode_state(encoder.encode(frames)[0])
+    d_error, theta_error = d - truth[:, 0], theta - truth[:, 1]
+    psi_error = (psi - truth[:, 2] + 180.0) % 360.0 - 180.0
+    return {"d_mae_m": round(float(np.abs(d_error).mean()), 3),
+            "d_bias_m": round(float(d_error.mean()), 3),
+            "d_jitter_m": round(float(np.diff(d_error).std()), 3),
+            "theta_mae_deg": round(float(np.abs(theta_error).mean()), 2),
+            "theta_bias_deg": round(float(theta_error.mean()), 2),
+            "theta_jitter_deg": round(float(np.diff(theta_error).std()), 2),
+            "psi_mae_deg": round(float(np.abs(psi_error).mean()), 1)}  # fmt: skip
+
+
+def main(out: str, checkpoints: list[str]) -> None:
+    frames, truth = tracked_frames()
+    rows = [{"checkpoint": Path(c).name, "frames": len(frames), **errors(LatentEncoder(c), frames, truth)}
+            for c in checkpoints]  # fmt: skip
+    write_table(out, rows, checkpoints)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2:])
