@@ -24,23 +24,24 @@ from learner_service.task import TaskSettings
 from services.results import provenance, write_provenance_beside
 
 
-def tracked_frames(seed: int, episodes: int, steps: int, every: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Frames (N, 64, 64, 3) with the true distance and azimuth, from the ground-truth tracker's clean episodes."""
+def tracked_frames(seed: int, episodes: int, steps: int, every: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frames (N, 64, 64, 3) with the true (d, azimuth, psi) of each, from the ground-truth tracker's clean
+    episodes."""
     settings = TaskSettings(obs="state")
     env = TrackingEnv(settings, task_world(settings, render=True), base_seed=seed)
     tracker = ScriptedTracker()
-    frames, distances, azimuths = [], [], []
+    frames, truth = [], []
     for _ in range(episodes):
         obs, info = env.reset()
         for step in range(steps):
             obs, _, terminated, truncated, info = env.step(tracker.act(obs, info))
             if step % every == 0:
                 frames.append(env.render().copy())
-                distances.append(info["d"])
-                azimuths.append(info["azimuth"])
+                truth.append((info["d"], info["azimuth"], info["psi"]))
             if terminated or truncated:
                 break
-    return np.stack(frames), np.array(distances), np.array(azimuths)
+    env.close()
+    return np.stack(frames), np.array(truth)
 
 
 def readings(encoder: LatentEncoder, frames: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -56,7 +57,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=211)
     args = parser.parse_args()
-    frames, d_true, azimuth_true = tracked_frames(args.seed, episodes=2, steps=600, every=3)
+    frames, truth = tracked_frames(args.seed, episodes=2, steps=600, every=3)
+    d_true, azimuth_true = truth[:, 0], truth[:, 1]
     rows = []
     for checkpoint in args.checkpoints:
         for reading, (d, theta) in readings(LatentEncoder(checkpoint), frames).items():

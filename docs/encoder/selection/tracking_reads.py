@@ -12,28 +12,11 @@ from pathlib import Path
 
 import numpy as np
 from low_sun_ablation import SEED, write_table
+from operating_point import tracked_frames
 
 from encoder_service.inference import LatentEncoder
-from learner_service.inprocess_env import TrackingEnv
-from learner_service.scripted import ScriptedTracker
-from learner_service.task import TaskSettings
 
 STEPS = 3000
-
-
-def tracked_frames() -> tuple[np.ndarray, np.ndarray]:
-    """Every frame of one episode and its true (d, azimuth, psi)."""
-    env = TrackingEnv(TaskSettings(obs="image"), base_seed=SEED)
-    tracker, frames, truth = ScriptedTracker(), [], []
-    obs, info = env.reset()
-    for _ in range(STEPS):
-        frames.append(env.render())
-        truth.append((info["d"], info["azimuth"], info["psi"]))
-        obs, _, terminated, truncated, info = env.step(tracker.act(obs, info))
-        if terminated or truncated:
-            break
-    env.close()
-    return np.stack(frames), np.array(truth)
 
 
 def errors(encoder: LatentEncoder, frames: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -50,7 +33,7 @@ def errors(encoder: LatentEncoder, frames: np.ndarray, truth: np.ndarray) -> dic
 
 
 def main(out: str, checkpoints: list[str]) -> None:
-    frames, truth = tracked_frames()
+    frames, truth = tracked_frames(SEED, episodes=1, steps=STEPS, every=1)
     rows = [{"checkpoint": Path(c).name, "frames": len(frames), **errors(LatentEncoder(c), frames, truth)}
             for c in checkpoints]  # fmt: skip
     write_table(out, rows, checkpoints)
