@@ -102,6 +102,9 @@ class TrainEncoderSettings(AugmentSettings):
     device: str = "auto"  # auto | cpu | cuda | cuda:N
     max_batches_per_epoch: int = 0  # cap on training batches per epoch; 0 = all (validation always runs in full)
     tensorboard: bool = True
+    # also write each epoch's weights to <out>/epoch-N.pt: to read them one by one, or average them
+    # (`swimm export-encoder --average`)
+    keep_epochs: bool = False
 
     def state_loss(self) -> StateLoss:
         """The state error these settings ask for; a bad setting's error names its flag."""
@@ -703,9 +706,12 @@ def run(settings: TrainEncoderSettings) -> int:
                     f", elevation {metrics['mae_elevation']:.2f} deg" if "mae_elevation" in metrics else "",
                     f", mask loss {metrics['mask']:.4f}, IoU {metrics['mask_iou']:.3f}" if "mask" in metrics else "",
                 )
+                weights = make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics)
                 if val_loss < best_val:
                     best_val, best_epoch = val_loss, epoch + 1
-                    _save(make_checkpoint(model, settings.beta, epoch + 1, val_loss, metrics), best_path)
+                    _save(weights, best_path)
+                if settings.keep_epochs:
+                    _save(weights, out / f"epoch-{epoch + 1}.pt")
                 stop = stopper.update(val_loss)
                 _save(
                     make_checkpoint(

@@ -117,6 +117,21 @@ def test_resume_continues_from_the_last_epoch_and_matches_an_uninterrupted_run_a
         torch.testing.assert_close(b["state_dict"][name], tensor, rtol=1e-5, atol=1e-6)
 
 
+def test_keep_epochs_writes_each_epochs_weights_and_the_last_equals_last_pt(dataset_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "kept"
+    run(_settings(dataset_dir, out, keep_epochs=True))
+    first = torch.load(out / "epoch-1.pt", weights_only=True)
+    second = torch.load(out / "epoch-2.pt", weights_only=True)
+    last = torch.load(out / "last.pt", weights_only=True)
+    assert (first["epoch"], second["epoch"]) == (1, 2) and "optimizer" not in second
+    for name, tensor in last["state_dict"].items():
+        assert torch.equal(second["state_dict"][name], tensor)
+    assert any(not torch.equal(first["state_dict"][name], tensor) for name, tensor in last["state_dict"].items())
+    assert not (tmp_path / "plain").exists()
+    run(_settings(dataset_dir, tmp_path / "plain", epochs=1))
+    assert not list((tmp_path / "plain").glob("epoch-*.pt"))  # off by default
+
+
 def test_init_starts_from_a_checkpoints_weights(dataset_dir: Path, tmp_path: Path) -> None:
     """--init loads the shipped float16 file; with lr 0 the learned weights stay exactly the shipped ones."""
     out = tmp_path / "fine-tune"
