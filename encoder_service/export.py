@@ -67,7 +67,8 @@ def export_checkpoint(
     """Write ``source``'s weights as float16, with its config and metrics, and nothing needed only to resume or train
     (a mask head is dropped). ``mirror_average`` sets how the exported model reads a frame (None keeps the source's):
     the flag adds no weight, so any model can be shipped mirror-averaged. ``average`` names more checkpoints whose
-    weights are averaged with ``source``'s; the file records their names."""
+    weights are averaged with ``source``'s; the file records their names, and its validation loss and metrics stay
+    ``source``'s (nothing validates the mean here: read it with `swimm eval-encoder`)."""
     checkpoint = read_checkpoint(source)
     kept = {key: checkpoint[key] for key in ("format", "version", "config", "epoch", "val_loss", "metrics")}
     if average:
@@ -77,6 +78,7 @@ def export_checkpoint(
         sources = {str(source): checkpoint} | {path: read_checkpoint(path) for path in paths[1:]}
         checkpoint = {**checkpoint, "state_dict": averaged(sources)}
         kept["averaged_from"] = paths
+        kept["epoch"] = max(source["epoch"] for source in sources.values())  # the training the mean has seen
     kept["config"] = {**checkpoint["config"], "mask_head": False}  # a training aid: nothing downstream reads it
     if mirror_average is not None:
         kept["config"]["mirror_average"] = mirror_average

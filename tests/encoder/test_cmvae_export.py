@@ -64,7 +64,7 @@ def test_average_exports_the_weight_by_weight_mean_and_names_its_sources(tmp_pat
     assert swimm(["export-encoder", "--checkpoint", str(sources[0]), "--average", str(sources[1]), str(sources[2]),
                   "--out", str(out)]) == 0  # fmt: skip
     exported = read_checkpoint(out)
-    assert exported["averaged_from"] == [str(path) for path in sources]
+    assert exported["averaged_from"] == [str(path) for path in sources] and exported["epoch"] == 3
     for name, tensor in exported["state_dict"].items():
         weights = [checkpoint["state_dict"][name] for checkpoint in checkpoints]
         if tensor.is_floating_point():  # float16 keeps about three significant digits

@@ -24,15 +24,17 @@ from learner_service.task import TaskSettings
 from services.results import provenance, write_provenance_beside
 
 
-def tracked_frames(seed: int, episodes: int, steps: int, every: int) -> tuple[np.ndarray, np.ndarray]:
-    """Frames (N, 64, 64, 3) with the true (d, azimuth, psi) of each, from the ground-truth tracker's clean
-    episodes."""
+def tracked_frames(
+    seed: int, episodes: int, steps: int, every: int, options: dict | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frames (N, 64, 64, 3) with the true (d, azimuth, psi) of each, from the ground-truth tracker's episodes:
+    clean, or in the water and scenery of each reset's ``options`` (a suite split's ``reset_options()``)."""
     settings = TaskSettings(obs="state")
     env = TrackingEnv(settings, task_world(settings, render=True), base_seed=seed)
     tracker = ScriptedTracker()
     frames, truth = [], []
     for _ in range(episodes):
-        obs, info = env.reset()
+        obs, info = env.reset(options=options)
         for step in range(steps):
             obs, _, terminated, truncated, info = env.step(tracker.act(obs, info))
             if step % every == 0:

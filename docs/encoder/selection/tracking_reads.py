@@ -4,10 +4,12 @@ the errors, their jitter (the spread of one read's error minus the previous read
 amplifies, and the dolphin's heading (psi), on which the distance read leans (docs/encoder.md, "A low sun's
 shafts in perspective").
 
-    MUJOCO_GL=egl python docs/encoder/selection/tracking_reads.py OUT.csv CHECKPOINT [CHECKPOINT ...]
+    MUJOCO_GL=egl python docs/encoder/selection/tracking_reads.py OUT.csv CHECKPOINT [CHECKPOINT ...] [--split NAME]
+
+``--split`` plays the episode in one held-out split's water and scenery (sim_service/splits.py) instead of clean.
 """
 
-import sys
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +17,7 @@ from low_sun_ablation import SEED, write_table
 from operating_point import tracked_frames
 
 from encoder_service.inference import LatentEncoder
+from sim_service.splits import resolve_splits
 
 STEPS = 3000
 
@@ -32,12 +35,18 @@ def errors(encoder: LatentEncoder, frames: np.ndarray, truth: np.ndarray) -> dic
             "psi_mae_deg": round(float(np.abs(psi_error).mean()), 1)}  # fmt: skip
 
 
-def main(out: str, checkpoints: list[str]) -> None:
-    frames, truth = tracked_frames(SEED, episodes=1, steps=STEPS, every=1)
-    rows = [{"checkpoint": Path(c).name, "frames": len(frames), **errors(LatentEncoder(c), frames, truth)}
-            for c in checkpoints]  # fmt: skip
-    write_table(out, rows, checkpoints)
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out")
+    parser.add_argument("checkpoints", nargs="+")
+    parser.add_argument("--split", help="a held-out split to track in (default: clean water)")
+    args = parser.parse_args()
+    options = resolve_splits([args.split])[0].reset_options() if args.split else None
+    frames, truth = tracked_frames(SEED, episodes=1, steps=STEPS, every=1, options=options)
+    about = {"water": args.split or "clean", "frames": len(frames)}
+    rows = [{"checkpoint": Path(c).name, **about, **errors(LatentEncoder(c), frames, truth)} for c in args.checkpoints]
+    write_table(args.out, rows, args.checkpoints)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2:])
+    main()
