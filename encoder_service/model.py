@@ -773,10 +773,11 @@ class DistillationParts:
     prediction: torch.Tensor  # (N, 3): the normalised (d, theta, psi) the student's mu decodes to
     mask_logits: torch.Tensor | None = None  # (N, 8, 8): the student's mask head, when it has one
     mask: torch.Tensor | None = None  # the mask head's loss, when it is trained
+    consistency: torch.Tensor | None = None  # the augmented frames' reads against the plain ones', when trained
 
     def as_floats(self) -> dict[str, float]:
-        names = ("total", "latent", "state") + (("mask",) if self.mask is not None else ())
-        return {name: float(getattr(self, name).detach()) for name in names}
+        optional = tuple(name for name in ("mask", "consistency") if getattr(self, name) is not None)
+        return {name: float(getattr(self, name).detach()) for name in ("total", "latent", "state", *optional)}
 
 
 def distillation_loss(
@@ -806,6 +807,19 @@ def distillation_loss(
         total=latent_weight * latent + state, latent=latent, state=state, prediction=prediction, mask_logits=mask_logits
     )
     return add_mask_loss(parts, mask_logits, masks, mask_weight)
+
+
+def add_consistency_loss(
+    parts: DistillationParts, student: CMVAE, plain_images: torch.Tensor, weight: float
+) -> DistillationParts:
+    """``parts`` with ``weight`` x the mean squared gap between the student's (normalised) d and theta read of each
+    augmented frame and its own read of the same frame before augmentation, held fixed: what an augmentation adds
+    to the look (a fan of light, a band) should not move where the dolphin is read."""
+    with torch.no_grad():
+        plain = student.decode_state(student.encode(plain_images)[0])
+    parts.consistency = F.mse_loss(parts.prediction[:, :PSI], plain[:, :PSI])
+    parts.total = parts.total + weight * parts.consistency
+    return parts
 
 
 # ---------------------------------------------------------------- checkpoints

@@ -43,6 +43,7 @@ from encoder_service.model import (
     DistillationParts,
     LossParts,
     StateLoss,
+    add_consistency_loss,
     check_psi_loss,
     cmvae_loss,
     denormalise_labels,
@@ -90,6 +91,9 @@ class TrainEncoderSettings(AugmentSettings):
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
     teacher: FilePath = ""  # paired datasets: a CMVAE whose latent of each clean frame the model gives both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
+    # with a teacher and augmentation: weight of the pull of each augmented frame's d and theta read toward the
+    # model's own read of the frame unaugmented (0 = off)
+    consistency_weight: float = 0.0
     # of d, theta, psi (and the elevation, for a --vertical dataset) in the state error
     state_weights: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0])
     input_norm: str = "none"  # none | channel: white-balance | local: and even out the light | light: local + light
@@ -269,6 +273,7 @@ def _loss(
     """The batch's loss parts: the CMVAE loss, or with a ``teacher`` the distillation loss; ``jitter_rng`` jitters
     a share of the inputs (never the targets); ``priors`` draws a tracking model's priors."""
     inputs, targets = inputs_and_targets(batch, feed_clean)
+    plain_inputs = inputs
     if jitter_rng is not None:
         inputs = settings.augmented(inputs, jitter_rng)
     labels = torch.from_numpy(normalise_labels(batch.labels, model.labels)).to(device)
@@ -280,9 +285,13 @@ def _loss(
         return cmvae_loss(model(images), targets_t, labels, settings.beta, settings.state_loss(), **mask_args)
     with torch.no_grad():
         teacher_mu, teacher_logvar = teacher.encode(images_to_tensor(targets, device))
-    return distillation_loss(
+    parts = distillation_loss(
         model, images, teacher_mu, teacher_logvar, labels, settings.latent_weight, settings.state_loss(), **mask_args
     )
+    if settings.consistency_weight > 0 and jitter_rng is not None:
+        plain_images = encoder_input(model, plain_inputs, batch.labels, device, priors, batch.centred)
+        parts = add_consistency_loss(parts, model, plain_images, settings.consistency_weight)
+    return parts
 
 
 def _masks_tensor(batch: Batch, mask_weight: float, device: torch.device) -> torch.Tensor | None:
@@ -591,6 +600,10 @@ def check(settings: TrainEncoderSettings) -> None:
         raise ValueError("--locate trains the locator on the dataset's masks: give it a --mask-weight > 0")
     if settings.prior_distance and not settings.track:
         raise ValueError("--prior-distance is a tracking encoder's prior: give --track too")
+    if not (math.isfinite(settings.consistency_weight) and settings.consistency_weight >= 0):
+        raise ValueError(f"--consistency-weight must be a weight >= 0 (0 = off), got {settings.consistency_weight}")
+    if settings.consistency_weight > 0 and (not settings.teacher or settings.track):
+        raise ValueError("--consistency-weight holds a distilled encoder's reads: give --teacher, and no --track")
     resolve_device(settings.device)
     if not settings.resume:
         refuse_held_folder("--out", settings.out, ("last.pt", "best.pt"), "a training run",

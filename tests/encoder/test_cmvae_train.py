@@ -445,6 +445,49 @@ def test_a_teacher_on_its_own_clean_frames_matches_exactly(paired_dir: Path) -> 
     assert _latent_match(teacher, teacher, dataset, rows) > 0.01  # the noisy twins' latents do differ
 
 
+def test_the_consistency_term_is_nought_for_an_unchanged_frame_and_grows_with_what_augmentation_moves(
+    paired_dir: Path,
+) -> None:
+    from encoder_service.model import (
+        add_consistency_loss,
+        distillation_loss,
+        images_to_tensor,
+        load_model,
+        normalise_labels,
+    )
+
+    student, _ = load_model(DEFAULT_CHECKPOINT)
+    batch = CMVAEDataset(paired_dir).read(np.arange(16))
+    plain = images_to_tensor(batch.images)
+    labels = torch.from_numpy(normalise_labels(batch.labels, student.labels))
+    teacher_mu, teacher_logvar = student.encode(images_to_tensor(batch.clean))
+
+    def parts_for(images: torch.Tensor) -> tuple[dict[str, float], float]:
+        parts = distillation_loss(student, images, teacher_mu, teacher_logvar, labels, 1.0)
+        before = float(parts.total.detach())
+        return add_consistency_loss(parts, student, plain, weight=5.0).as_floats(), before
+
+    same, before = parts_for(plain)
+    assert same["consistency"] == pytest.approx(0.0, abs=1e-12) and same["total"] == pytest.approx(before)
+    darkened, before = parts_for(plain * 0.5)  # a look the frame did not have: the read moves
+    assert darkened["consistency"] > 1e-4
+    assert darkened["total"] == pytest.approx(before + 5.0 * darkened["consistency"], rel=1e-6)
+    assert set(darkened) == {"total", "latent", "state", "consistency"}
+
+
+def test_a_consistency_run_trains_and_the_weight_is_refused_without_a_teacher_or_below_nought(
+    paired_dir: Path, dataset_dir: Path, tmp_path: Path
+) -> None:
+    settings = _settings(paired_dir, tmp_path / "held", teacher=str(DEFAULT_CHECKPOINT), epochs=1,
+                         augment_fans=1.0, consistency_weight=2.0)  # fmt: skip
+    assert run(settings) == 0 and _summary(tmp_path / "held")["epochs_run"] == 1
+    with pytest.raises(ValueError, match="--consistency-weight holds a distilled encoder's reads: give --teacher"):
+        run(_settings(dataset_dir, tmp_path / "untaught", consistency_weight=1.0))
+    with pytest.raises(ValueError, match="--consistency-weight must be a weight >= 0"):
+        run(_settings(paired_dir, tmp_path / "negative", teacher=str(DEFAULT_CHECKPOINT), consistency_weight=-1.0))
+    assert not (tmp_path / "untaught").exists() and not (tmp_path / "negative").exists()
+
+
 def test_distillation_needs_a_paired_dataset(dataset_dir: Path, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="--teacher needs a paired dataset"):
         run(_settings(dataset_dir, tmp_path / "run", teacher=str(DEFAULT_CHECKPOINT)))
