@@ -44,7 +44,8 @@ from services.settings import FilePath, PosFloat, PosInt, check_ranges
 
 log = logging.getLogger(__name__)
 
-SHIPPED_POLICY = Path(__file__).parent / "models" / "sac_cmvae_wide.zip"  # the policy to fly (docs/learner.md)
+#: The policy to fly (docs/learner.md): sac_cmvae_wide.zip's weights, rebound to fly on cmvae_fans.pt (`swimm rebind`).
+SHIPPED_POLICY = Path(__file__).parent / "models" / "sac_cmvae_fans.zip"
 INPUTS = ("frame", "action_history")
 OUTPUTS = ("action", "next_history")
 #: What a tracking CMVAE's file carries besides: where its target was last seen, fed back as ActPrev is.

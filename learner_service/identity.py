@@ -23,6 +23,8 @@ log = logging.getLogger(__name__)
 
 #: The model attribute (and key of the zip's ``data`` JSON) that holds the identity.
 IDENTITY_KEY = "swimm_identity"
+#: The identity's key for the CMVAE a policy trained on, where it flies on another (`swimm rebind`, a fine-tune).
+TRAINED_ON_KEY = "trained_on"
 #: The task of a policy that records none: it was saved before the 3d task existed.
 LEGACY_TASK = "planar"
 #: Where a recorded encoder is looked for when its recorded path is not here (e.g. a run folder elsewhere).

@@ -96,6 +96,12 @@ def _export() -> Entry:
     return Entry(ExportSettings, run, check)
 
 
+def _rebind() -> Entry:
+    from learner_service.rebind import RebindSettings, check, run
+
+    return Entry(RebindSettings, run, check)
+
+
 def _up() -> Entry:
     from learner_service.up import UpSettings, check, run
 
@@ -146,6 +152,7 @@ COMMANDS: dict[str, Command] = {
     "eval-encoder": Command(_eval_encoder, "evaluate a CMVAE"),
     "export-encoder": Command(_export_encoder, "shrink a CMVAE for shipping"),
     "export": Command(_export, "a policy as ONNX, frame to action (two files on a detector)", renders=True),
+    "rebind": Command(_rebind, "copy a policy to fly on a fine-tune of its CMVAE"),
     "up": Command(
         _up,
         "launch router, sim, encoder, learner (shipped recipe)",

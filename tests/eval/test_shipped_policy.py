@@ -1,4 +1,4 @@
-"""The policy to fly (learner_service/models/sac_cmvae_wide.zip, SHIPPED_POLICY) still tracks: a bare `swimm eval`'s
+"""The policy to fly (learner_service/models/sac_cmvae_fans.zip, SHIPPED_POLICY) still tracks: a bare `swimm eval`'s
 contender, on the real world with the CMVAE it records in one process, against the scripted baseline on the same
 episode.
 
@@ -17,7 +17,9 @@ import pytest
 
 from eval_service.engine import EvaluationSettings, evaluate
 from learner_service.export import SHIPPED_POLICY
+from learner_service.identity import TRAINED_ON_KEY, read_identity
 from learner_service.registry import load_policy
+from services.results import REPO_ROOT, file_sha256
 from tests.fingerprints import check_pairing
 
 STEPS = 400
@@ -114,6 +116,15 @@ def test_a_shipped_policy_takes_its_measured_actions_and_no_other_shipped_policy
     shipped_actions: dict[str, np.ndarray], expected: str, candidate: str
 ) -> None:
     check_pairing(shipped_actions, ACTIONS, ACTION_TOLERANCE, candidate, expected)
+
+
+def test_the_policy_to_fly_is_sac_cmvae_wide_rebound_to_its_fine_tuned_cmvae(shipped_actions) -> None:
+    """Not a policy of its own: sac_cmvae_wide.zip's weights, recording cmvae_fans.pt as the CMVAE it flies on and
+    cmvae_wide.pt as the one it trained on (`swimm rebind`; docs/learner.md, "One policy to fly")."""
+    np.testing.assert_array_equal(_actions(SHIPPED_POLICY), shipped_actions["sac_cmvae_wide.zip"])
+    identity, encoders = read_identity(SHIPPED_POLICY), REPO_ROOT / "encoder_service" / "models"
+    assert identity["encoder"]["sha256"] == file_sha256(encoders / "cmvae_fans.pt")
+    assert identity[TRAINED_ON_KEY]["sha256"] == file_sha256(encoders / "cmvae_wide.pt")
 
 
 if __name__ == "__main__":  # measures ACTIONS on the checked-out policies

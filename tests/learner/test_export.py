@@ -104,15 +104,15 @@ def test_bad_requests_name_the_problem_and_leave_no_file(tmp_path: Path) -> None
 
 
 def test_the_policy_to_fly_exports_with_the_cmvae_it_records(exported: Path) -> None:
-    """cmvae_wide.pt white-balances each frame, takes its added light away and averages it with its mirror image, all
-    inside its encoder module, so the ONNX graph does too (the agreement within 1e-4 above is on real frames): the
-    file carries that CMVAE, the one the policy records."""
+    """cmvae_fans.pt (a fine-tune of cmvae_wide.pt) white-balances each frame, takes its added light away and averages
+    it with its mirror image, all inside its encoder module, so the ONNX graph does too (the agreement within 1e-4
+    above is on real frames): the file carries that CMVAE, the one the policy records."""
     from learner_service.export import SHIPPED_POLICY
     from learner_service.identity import encoder_for
     from services.results import file_sha256
 
     recorded = encoder_for(SHIPPED_POLICY, None)
-    assert recorded.name == "cmvae_wide.pt"
+    assert recorded.name == "cmvae_fans.pt"
     session = onnxruntime.InferenceSession(str(exported), providers=["CPUExecutionProvider"])
     meta = session.get_modelmeta().custom_metadata_map
     assert meta["swimm.encoder_sha256"] == file_sha256(recorded)

@@ -27,7 +27,8 @@ ENCODERS = REPO_ROOT / "encoder_service" / "models"
 SHIPPED_PAIRS = {"sac_cmvae.zip": "cmvae.pt", "sac_cmvae_robust.zip": "cmvae_robust.pt",
                  "sac_cmvae_latency.zip": "cmvae_mixture.pt", "sac_cmvae_3d.zip": "cmvae_vertical.pt",
                  "sac_cmvae_3d_robust.zip": "cmvae_vertical_robust.pt",
-                 "sac_pod_detector.zip": "pod_detector.pt"}  # fmt: skip
+                 "sac_pod_detector.zip": "pod_detector.pt", "sac_cmvae_wide.zip": "cmvae_wide.pt",
+                 "sac_cmvae_fans.zip": "cmvae_fans.pt"}  # fmt: skip
 
 
 @pytest.mark.parametrize(("policy", "encoder"), SHIPPED_PAIRS.items())
