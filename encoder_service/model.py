@@ -644,29 +644,34 @@ def state_errors(predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
     return torch.cat([errors[:, :PSI], psi, errors[:, PSI + 1 :]], dim=1)
 
 
-PSI_LOSSES = ("mse", "l1")
+STATE_LOSSES = ("mse", "l1")
 
 
-def check_psi_loss(name: str, called: str = "psi_loss") -> None:
-    """Refuse an unknown psi loss, naming it as the caller knows it (``called``: the argument or the flag)."""
-    if name not in PSI_LOSSES:
-        raise ValueError(f"{called} {name!r}: expected one of {', '.join(PSI_LOSSES)}")
+def check_state_loss(name: str, called: str) -> None:
+    """Refuse an unknown loss of one label, naming it as the caller knows it (``called``: the argument or the flag)."""
+    if name not in STATE_LOSSES:
+        raise ValueError(f"{called} {name!r}: expected one of {', '.join(STATE_LOSSES)}")
 
 
 @dataclass(frozen=True)
 class StateLoss:
-    """How the state decoders' errors are scored: psi's square (the SPEC's) or absolute error, and a weight per label.
+    """How the state decoders' errors are scored: psi's and theta's square (the SPEC's) or absolute error, and a
+    weight per label.
 
     The normalised labels' squares are small next to psi's absolute error, so with ``psi="l1"`` psi's pull on the
     shared encoder dwarfs distance's; ``weights`` (d, theta, psi, and the elevation for a vertical model) let a
-    training stage set that balance. A label given no weight (the elevation, of three) weighs 1.
+    training stage set that balance. A label given no weight (the elevation, of three) weighs 1. ``theta="l1"``
+    pulls as hard on a degree's error near the image centre as on a large one, where the square hardly pulls at all:
+    the reward's azimuth penalty is steepest there.
     """
 
     psi: str = "mse"
     weights: tuple[float, ...] = (1.0, 1.0, 1.0)
+    theta: str = "mse"
 
     def __post_init__(self) -> None:
-        check_psi_loss(self.psi)
+        check_state_loss(self.psi, "psi_loss")
+        check_state_loss(self.theta, "theta_loss")
         weights = tuple(self.weights)
         if (
             len(weights) not in (len(LABEL_NAMES), len(VERTICAL_LABEL_NAMES))
@@ -680,10 +685,11 @@ class StateLoss:
         object.__setattr__(self, "weights", tuple(float(w) for w in weights))
 
     def __call__(self, predicted: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-        """The weighted mean over frames and labels of the squared normalised errors (psi's absolute with ``l1``)."""
+        """The weighted mean over frames and labels of the squared normalised errors (absolute where ``l1``)."""
         errors = state_errors(predicted, labels)
-        psi_term = errors[:, PSI : PSI + 1].abs() if self.psi == "l1" else errors[:, PSI : PSI + 1].pow(2)
-        terms = torch.cat([errors[:, :PSI].pow(2), psi_term, errors[:, PSI + 1 :].pow(2)], dim=1)
+        absolute = torch.zeros(errors.shape[1], dtype=torch.bool, device=errors.device)
+        absolute[[column for column, loss in ((THETA, self.theta), (PSI, self.psi)) if loss == "l1"]] = True
+        terms = torch.where(absolute, errors.abs(), errors.pow(2))
         if len(self.weights) > terms.shape[1]:
             raise ValueError(f"state weights {list(self.weights)} for a model of {terms.shape[1]} labels")
         weights = self.weights + (1.0,) * (terms.shape[1] - len(self.weights))

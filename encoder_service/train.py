@@ -44,7 +44,7 @@ from encoder_service.model import (
     LossParts,
     StateLoss,
     add_consistency_loss,
-    check_psi_loss,
+    check_state_loss,
     cmvae_loss,
     denormalise_labels,
     distillation_loss,
@@ -88,6 +88,7 @@ class TrainEncoderSettings(AugmentSettings):
     # with them): what a sub-pixel read near the image centre learns from; 0 = off
     shift_pixels: int = 0
     psi_loss: Literal["mse", "l1"] = "mse"  # mse: the SPEC's; l1: psi's absolute error, least at the likelier view
+    theta_loss: Literal["mse", "l1"] = "mse"  # mse: the SPEC's; l1: theta's absolute error, which pulls near the centre
     clean_share: float = 0.5  # paired datasets: share of training frames fed clean, the rest noisy (targets are clean)
     teacher: FilePath = ""  # paired datasets: a CMVAE whose latent of each clean frame the model gives both twins
     latent_weight: float = 1.0  # with a teacher: weight of the latent match against the state error
@@ -112,9 +113,10 @@ class TrainEncoderSettings(AugmentSettings):
 
     def state_loss(self) -> StateLoss:
         """The state error these settings ask for; a bad setting's error names its flag."""
-        check_psi_loss(self.psi_loss, "--psi-loss")
+        check_state_loss(self.psi_loss, "--psi-loss")
+        check_state_loss(self.theta_loss, "--theta-loss")
         try:
-            return StateLoss(self.psi_loss, tuple(self.state_weights))
+            return StateLoss(self.psi_loss, tuple(self.state_weights), self.theta_loss)
         except ValueError as error:
             raise ValueError(f"--state-weights: {error}") from None
 

@@ -191,6 +191,25 @@ def test_state_weights_scale_each_labels_term_and_bad_weights_are_refused() -> N
         StateLoss(weights=(1.0, 1.0, 1.0, 2.0))(predicted, labels)
 
 
+def test_l1_theta_loss_pulls_on_a_small_azimuth_error_as_on_a_large_one() -> None:
+    """theta's absolute error in place of its square, every other label's term unchanged; and its gradient the same
+    size at 1 degree as at 20, where the square's is twenty times smaller."""
+    labels = torch.from_numpy(normalise_labels(np.array([[6.0, 0.0, 90.0], [6.0, 5.0, -30.0]])))
+    offsets = torch.tensor([[0.1, 0.0, 0.2], [-0.2, 0.0, -0.1]], dtype=labels.dtype)
+    for degrees in (1.0, 20.0):
+        predicted = labels + offsets
+        predicted[:, 1] += degrees / ALPHA_DEG * torch.tensor([1.0, -1.0], dtype=labels.dtype)
+        predicted.requires_grad_(True)
+        errors = state_errors(predicted, labels).detach()
+        plain, l1 = StateLoss()(predicted, labels), StateLoss(theta="l1")(predicted, labels)
+        assert (l1 - plain).item() == pytest.approx(((errors[:, 1].abs() - errors[:, 1].pow(2)).mean() / 3).item())
+        (gradient,) = torch.autograd.grad(l1, predicted)
+        assert gradient[:, 1].abs().tolist() == pytest.approx([1 / 6, 1 / 6])  # 1 / (frames x labels), any size
+        assert gradient[:, 2].tolist() == pytest.approx((2 * errors[:, 2] / 6).tolist())  # psi's square, as before
+    with pytest.raises(ValueError, match="theta_loss 'huber'"):
+        StateLoss(theta="huber")
+
+
 def test_a_fourth_state_weight_scales_the_elevations_term() -> None:
     """A vertical model's elevation weighs 1 unless a fourth weight says otherwise."""
     raw = np.array([[4.0, 10.0, 90.0, 12.0], [8.0, -20.0, -30.0, -5.0]])
