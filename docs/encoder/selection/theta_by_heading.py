@@ -9,16 +9,13 @@ ground-truth tracker on the selection seed (211), as `tracking_reads.py` plays i
     MUJOCO_GL=egl python docs/encoder/selection/theta_by_heading.py OUT.csv CHECKPOINT [CHECKPOINT ...] [--split NAME]
 """
 
-import argparse
 from pathlib import Path
 
 import numpy as np
-from low_sun_ablation import SEED, write_table
-from operating_point import tracked_frames
-from tracking_reads import STEPS
+from low_sun_ablation import write_table
+from tracking_reads import arguments, tracked_episode
 
 from encoder_service.inference import LatentEncoder
-from sim_service.splits import resolve_splits
 
 BIN_DEG = 30
 MIN_FRAMES = 10  # a bin with fewer frames says nothing
@@ -42,13 +39,8 @@ def by_heading(encoder: LatentEncoder, frames: np.ndarray, truth: np.ndarray) ->
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("out")
-    parser.add_argument("checkpoints", nargs="+")
-    parser.add_argument("--split", help="a held-out split to track in (default: clean water)")
-    args = parser.parse_args()
-    options = resolve_splits([args.split])[0].reset_options() if args.split else None
-    frames, truth = tracked_frames(SEED, episodes=1, steps=STEPS, every=1, options=options)
+    args = arguments(__doc__.splitlines()[0])
+    frames, truth = tracked_episode(args.split)
     rows = []
     for checkpoint in args.checkpoints:
         about = {"checkpoint": Path(checkpoint).name, "water": args.split or "clean"}

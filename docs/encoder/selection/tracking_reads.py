@@ -35,14 +35,24 @@ def errors(encoder: LatentEncoder, frames: np.ndarray, truth: np.ndarray) -> dic
             "psi_mae_deg": round(float(np.abs(psi_error).mean()), 1)}  # fmt: skip
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def arguments(description: str) -> argparse.Namespace:
+    """OUT.csv, the checkpoints and --split, as this script and theta_by_heading.py take them."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("out")
     parser.add_argument("checkpoints", nargs="+")
     parser.add_argument("--split", help="a held-out split to track in (default: clean water)")
-    args = parser.parse_args()
-    options = resolve_splits([args.split])[0].reset_options() if args.split else None
-    frames, truth = tracked_frames(SEED, episodes=1, steps=STEPS, every=1, options=options)
+    return parser.parse_args()
+
+
+def tracked_episode(split: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """The ground-truth tracker's episode on the selection seed, in clean water or in ``split``'s."""
+    options = resolve_splits([split])[0].reset_options() if split else None
+    return tracked_frames(SEED, episodes=1, steps=STEPS, every=1, options=options)
+
+
+def main() -> None:
+    args = arguments(__doc__.splitlines()[0])
+    frames, truth = tracked_episode(args.split)
     about = {"water": args.split or "clean", "frames": len(frames)}
     rows = [{"checkpoint": Path(c).name, **about, **errors(LatentEncoder(c), frames, truth)} for c in args.checkpoints]
     write_table(args.out, rows, args.checkpoints)
