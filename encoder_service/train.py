@@ -116,7 +116,7 @@ class TrainEncoderSettings(AugmentSettings):
         check_state_loss(self.psi_loss, "--psi-loss")
         check_state_loss(self.theta_loss, "--theta-loss")
         try:
-            return StateLoss(self.psi_loss, tuple(self.state_weights), self.theta_loss)
+            return StateLoss(psi=self.psi_loss, weights=tuple(self.state_weights), theta=self.theta_loss)
         except ValueError as error:
             raise ValueError(f"--state-weights: {error}") from None
 
