@@ -276,6 +276,7 @@ def test_the_3d_recipes_load_as_swimm_learn_settings_on_the_encoder_their_policy
     learn = settings_mod.load(LearnCommandSettings, None, models / f"{recipe}.yaml", environ={})
     check(learn)
     assert (learn.task, learn.demo.teacher, learn.scripted.surge_gain) == ("3d", LATENT_SCRIPTED, 0.5)
+    assert (learn.scripted.heave_gain, learn.scripted.heave_dead_band) == (0.2, 0.0)  # the teacher's firmer heave
     recorded = read_identity(models / f"{recipe}.zip")
     assert recorded["task"]["name"] == "3d" and recorded["encoder"]["path"] == learn.encoder_checkpoint
     assert encoder_checkpoint(learn).name == encoder
