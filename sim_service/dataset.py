@@ -117,6 +117,9 @@ class DatasetSettings:
     #: The target's azimuth U[-max, max] degrees; below the camera's half field of view for frames near the image
     #: centre, where a closed loop holds the dolphin and the azimuth read must be finest.
     max_azimuth_deg: float = ALPHA_DEG
+    #: Vertical datasets: the target's elevation U[-max, max] degrees; below the camera's vertical half field of
+    #: view for frames near the camera's level, where the planar task's dolphin swims.
+    max_elevation_deg: float = BETA_DEG
     world: WorldSettings = field(default_factory=WorldSettings, metadata={"flatten": True})
 
 
@@ -327,12 +330,19 @@ def run(settings: DatasetSettings) -> int:
 
 
 def sampling_ranges(settings: DatasetSettings) -> SamplingRanges:
-    """What a `swimm dataset` run draws: the planar or the vertical ranges, the azimuth within its maximum."""
+    """What a `swimm dataset` run draws: the planar or the vertical ranges, the azimuth (and a vertical dataset's
+    elevation) within its maximum."""
     if not 0.0 < settings.max_azimuth_deg <= ALPHA_DEG:
         raise ValueError(f"--max-azimuth-deg must be above 0 and at most the camera's half field of view "
                          f"{ALPHA_DEG:g}: got {settings.max_azimuth_deg:g}")  # fmt: skip
-    ranges = VERTICAL_RANGES if settings.vertical else SamplingRanges()
-    return replace(ranges, azimuth_deg=settings.max_azimuth_deg)
+    if not 0.0 < settings.max_elevation_deg <= BETA_DEG:
+        raise ValueError(f"--max-elevation-deg must be above 0 and at most the camera's vertical half field of view "
+                         f"{BETA_DEG:g}: got {settings.max_elevation_deg:g}")  # fmt: skip
+    if settings.max_elevation_deg != BETA_DEG and not settings.vertical:
+        raise ValueError("--max-elevation-deg draws a vertical dataset's elevations: add --vertical")
+    if not settings.vertical:
+        return replace(SamplingRanges(), azimuth_deg=settings.max_azimuth_deg)
+    return replace(VERTICAL_RANGES, azimuth_deg=settings.max_azimuth_deg, elevation_deg=settings.max_elevation_deg)
 
 
 def _check_pod(settings: WorldSettings, sight_share: float) -> None:

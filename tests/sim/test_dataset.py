@@ -257,3 +257,31 @@ def test_an_azimuth_range_outside_the_field_of_view_is_refused_by_name(tmp_path,
     assert main(["dataset", "--out", str(tmp_path / "bad"), "--count", "2", "--max-azimuth-deg", value]) == 2
     assert "dataset refused its settings: --max-azimuth-deg must be above 0 and at most" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_vertical_dataset_near_the_cameras_level_draws_the_same_samples_within_its_elevation(tmp_path):
+    common = ["--count", "24", "--seed", "3", "--vertical"]
+    assert main(["dataset", "--out", str(tmp_path / "tall"), *common]) == 0
+    assert main(["dataset", "--out", str(tmp_path / "level"), *common, "--max-elevation-deg", "3"]) == 0
+    tall_meta, tall = load(tmp_path / "tall")
+    meta, level = load(tmp_path / "level")
+    assert tall_meta["ranges"]["elevation_deg"] == pytest.approx(BETA_DEG) and meta["ranges"]["elevation_deg"] == 3.0
+    elevation = level["labels"][:, 3]
+    assert np.abs(elevation).max() <= 3.0 + 0.05 and np.abs(tall["labels"][:, 3]).max() > 3.0
+    # The same draws otherwise: each sample's elevation is the tall one's scaled to the narrower range.
+    assert np.allclose(elevation, tall["labels"][:, 3] * 3.0 / BETA_DEG, atol=0.05)
+    assert np.allclose(level["labels"][:, 1], tall["labels"][:, 1], atol=0.05)
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--vertical", "--max-elevation-deg", "0"], "--max-elevation-deg must be above 0 and at most"),
+        (["--vertical", "--max-elevation-deg", "40"], "--max-elevation-deg must be above 0 and at most"),
+        (["--max-elevation-deg", "3"], "--max-elevation-deg draws a vertical dataset's elevations: add --vertical"),
+    ],
+)
+def test_a_bad_elevation_range_is_refused_by_name(tmp_path, capsys, flags, message):
+    assert main(["dataset", "--out", str(tmp_path / "bad"), "--count", "2", *flags]) == 2
+    assert f"dataset refused its settings: {message}" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
