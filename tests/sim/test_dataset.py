@@ -238,50 +238,45 @@ def test_a_bad_pod_is_refused_naming_the_flag_before_anything_is_written(tmp_pat
     assert not (tmp_path / "pod").exists()
 
 
-def test_a_dataset_near_the_image_centre_draws_the_same_samples_within_its_azimuth(tmp_path):
+@pytest.mark.parametrize(
+    ("flag", "limit", "ranges_key", "column", "full_range", "unchanged"),
+    [
+        ("--max-azimuth-deg", 5.0, "azimuth_deg", 1, ALPHA_DEG, [0, 3]),  # near the image centre: d, elevation kept
+        ("--max-elevation-deg", 3.0, "elevation_deg", 3, BETA_DEG, [1]),  # near the camera's level: theta kept
+    ],
+)
+def test_a_narrower_range_draws_the_same_samples_scaled_into_it(
+    tmp_path, flag, limit, ranges_key, column, full_range, unchanged
+):
     common = ["--count", "24", "--seed", "3", "--vertical"]
-    assert main(["dataset", "--out", str(tmp_path / "wide"), *common]) == 0
-    assert main(["dataset", "--out", str(tmp_path / "centre"), *common, "--max-azimuth-deg", "5"]) == 0
-    wide_meta, wide = load(tmp_path / "wide")
-    meta, centre = load(tmp_path / "centre")
-    assert wide_meta["ranges"]["azimuth_deg"] == pytest.approx(ALPHA_DEG) and meta["ranges"]["azimuth_deg"] == 5.0
-    theta = centre["labels"][:, 1]
-    assert np.abs(theta).max() <= 5.0 + 1e-3 and np.abs(wide["labels"][:, 1]).max() > 5.0
-    # The same draws otherwise: each sample's azimuth is the wide one's scaled to the narrower range.
-    assert np.allclose(theta, wide["labels"][:, 1] * 5.0 / ALPHA_DEG, atol=0.05)
-    assert np.allclose(centre["labels"][:, [0, 3]], wide["labels"][:, [0, 3]], atol=1e-3)
+    assert main(["dataset", "--out", str(tmp_path / "full"), *common]) == 0
+    assert main(["dataset", "--out", str(tmp_path / "narrow"), *common, flag, str(limit)]) == 0
+    full_meta, full = load(tmp_path / "full")
+    meta, narrow = load(tmp_path / "narrow")
+    assert full_meta["ranges"][ranges_key] == pytest.approx(full_range) and meta["ranges"][ranges_key] == limit
+    drawn = narrow["labels"][:, column]
+    assert np.abs(drawn).max() <= limit + 0.05 and np.abs(full["labels"][:, column]).max() > limit
+    # The same draws otherwise: each sample's angle is the full range's scaled to the narrower one.
+    assert np.allclose(drawn, full["labels"][:, column] * limit / full_range, atol=0.05)
+    assert np.allclose(narrow["labels"][:, unchanged], full["labels"][:, unchanged], atol=0.05)
 
 
-@pytest.mark.parametrize("value", ["0", "-3", "50"])
-def test_an_azimuth_range_outside_the_field_of_view_is_refused_by_name(tmp_path, capsys, value):
-    assert main(["dataset", "--out", str(tmp_path / "bad"), "--count", "2", "--max-azimuth-deg", value]) == 2
-    assert "dataset refused its settings: --max-azimuth-deg must be above 0 and at most" in capsys.readouterr().err
-    assert not (tmp_path / "bad").exists()
-
-
-def test_a_vertical_dataset_near_the_cameras_level_draws_the_same_samples_within_its_elevation(tmp_path):
-    common = ["--count", "24", "--seed", "3", "--vertical"]
-    assert main(["dataset", "--out", str(tmp_path / "tall"), *common]) == 0
-    assert main(["dataset", "--out", str(tmp_path / "level"), *common, "--max-elevation-deg", "3"]) == 0
-    tall_meta, tall = load(tmp_path / "tall")
-    meta, level = load(tmp_path / "level")
-    assert tall_meta["ranges"]["elevation_deg"] == pytest.approx(BETA_DEG) and meta["ranges"]["elevation_deg"] == 3.0
-    elevation = level["labels"][:, 3]
-    assert np.abs(elevation).max() <= 3.0 + 0.05 and np.abs(tall["labels"][:, 3]).max() > 3.0
-    # The same draws otherwise: each sample's elevation is the tall one's scaled to the narrower range.
-    assert np.allclose(elevation, tall["labels"][:, 3] * 3.0 / BETA_DEG, atol=0.05)
-    assert np.allclose(level["labels"][:, 1], tall["labels"][:, 1], atol=0.05)
+AZIMUTH_REFUSED = "--max-azimuth-deg must be above 0 and at most"
+ELEVATION_REFUSED = "--max-elevation-deg must be above 0 and at most"
 
 
 @pytest.mark.parametrize(
     ("flags", "message"),
     [
-        (["--vertical", "--max-elevation-deg", "0"], "--max-elevation-deg must be above 0 and at most"),
-        (["--vertical", "--max-elevation-deg", "40"], "--max-elevation-deg must be above 0 and at most"),
+        (["--max-azimuth-deg", "0"], AZIMUTH_REFUSED),
+        (["--max-azimuth-deg", "-3"], AZIMUTH_REFUSED),
+        (["--max-azimuth-deg", "50"], AZIMUTH_REFUSED),
+        (["--vertical", "--max-elevation-deg", "0"], ELEVATION_REFUSED),
+        (["--vertical", "--max-elevation-deg", "40"], ELEVATION_REFUSED),
         (["--max-elevation-deg", "3"], "--max-elevation-deg draws a vertical dataset's elevations: add --vertical"),
     ],
 )
-def test_a_bad_elevation_range_is_refused_by_name(tmp_path, capsys, flags, message):
+def test_an_angle_range_outside_the_field_of_view_is_refused_by_name(tmp_path, capsys, flags, message):
     assert main(["dataset", "--out", str(tmp_path / "bad"), "--count", "2", *flags]) == 2
     assert f"dataset refused its settings: {message}" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
