@@ -28,6 +28,7 @@ from tqdm import tqdm
 from encoder_service import DEFAULT_CHECKPOINT
 from eval_service.attach import attached_eval_env
 from eval_service.live import LiveFeed, tap_frames
+from eval_service.paired import describe_ratio, return_ratios
 from eval_service.publish import ResultPublisher
 from eval_service.report import RunFolder
 from learner_service.envs import BACKENDS, shared_encoder
@@ -252,6 +253,7 @@ def evaluate(
     entries = entries if entries is not None else contenders(settings)
     policies = load_policies(settings, entries)
     summaries: dict[str, dict[str, float]] = {}
+    returns: dict[str, list[float]] = {}  # per label, episode by episode: the same episodes for every contender
     options = reset_options(settings)
     started = time.perf_counter()
     with evaluation_env(settings, render=feed is not None) as env:
@@ -280,13 +282,17 @@ def evaluate(
                 rows = play_episodes(policies[entry.label], env, entry.label, settings.episodes, settings.seed, options,
                                      on_step, on_episode)  # fmt: skip
             summaries[entry.label] = summarise(rows)
+            returns[entry.label] = [row["return"] for row in rows]
             log.info("%s: %s", entry.label, table_line(summaries[entry.label]))
             if publisher is not None:
                 publisher.publish("summary", {"label": entry.label, "checkpoint": entry.checkpoint or "",
                                               **summaries[entry.label], **(about or {})})  # fmt: skip
     wall_s = time.perf_counter() - started
-    record = {"contenders": [vars(entry) for entry in entries], "env": env_name, "wall_s": wall_s,
-              "settings": to_dict(settings), "argv": sys.argv, **(about or {})}  # fmt: skip
+    ratios = return_ratios(returns)
+    for label, ratio in ratios.items():
+        log.info("%s", describe_ratio(label, ratio))
+    record = {"contenders": [vars(entry) for entry in entries], "return_ratios": ratios, "env": env_name,
+              "wall_s": wall_s, "settings": to_dict(settings), "argv": sys.argv, **(about or {})}  # fmt: skip
     folder.finish(summaries, record, run_provenance(settings, entries),
                   settings.trajectory_episode if settings.figures else None)  # fmt: skip
     return summaries

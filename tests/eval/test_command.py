@@ -191,9 +191,16 @@ def test_evaluation_run_folder_holds_consistent_numbers(tmp_path, sac_checkpoint
     written = json.loads((out / "summary.json").read_text())
     assert written["labels"] == json.loads(json.dumps(summaries))
     assert written["paper SAC"]["mean_return"] == 2.40e3
+    # the second contender's return against the first's, on the same episodes
+    returns = episodes.pivot(index="episode", columns="label", values="return")
+    ratio = written["return_ratios"]["sac"]
+    assert ratio["of"] == "scripted" and ratio["episodes"] == EPISODES
+    assert ratio["ratio"] == pytest.approx(returns["sac"].mean() / returns["scripted"].mean())
+    assert ratio["ci95"][0] <= ratio["ratio"] <= ratio["ci95"][1]
     # deterministic: the scripted baseline plays its episodes again identically
     again = evaluate(replace(given, algo=["scripted"], checkpoint=[], out=str(tmp_path / "again")), tmp_path / "again")
     assert again["scripted"] == summaries["scripted"]
+    assert json.loads((tmp_path / "again" / "summary.json").read_text())["return_ratios"] == {}  # nothing to pair
 
 
 def test_cli_prints_the_table_beside_the_paper(tmp_path, capsys) -> None:
