@@ -41,7 +41,8 @@ def main() -> None:
     model, _ = load_model(checkpoint, torch.device("cpu"))
     model.eval()
     for root in datasets:
-        batch = CMVAEDataset(root).read(np.arange(len(CMVAEDataset(root))))
+        dataset = CMVAEDataset(root)
+        batch = dataset.read(np.arange(len(dataset)))
         shared = min(len(model.labels), batch.labels.shape[1])  # a planar dataset has no elevation to read
         labels, names = batch.labels[:, :shared], model.labels[:shared]
         averaged, alone = read(model, batch.images, True), read(model, batch.images, False)
