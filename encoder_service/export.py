@@ -33,6 +33,8 @@ class ExportEncoderSettings:
     out: str = str(DEFAULT_CHECKPOINT)
     # read each frame averaged with its mirror image (encoder_service.model.mirror_signs); unset keeps the source's
     mirror_average: bool | None = None
+    # take psi's mirror average round the circle (encoder_service.model.CircularPsiReader); unset keeps the source's
+    circular_psi: bool | None = None
     overwrite: bool = False  # replace an existing --out (the default --out is the shipped model)
     # more checkpoints of the same model (one run's epochs) averaged with --checkpoint, weight by weight
     average: list[str] = field(default_factory=list)
@@ -62,13 +64,17 @@ def averaged(checkpoints: dict[str, dict[str, Any]]) -> dict[str, torch.Tensor]:
 
 
 def export_checkpoint(
-    source: str | Path, destination: str | Path, mirror_average: bool | None = None, average: Sequence[str | Path] = ()
+    source: str | Path,
+    destination: str | Path,
+    mirror_average: bool | None = None,
+    average: Sequence[str | Path] = (),
+    circular_psi: bool | None = None,
 ) -> Path:
     """Write ``source``'s weights as float16, with its config and metrics, and nothing needed only to resume or train
-    (a mask head is dropped). ``mirror_average`` sets how the exported model reads a frame (None keeps the source's):
-    the flag adds no weight, so any model can be shipped mirror-averaged. ``average`` names more checkpoints whose
-    weights are averaged with ``source``'s; the file records their names, and its validation loss and metrics stay
-    ``source``'s (nothing validates the mean here: read it with `swimm eval-encoder`)."""
+    (a mask head is dropped). ``mirror_average`` and ``circular_psi`` set how the exported model reads a frame (None
+    keeps the source's): the flags add no weight, so any model can be shipped mirror-averaged. ``average`` names
+    more checkpoints whose weights are averaged with ``source``'s; the file records their names, and its validation
+    loss and metrics stay ``source``'s (nothing validates the mean here: read it with `swimm eval-encoder`)."""
     checkpoint = read_checkpoint(source)
     kept = {key: checkpoint[key] for key in ("format", "version", "config", "epoch", "val_loss", "metrics")}
     if average:
@@ -80,8 +86,12 @@ def export_checkpoint(
         kept["averaged_from"] = paths
         kept["epoch"] = max(source["epoch"] for source in sources.values())  # the training the mean has seen
     kept["config"] = {**checkpoint["config"], "mask_head": False}  # a training aid: nothing downstream reads it
-    if mirror_average is not None:
-        kept["config"]["mirror_average"] = mirror_average
+    for key, value in (("mirror_average", mirror_average), ("circular_psi", circular_psi)):
+        if value is not None:
+            kept["config"][key] = value
+    if kept["config"].get("circular_psi") and not kept["config"].get("mirror_average"):
+        raise ValueError(f"--circular-psi averages psi's mirror reads round the circle: {source} exported without "
+                         "--mirror-average has none")  # fmt: skip
     kept["state_dict"] = {
         name: tensor.half() if tensor.is_floating_point() else tensor
         for name, tensor in checkpoint["state_dict"].items()
@@ -91,6 +101,7 @@ def export_checkpoint(
     destination.parent.mkdir(parents=True, exist_ok=True)
     torch.save(kept, destination)
     reading = "mirror-averaged" if kept["config"].get("mirror_average") else "plain"
+    reading += ", psi round the circle" if kept["config"].get("circular_psi") else ""
     origin = f"the mean of {', '.join(kept['averaged_from'])}" if average else str(source)
     log.info("wrote %s (%.1f MB, %s reading) from %s", destination, destination.stat().st_size / 1e6, reading, origin)
     return destination
@@ -106,4 +117,6 @@ def check(settings: ExportEncoderSettings) -> None:
 
 def run(settings: ExportEncoderSettings) -> None:
     check(settings)
-    export_checkpoint(settings.checkpoint, settings.out, settings.mirror_average, settings.average)
+    export_checkpoint(
+        settings.checkpoint, settings.out, settings.mirror_average, settings.average, settings.circular_psi
+    )

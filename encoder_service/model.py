@@ -219,6 +219,44 @@ def mirror_signs(labels: tuple[str, ...], n_z: int) -> tuple[float, ...]:
     return tuple(-1.0 if i < len(labels) and labels[i] in MIRROR_NEGATED else 1.0 for i in range(n_z))
 
 
+class CircularPsiReader(nn.Module):
+    """psi's mirror average taken round the circle. A plain mirror average averages psi's latent with the mirror
+    image's, negated; a dolphin seen from behind that one read puts at +179 deg and the other at -179 then reads
+    near 0, facing the camera. This decodes both reads through a table of the psi decoder, takes their circular
+    mean, and gives the latent on the table that decodes nearest it (docs/encoder.md, "psi's wrap"). It holds no
+    weight: :meth:`tabulate` fills the table from a decoder, and checkpoints stay as they were."""
+
+    SPAN = 8.0  # latents read beyond +-SPAN are clamped to it; a KL-held latent stays well inside
+    POINTS = 6401  # a step of 0.0025 in the latent: its psi error is far below the encoder's own
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("grid", torch.linspace(-self.SPAN, self.SPAN, self.POINTS), persistent=False)
+        self.register_buffer("cosines", torch.ones(self.POINTS), persistent=False)  # of the angle each grid point
+        self.register_buffer("sines", torch.zeros(self.POINTS), persistent=False)  # decodes to
+
+    @torch.no_grad()
+    def tabulate(self, decoder: nn.Module) -> None:
+        angles = math.pi * decoder(self.grid[:, None])[:, 0]  # normalised psi -> radians
+        self.cosines.copy_(torch.cos(angles))
+        self.sines.copy_(torch.sin(angles))
+
+    def forward(self, own: torch.Tensor, mirror: torch.Tensor) -> torch.Tensor:
+        """psi latents (N,) of the frames and of their mirror images, as read -> (N,) latents whose psi is the
+        circular mean of the frame's psi and the mirror's, negated."""
+        own_at, mirror_at = self._nearest(own), self._nearest(mirror)
+        cosine = self.cosines[own_at] + self.cosines[mirror_at]  # cos(-a) = cos(a)
+        sine = self.sines[own_at] - self.sines[mirror_at]  # sin(-a) = -sin(a): the mirror's psi negated
+        # the grid point whose angle lies nearest the mean direction: the largest dot product with it
+        nearest = (cosine[:, None] * self.cosines + sine[:, None] * self.sines).argmax(dim=1)
+        return self.grid[nearest]
+
+    def _nearest(self, latents: torch.Tensor) -> torch.Tensor:
+        """The grid index nearest each latent (N,)."""
+        step = (self.grid[-1] - self.grid[0]) / (self.POINTS - 1)
+        return ((latents - self.grid[0]) / step).round().clamp(0, self.POINTS - 1).long()
+
+
 #: Layers of ``ImageEncoder.features`` up to the first residual block: their 8x8 map is what the mask head reads.
 MASK_TAP = 3
 
@@ -366,6 +404,8 @@ class ImageEncoder(nn.Module):
     averages the two readings, the mirror's latents multiplied by those signs (-1 where a flip negates the
     label). The latents are then exactly as symmetric as the world: a dolphin dead ahead reads theta 0, where a
     single reading can sit to one side, and the tracker and a policy hold the dolphin there (docs/encoder.md).
+    With ``psi_reader`` as well, psi is averaged round the circle (:class:`CircularPsiReader`), its latent at
+    ``psi_index``.
     """
 
     FEATURES = 128 * 2 * 2  # the flattened 2x2 map after the last residual block
@@ -378,8 +418,12 @@ class ImageEncoder(nn.Module):
         track: bool = False,
         mirror_signs: tuple[float, ...] | None = None,
         prior_distance: bool = False,
+        psi_reader: CircularPsiReader | None = None,
+        psi_index: int = PSI,
     ) -> None:
         super().__init__()
+        if psi_reader is not None and mirror_signs is None:
+            raise ValueError("psi averaged round the circle is a mirror average's: psi_reader needs mirror_signs")
         if mirror_signs is not None and len(mirror_signs) != n_z:
             raise ValueError(f"mirror_signs needs one sign per latent ({n_z}), got {len(mirror_signs)}")
         if input_norm not in INPUT_NORMS:
@@ -412,6 +456,8 @@ class ImageEncoder(nn.Module):
         self.mirror_signs: torch.Tensor | None
         signs = None if mirror_signs is None else torch.tensor(mirror_signs, dtype=torch.float32)
         self.register_buffer("mirror_signs", signs, persistent=False)  # not a weight: checkpoints stay as they were
+        self.psi_reader = psi_reader
+        self.psi_index = psi_index
 
     @property
     def mirror_averages(self) -> bool:
@@ -438,7 +484,11 @@ class ImageEncoder(nn.Module):
             pooled = torch.cat([pooled, soft_argmax(where)], dim=1)
         mu, logvar = self._split(self.head(pooled))
         if self.mirror_signs is not None:
-            mu = (mu[:count] + self.mirror_signs * mu[count:]) / 2
+            own, mirror = mu[:count], mu[count:]
+            mu = (own + self.mirror_signs * mirror) / 2
+            if self.psi_reader is not None:
+                psi = self.psi_reader(own[:, self.psi_index], mirror[:, self.psi_index])
+                mu = torch.cat([mu[:, : self.psi_index], psi[:, None], mu[:, self.psi_index + 1 :]], dim=1)
             logvar = (logvar[:count] + logvar[count:]) / 2
             feature_map, where = feature_map[:count], None if where is None else where[:count]
         return mu, logvar, feature_map, where
@@ -544,9 +594,12 @@ class CMVAE(nn.Module):
         track: bool = False,
         mirror_average: bool = False,
         prior_distance: bool = False,
+        circular_psi: bool = False,
     ) -> None:
         super().__init__()
         self.labels = check_label_names(labels, "CMVAE")
+        if circular_psi and not mirror_average:
+            raise ValueError("circular_psi averages psi's mirror reads round the circle: it needs mirror_average")
         if n_z < len(self.labels):
             raise ValueError(f"n_z must be at least {len(self.labels)} (one latent per label), got {n_z}")
         if mask_head and locate:
@@ -554,9 +607,12 @@ class CMVAE(nn.Module):
         self.n_z = n_z
         self.input_norm = input_norm
         signs = mirror_signs(self.labels, n_z) if mirror_average else None
-        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs, prior_distance)
+        psi_reader = CircularPsiReader() if circular_psi else None
+        psi_index = self.labels.index("psi")
+        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs, prior_distance, psi_reader, psi_index)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
+        self._tabulate_psi()
         # made last, so a model without it draws every other weight as before the head existed
         self.mask_head = MaskHead() if mask_head else None
 
@@ -591,6 +647,20 @@ class CMVAE(nn.Module):
     def mirror_averages(self) -> bool:
         """Whether the encoder averages each frame's reading with its mirror image's (``mirror_signs``)."""
         return self.encoder.mirror_averages
+
+    @property
+    def circular_psi(self) -> bool:
+        """Whether the mirror average takes psi round the circle (:class:`CircularPsiReader`)."""
+        return self.encoder.psi_reader is not None
+
+    def load_state_dict(self, state_dict: Any, strict: bool = True, assign: bool = False) -> Any:
+        result = super().load_state_dict(state_dict, strict=strict, assign=assign)
+        self._tabulate_psi()  # the circular psi read's table follows the psi decoder it was loaded with
+        return result
+
+    def _tabulate_psi(self) -> None:
+        if self.encoder.psi_reader is not None:
+            self.encoder.psi_reader.tabulate(self.state_decoders[self.encoder.psi_index])
 
     def encode_with_mask(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(mu, logvar) and the mask logits (N, 8, 8) of the mask head or the locator, or None with neither."""
@@ -853,6 +923,7 @@ def make_checkpoint(
             "track": model.tracks,
             "mirror_average": model.mirror_averages,
             "prior_distance": model.prior_distance,
+            "circular_psi": model.circular_psi,
         },
         "state_dict": state_dict,
         "epoch": int(epoch),
@@ -922,6 +993,7 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[CM
         track=config.get("track", False),
         mirror_average=config.get("mirror_average", False),
         prior_distance=config.get("prior_distance", False),
+        circular_psi=config.get("circular_psi", False),
     )
     model.load_state_dict(checkpoint["state_dict"])
     model.to(device=device, memory_format=torch.channels_last).eval()

@@ -11,14 +11,24 @@ import torch
 
 from encoder_service.export import export_checkpoint
 from encoder_service.inference import LatentEncoder
-from encoder_service.model import CMVAE, images_to_tensor, load_model, make_checkpoint, mirror_signs, with_prior
+from encoder_service.model import (
+    CMVAE,
+    PSI,
+    CircularPsiReader,
+    images_to_tensor,
+    load_model,
+    make_checkpoint,
+    mirror_signs,
+    with_prior,
+)
 from encoder_service.train import run
 from services.geometry import LABEL_NAMES, VERTICAL_LABEL_NAMES
 from swimm.cli import main as swimm
 from tests.encoder.cmvae_testdata import write_dataset
 from tests.encoder.quick_training import quick_settings
 
-LIGHT = Path(__file__).parents[2] / "encoder_service" / "models" / "cmvae_light.pt"
+MODELS = Path(__file__).parents[2] / "encoder_service" / "models"
+LIGHT = MODELS / "cmvae_light.pt"
 
 
 def _frames(tmp_path: Path) -> np.ndarray:
@@ -70,10 +80,71 @@ def test_the_shipped_light_model_averaged_reads_the_mean_of_its_two_readings(tmp
     assert not torch.allclose(mu, mu_frame, atol=1e-3)
 
 
-def test_onnx_reads_a_mirror_averaging_model_as_torch_does(tmp_path: Path) -> None:
+def _wrapped_degrees(angle: torch.Tensor) -> torch.Tensor:
+    return torch.remainder(angle + 180.0, 360.0) - 180.0
+
+
+def _linear_decoder(scale: float) -> torch.nn.Sequential:
+    """A state decoder's shape reading z * scale exactly: relu(z) - relu(-z) carried through both hidden layers."""
+    torch.manual_seed(0)
+    model = CMVAE(n_z=3)
+    layers = model.state_decoders[PSI].mlp
+    with torch.no_grad():
+        for layer in (layers[0], layers[2], layers[4]):
+            layer.weight.zero_(), layer.bias.zero_()
+        layers[0].weight[:2, 0] = torch.tensor([1.0, -1.0])
+        layers[2].weight[0, 0] = layers[2].weight[1, 1] = 1.0
+        layers[4].weight[0, :2] = torch.tensor([scale, -scale])
+    return layers
+
+
+def test_psi_averages_round_the_circle_where_a_plain_average_turns_the_dolphin_round() -> None:
+    """With a psi decoder reading 45 deg per latent unit: a frame read at +179 deg whose mirror image reads +179
+    (-179 negated) averages to 180 deg, where the plain average of latents gives 0, facing the camera; reads on
+    one side of the wrap average as angles do (45 and -(-54) -> 49.5)."""
+    reader = CircularPsiReader()
+    reader.tabulate(_linear_decoder(1 / 4))  # normalised psi z/4 -> 45 deg per unit
+    own, mirror = torch.tensor([179 / 45, 1.0]), torch.tensor([179 / 45, -54 / 45])
+    read = _wrapped_degrees(45.0 * reader(own, mirror))
+    assert abs(abs(float(read[0])) - 180.0) < 0.2
+    assert abs(float(read[1]) - 49.5) < 0.2
+    assert abs(float(_wrapped_degrees(45.0 * (own[0] - mirror[0]) / 2))) < 0.2  # the plain average's turn
+
+
+def test_the_shipped_vertical_model_read_with_psi_round_the_circle(tmp_path: Path) -> None:
+    """`swimm export-encoder --circular-psi` on a mirror-averaging model: every latent but psi reads the plain mirror
+    average; psi decodes to the circular mean of the frame's own psi and its mirror image's negated. Without a
+    mirror average the flag is refused by name, and nothing is written."""
+    source = MODELS / "cmvae_vertical.pt"
+    path = tmp_path / "circular.pt"
+    assert swimm(["export-encoder", "--checkpoint", str(source), "--out", str(path), "--circular-psi"]) == 0
+    circular, saved = load_model(path)
+    averaged, _ = load_model(source)
+    assert saved["config"]["circular_psi"] and circular.circular_psi and not averaged.circular_psi
+    plain = load_model(export_checkpoint(source, tmp_path / "plain.pt", mirror_average=False))[0]
+    frames = images_to_tensor(_frames(tmp_path)).float()
+    with torch.no_grad():
+        mu, _ = circular.encode(frames)
+        mu_averaged, _ = averaged.encode(frames)
+        own, mirror = (
+            plain.decode_state(plain.encode(images)[0])[:, PSI] * 180.0 for images in (frames, frames.flip(-1))
+        )
+        psi = circular.decode_state(mu)[:, PSI] * 180.0
+    others = [index for index in range(circular.n_z) if index != PSI]
+    torch.testing.assert_close(mu[:, others], mu_averaged[:, others], atol=1e-5, rtol=0)
+    own_rad, mirror_rad = torch.deg2rad(own), -torch.deg2rad(mirror)
+    mean = torch.rad2deg(torch.atan2(own_rad.sin() + mirror_rad.sin(), own_rad.cos() + mirror_rad.cos()))
+    assert float(_wrapped_degrees(psi - mean).abs().max()) < 0.5
+    with pytest.raises(ValueError, match="--circular-psi"):
+        export_checkpoint(source, tmp_path / "refused.pt", mirror_average=False, circular_psi=True)
+    assert not (tmp_path / "refused.pt").exists()
+
+
+@pytest.mark.parametrize("circular_psi", [False, True])
+def test_onnx_reads_a_mirror_averaging_model_as_torch_does(tmp_path: Path, circular_psi: bool) -> None:
     torch.manual_seed(3)
     path = tmp_path / "mirror.pt"
-    model = CMVAE(input_norm="light", mirror_average=True)
+    model = CMVAE(input_norm="light", mirror_average=True, circular_psi=circular_psi)
     torch.save(make_checkpoint(model, beta=8.0, epoch=1, val_loss=1.0, metrics={}), path)
     frames = _frames(tmp_path)
     torch_mu, _ = LatentEncoder(path, threads=1).encode(frames)
