@@ -17,7 +17,7 @@ import pytest
 
 from encoder_service.data import CMVAEDataset
 from encoder_service.inference import DEFAULT_CHECKPOINT, LatentEncoder
-from encoder_service.model import label_errors, mirror_signs
+from encoder_service.model import PSI, label_errors, mirror_signs
 from services.geometry import VERTICAL_LABEL_NAMES
 from tests.fingerprints import check_pairing
 
@@ -104,15 +104,20 @@ def test_a_3d_tasks_cmvae_scores_its_documented_errors_and_reads_mirror_averaged
 ) -> None:
     """On fresh vertical frames (and murky ones where documented) it reads d, theta, psi and the elevation as
     documented; and it reads mirror-averaged (what tells it from its weights read plainly, whose errors lie within
-    these tolerances): a frame's mirror image gives the frame's latent with the theta and psi latents negated."""
+    these tolerances): a frame's mirror image gives the frame's latent with the theta latent negated, and psi,
+    averaged round the circle, decoded to the frame's psi negated."""
     from sim_service.dataset import VERTICAL_RANGES
 
     encoder, clean = _check_documented(checkpoint, VERTICAL[checkpoint], tmp_path, VERTICAL_TOLERANCE,
                                        VERTICAL_MURKY_TOLERANCE, ranges=VERTICAL_RANGES)  # fmt: skip
     images = CMVAEDataset(clean).read(np.arange(8)).images
     mu, mu_mirror = (encoder.encode(frames)[0] for frames in (images, images[:, :, ::-1].copy()))
-    np.testing.assert_allclose(mu_mirror, np.asarray(mirror_signs(VERTICAL_LABEL_NAMES, encoder.n_z)) * mu, atol=1e-3)
-    theta = encoder.decode_state(mu)[1]
+    others = [index for index in range(encoder.n_z) if index != PSI]
+    signs = np.asarray(mirror_signs(VERTICAL_LABEL_NAMES, encoder.n_z))
+    np.testing.assert_allclose(mu_mirror[:, others], (signs * mu)[:, others], atol=1e-3)
+    _, theta, psi, _ = encoder.decode_state(mu)
+    psi_mirror = encoder.decode_state(mu_mirror)[PSI]
+    assert np.abs((psi + psi_mirror + 180.0) % 360.0 - 180.0).max() < 0.5  # the psi table's step, and float16
     assert np.abs(theta).max() > 1.0  # frames off the axis, where a plain reading is no mirror of itself
 
 
