@@ -3,9 +3,9 @@
 A mirror-averaging encoder (docs/encoder.md, "each frame read with its mirror image") averages a frame's latents
 with its mirror image's, psi's negated. psi is circular but its latent is not: a dolphin seen from behind that
 one read puts at +179 deg and the other at -179 averages to a latent that decodes near 0, a dolphin facing the
-camera. This reads every frame of a dataset as the encoder does (the averaged latent), from the frame alone, and
-with psi as the circular mean of the frame's and its negated mirror's decoded psi (the other labels as averaged),
-and prints each way's MAE (docs/encoder.md, "Elevation for the 3d task").
+camera. This reads every frame of a dataset as the encoder does (the averaged latent, psi round the circle for a
+model exported `--circular-psi`), from the frame alone, and with psi as the circular mean of the frame's and its
+negated mirror's decoded psi (the other labels as averaged), and prints each way's MAE (docs/encoder.md, "Stage j").
 
     MUJOCO_GL=egl python docs/encoder/selection/psi_mirror.py CHECKPOINT DATASET [DATASET ...]
 """
@@ -50,7 +50,7 @@ def main() -> None:
         circular = averaged.copy()
         frame, mirror = np.radians(alone[:, PSI]), np.radians(-mirrored[:, PSI])
         circular[:, PSI] = np.degrees(np.arctan2(np.sin(frame) + np.sin(mirror), np.cos(frame) + np.cos(mirror)))
-        for way, reads in (("averaged latent", averaged), ("frame alone", alone), ("psi circular", circular)):
+        for way, reads in (("as read", averaged), ("frame alone", alone), ("psi circular", circular)):
             errors = label_errors(reads[:, :shared], labels).mean(axis=0)
             print(f"{checkpoint} {root} {way}: " + ", ".join(
                 f"{name} {error:.3f}" for name, error in zip(names, errors, strict=True)))  # fmt: skip
