@@ -84,6 +84,7 @@ def test_two_epochs_lower_the_validation_loss_and_write_safe_checkpoints(dataset
         "track": False,
         "mirror_average": False,
         "prior_distance": False,
+        "circular_psi": False,
     }
     assert best["epoch"] == 2 and best["val_loss"] == pytest.approx(second["val_loss"])
     assert set(best["metrics"]) >= {"total", "image", "state", "kl", "mae_d", "mae_theta", "mae_psi"}

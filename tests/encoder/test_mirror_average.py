@@ -115,7 +115,7 @@ def test_the_shipped_vertical_model_read_with_psi_round_the_circle(tmp_path: Pat
     """`swimm export-encoder --circular-psi` on a mirror-averaging model: every latent but psi reads the plain mirror
     average; psi decodes to the circular mean of the frame's own psi and its mirror image's negated. Without a
     mirror average the flag is refused by name, and nothing is written."""
-    source = MODELS / "cmvae_vertical.pt"
+    source = export_checkpoint(MODELS / "cmvae_vertical.pt", tmp_path / "averaged.pt", circular_psi=False)
     path = tmp_path / "circular.pt"
     assert swimm(["export-encoder", "--checkpoint", str(source), "--out", str(path), "--circular-psi"]) == 0
     circular, saved = load_model(path)
