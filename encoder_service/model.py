@@ -223,7 +223,7 @@ class CircularPsiReader(nn.Module):
     """psi's mirror average taken round the circle. A plain mirror average averages psi's latent with the mirror
     image's, negated; a dolphin seen from behind that one read puts at +179 deg and the other at -179 then reads
     near 0, facing the camera. This decodes both reads through a table of the psi decoder, takes their circular
-    mean, and gives the latent on the table that decodes nearest it (docs/encoder.md, "psi's wrap"). It holds no
+    mean, and gives the latent on the table that decodes nearest it (docs/encoder.md, "Stage j"). It holds no
     weight: :meth:`tabulate` fills the table from a decoder, and checkpoints stay as they were."""
 
     SPAN = 8.0  # latents read beyond +-SPAN are clamped to it; a KL-held latent stays well inside
@@ -404,8 +404,7 @@ class ImageEncoder(nn.Module):
     averages the two readings, the mirror's latents multiplied by those signs (-1 where a flip negates the
     label). The latents are then exactly as symmetric as the world: a dolphin dead ahead reads theta 0, where a
     single reading can sit to one side, and the tracker and a policy hold the dolphin there (docs/encoder.md).
-    With ``psi_reader`` as well, psi is averaged round the circle (:class:`CircularPsiReader`), its latent at
-    ``psi_index``.
+    With ``psi_reader`` as well, psi (z[PSI]) is averaged round the circle (:class:`CircularPsiReader`).
     """
 
     FEATURES = 128 * 2 * 2  # the flattened 2x2 map after the last residual block
@@ -419,7 +418,6 @@ class ImageEncoder(nn.Module):
         mirror_signs: tuple[float, ...] | None = None,
         prior_distance: bool = False,
         psi_reader: CircularPsiReader | None = None,
-        psi_index: int = PSI,
     ) -> None:
         super().__init__()
         if psi_reader is not None and mirror_signs is None:
@@ -457,7 +455,6 @@ class ImageEncoder(nn.Module):
         signs = None if mirror_signs is None else torch.tensor(mirror_signs, dtype=torch.float32)
         self.register_buffer("mirror_signs", signs, persistent=False)  # not a weight: checkpoints stay as they were
         self.psi_reader = psi_reader
-        self.psi_index = psi_index
 
     @property
     def mirror_averages(self) -> bool:
@@ -487,8 +484,8 @@ class ImageEncoder(nn.Module):
             own, mirror = mu[:count], mu[count:]
             mu = (own + self.mirror_signs * mirror) / 2
             if self.psi_reader is not None:
-                psi = self.psi_reader(own[:, self.psi_index], mirror[:, self.psi_index])
-                mu = torch.cat([mu[:, : self.psi_index], psi[:, None], mu[:, self.psi_index + 1 :]], dim=1)
+                psi = self.psi_reader(own[:, PSI], mirror[:, PSI])  # every label set reads psi at PSI
+                mu = torch.cat([mu[:, :PSI], psi[:, None], mu[:, PSI + 1 :]], dim=1)
             logvar = (logvar[:count] + logvar[count:]) / 2
             feature_map, where = feature_map[:count], None if where is None else where[:count]
         return mu, logvar, feature_map, where
@@ -608,8 +605,7 @@ class CMVAE(nn.Module):
         self.input_norm = input_norm
         signs = mirror_signs(self.labels, n_z) if mirror_average else None
         psi_reader = CircularPsiReader() if circular_psi else None
-        psi_index = self.labels.index("psi")
-        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs, prior_distance, psi_reader, psi_index)
+        self.encoder = ImageEncoder(n_z, input_norm, locate, track, signs, prior_distance, psi_reader)
         self.image_decoder = ImageDecoder(n_z)
         self.state_decoders = nn.ModuleList(StateDecoder() for _ in self.labels)
         self._tabulate_psi()
@@ -660,7 +656,7 @@ class CMVAE(nn.Module):
 
     def _tabulate_psi(self) -> None:
         if self.encoder.psi_reader is not None:
-            self.encoder.psi_reader.tabulate(self.state_decoders[self.encoder.psi_index])
+            self.encoder.psi_reader.tabulate(self.state_decoders[PSI])
 
     def encode_with_mask(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(mu, logvar) and the mask logits (N, 8, 8) of the mask head or the locator, or None with neither."""
