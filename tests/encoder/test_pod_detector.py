@@ -266,3 +266,48 @@ def test_the_detector_runs_both_strides() -> None:
     for stride in (2, 4):
         heat, regression = PodDetector(stride=stride)(torch.rand(2, 3, 64, 64))
         assert heat.shape == (2, 1, 64 // stride, 64 // stride) and regression.shape[1] == 3
+
+
+def test_a_pods_looks_are_stored_and_become_shade_targets(pod: Path) -> None:
+    """A pod dataset stores every dolphin's size and shade (the target plain, its companions drawn per sample), and
+    the heatmap targets carry each seen dolphin's shade at its cell, NaN where no dolphin is."""
+    looks = np.concatenate([np.load(path) for path in sorted(pod.glob("*.looks.npy"))])
+    assert looks.shape == (64, 3, 2)
+    np.testing.assert_array_equal(looks[:, 0], 1.0)
+    assert np.all((looks[:, 1:] >= 0.8) & (looks[:, 1:] <= 1.2)) and np.ptp(looks[:, 1:, 1]) > 0.1
+    data = load_pod_dataset(pod)
+    np.testing.assert_array_equal(data["shades"], looks[..., 1])
+    frames, targets = batch(data, np.arange(8), 2, appearance=True)
+    centres = targets["centre"].numpy()
+    assert targets["regress"].shape[1] == 4 and np.isfinite(targets["regress"][:, 3].numpy()[centres]).all()
+    assert np.isnan(targets["regress"][:, 3].numpy()[~centres]).all()
+    row, iy, ix = np.argwhere(centres)[0]
+    k = int(np.argmin(np.abs(data["pixels"][row, :, 0] / 2 - ix - 0.5) + np.abs(data["pixels"][row, :, 1] / 2 - iy - 0.5)))
+    assert targets["regress"][row, 3, iy, ix] == pytest.approx(data["shades"][row, k])
+
+
+def test_an_appearance_detector_learns_shades_from_a_plain_one(detector: Path, pod: Path, tmp_path: Path) -> None:
+    """--appearance adds a shade channel: from a detector without one its other weights are kept, the checkpoint
+    says it reads shades, and the encoder's detections carry them; without stored looks it is refused by flag."""
+    out = tmp_path / "looks.pt"
+    settings = TrainDetectorSettings(dataset=[str(pod)], out=str(out), epochs=1, batch_size=16, val_frames=16,
+                                     lr=1e-12, init=str(detector), appearance=True)  # fmt: skip
+    assert run(settings) == 0
+    saved = read_detector(out)
+    shade_mae = saved["history"][0]["shade_mae"]  # NaN while a barely trained detector finds no dolphin
+    assert saved["appearance"] and (np.isnan(shade_mae) or 0.0 <= shade_mae < 1.0)
+    started, again = torch.load(detector, weights_only=True)["state_dict"], saved["state_dict"]
+    assert again["regress.weight"].shape[0] == 4
+    torch.testing.assert_close(again["regress.weight"][:3], started["regress.weight"], atol=1e-6, rtol=0)
+    images = images_to_tensor(np.concatenate([np.load(path) for path in sorted(pod.glob("*.images.npy"))])[:8])
+    with torch.no_grad():  # every local maximum, so that a barely trained detector still gives peaks to read
+        looks, plain = (decode(*PodEncoder(path).model(images), 0.0, 64, 2) for path in (out, detector))
+    assert all(len(frame) and np.isfinite(frame.shade).all() for frame in looks)
+    assert all(len(frame) and np.isnan(frame.shade).all() for frame in plain)  # a detector that reads none
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for path in pod.iterdir():
+        if not path.name.endswith(".looks.npy"):
+            (bare / path.name).symlink_to(path)
+    with pytest.raises(ValueError, match="--appearance: no --dataset stores its dolphins' looks"):
+        run(TrainDetectorSettings(dataset=[str(bare)], out=str(tmp_path / "x.pt"), epochs=1, appearance=True))
