@@ -203,6 +203,9 @@ class TrainDetectorSettings(AugmentSettings):
     # also read each dolphin's shade, the tracker's appearance cue (from datasets that store looks; --init may
     # be a detector without it: its weights are kept and the shade learnt anew)
     appearance: bool = False
+    # train the shade read alone (with --appearance and --init): every other weight and batch statistic stays
+    # --init's, so the detector finds, places and ranges dolphins exactly as that one does
+    shade_only: bool = False
     # share of training frames whose dolphins stand out from their water more or less than rendered, their size
     # unchanged (encoder_service.augment.contrast): distance read off size, not off how faded it is
     augment_contrast: float = 0.0
@@ -226,6 +229,8 @@ def check(settings: TrainDetectorSettings) -> None:
                         ("--val-frames", settings.val_frames), ("--width", settings.width)):  # fmt: skip
         if value < 1:
             raise ValueError(f"{flag} {value}: must be at least 1")
+    if settings.shade_only and not (settings.appearance and settings.init):
+        raise ValueError("--shade-only trains a shade read onto a detector: give it with --appearance and --init")
     if settings.init:
         saved = read_detector(settings.init, "--init")
         for flag, mine, theirs in (("--width", settings.width, saved["width"]), ("--stride", settings.stride,
@@ -247,6 +252,21 @@ def start_from(model: PodDetector, saved: PodDetector) -> None:
     model.load_state_dict(weights)
 
 
+def learnt(model: PodDetector, shade_only: bool) -> list[torch.nn.Parameter]:
+    """The parameters training moves: all of them, or with ``shade_only`` the shade channel's row of the
+    regression layer alone (a gradient hook zeroes the other rows')."""
+    if not shade_only:
+        return list(model.parameters())
+    for parameter in model.parameters():
+        parameter.requires_grad_(False)
+    for parameter in (model.regress.weight, model.regress.bias):
+        parameter.requires_grad_(True)
+        keep = torch.zeros_like(parameter)
+        keep[3] = 1.0
+        parameter.register_hook(lambda grad, keep=keep: grad * keep)
+    return [model.regress.weight, model.regress.bias]
+
+
 def run(settings: TrainDetectorSettings) -> int:
     check(settings)
     torch.manual_seed(settings.seed)
@@ -259,7 +279,8 @@ def run(settings: TrainDetectorSettings) -> int:
     model = PodDetector(settings.width, settings.stride, settings.appearance)
     if settings.init:
         start_from(model, load_detector(settings.init)[0])
-    optimiser = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=1e-4)
+    decay = 0.0 if settings.shade_only else 1e-4  # decay would shrink the rows the shade read leaves alone
+    optimiser = torch.optim.AdamW(learnt(model, settings.shade_only), lr=settings.lr, weight_decay=decay)
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
     rng = np.random.default_rng(settings.seed)
@@ -278,6 +299,8 @@ def run(settings: TrainDetectorSettings) -> int:
             rows = order[step * settings.batch_size : (step + 1) * settings.batch_size]
             frames, targets = batch(data, rows, model.stride, mirror=rng.random(len(rows)) < 0.5,
                                     photometric=photometric, appearance=model.appearance)  # fmt: skip
+            if settings.shade_only:
+                model.eval()  # batch norm keeps --init's statistics
             loss, parts_of_loss = detector_loss(*model(frames), targets)
             optimiser.zero_grad()
             loss.backward()

@@ -311,3 +311,22 @@ def test_an_appearance_detector_learns_shades_from_a_plain_one(detector: Path, p
             (bare / path.name).symlink_to(path)
     with pytest.raises(ValueError, match="--appearance: no --dataset stores its dolphins' looks"):
         run(TrainDetectorSettings(dataset=[str(bare)], out=str(tmp_path / "x.pt"), epochs=1, appearance=True))
+
+
+def test_a_shade_only_run_leaves_the_detections_as_they_were(detector: Path, pod: Path, tmp_path: Path) -> None:
+    """--shade-only learns the shade channel alone: every other weight and batch statistic is --init's, bit for
+    bit, so the detector finds and places dolphins as before; without --appearance and --init it is refused."""
+    out = tmp_path / "shade.pt"
+    assert run(TrainDetectorSettings(dataset=[str(pod)], out=str(out), epochs=1, batch_size=16, val_frames=16,
+                                     init=str(detector), appearance=True, shade_only=True)) == 0  # fmt: skip
+    started, again = (torch.load(path, weights_only=True)["state_dict"] for path in (detector, out))
+    torch.manual_seed(0)  # the run's seed: its fresh shade row before training
+    fresh = PodDetector(16, 2, appearance=True).state_dict()
+    for name, weights in started.items():
+        if name.startswith("regress."):
+            torch.testing.assert_close(again[name][:3], weights, atol=0, rtol=0)
+            assert not torch.equal(again[name][3], fresh[name][3])  # trained
+        else:
+            torch.testing.assert_close(again[name], weights, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="--shade-only trains a shade read onto a detector"):
+        check(TrainDetectorSettings(dataset=[str(pod)], out=str(tmp_path / "x.pt"), shade_only=True))
