@@ -126,7 +126,10 @@ class PodDetector(nn.Module):
         self.sharpen = _block(3 * width, width) if stride == 2 else None
         out = width if stride == 2 else 2 * width
         self.heat = nn.Conv2d(out, 1, 1)
-        self.regress = nn.Conv2d(out, 4 if appearance else 3, 1)
+        self.regress = nn.Conv2d(out, 3, 1)
+        # a branch of its own: a shade is read off a dolphin's whole body, where a centre's place and distance are
+        # read off its outline, so it needs its own features on the shared ones
+        self.shade = nn.Sequential(_block(out, out), _block(out, out), nn.Conv2d(out, 1, 1)) if appearance else None
         nn.init.constant_(self.heat.bias, -2.2)  # CenterNet's start: most cells are background
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -139,7 +142,10 @@ class PodDetector(nn.Module):
         joined = self.join(torch.cat([fine, coarse], dim=1))
         if self.sharpen is not None:
             joined = self.sharpen(torch.cat([stem, F.interpolate(joined, size=stem.shape[-2:], mode="nearest")], 1))
-        return self.heat(joined), self.regress(joined)
+        regression = self.regress(joined)
+        if self.shade is not None:
+            regression = torch.cat([regression, 1.0 + self.shade(joined)], dim=1)  # about the nominal grey's 1
+        return self.heat(joined), regression
 
 
 def focal_loss(logits: torch.Tensor, heat: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:

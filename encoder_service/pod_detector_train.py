@@ -242,29 +242,20 @@ def check(settings: TrainDetectorSettings) -> None:
 
 
 def start_from(model: PodDetector, saved: PodDetector) -> None:
-    """``model`` given ``saved``'s weights; a shade channel ``saved`` lacks keeps its fresh start."""
-    weights = saved.state_dict()
-    for name in ("regress.weight", "regress.bias"):
-        fresh = model.state_dict()[name].clone()
-        rows = min(len(fresh), len(weights[name]))
-        fresh[:rows] = weights[name][:rows]
-        weights[name] = fresh
-    model.load_state_dict(weights)
+    """``model`` given ``saved``'s weights; a shade branch ``saved`` lacks keeps its fresh start."""
+    weights = {name: value for name, value in saved.state_dict().items() if model.shade is not None or
+               not name.startswith("shade.")}  # fmt: skip
+    missing, _ = model.load_state_dict(weights, strict=False)
+    assert all(name.startswith("shade.") for name in missing), missing
 
 
 def learnt(model: PodDetector, shade_only: bool) -> list[torch.nn.Parameter]:
-    """The parameters training moves: all of them, or with ``shade_only`` the shade channel's row of the
-    regression layer alone (a gradient hook zeroes the other rows')."""
+    """The parameters training moves: all of them, or with ``shade_only`` the shade branch's alone."""
     if not shade_only:
         return list(model.parameters())
-    for parameter in model.parameters():
-        parameter.requires_grad_(False)
-    for parameter in (model.regress.weight, model.regress.bias):
-        parameter.requires_grad_(True)
-        keep = torch.zeros_like(parameter)
-        keep[3] = 1.0
-        parameter.register_hook(lambda grad, keep=keep: grad * keep)
-    return [model.regress.weight, model.regress.bias]
+    model.requires_grad_(False)
+    model.shade.requires_grad_(True)
+    return list(model.shade.parameters())
 
 
 def run(settings: TrainDetectorSettings) -> int:
@@ -279,8 +270,7 @@ def run(settings: TrainDetectorSettings) -> int:
     model = PodDetector(settings.width, settings.stride, settings.appearance)
     if settings.init:
         start_from(model, load_detector(settings.init)[0])
-    decay = 0.0 if settings.shade_only else 1e-4  # decay would shrink the rows the shade read leaves alone
-    optimiser = torch.optim.AdamW(learnt(model, settings.shade_only), lr=settings.lr, weight_decay=decay)
+    optimiser = torch.optim.AdamW(learnt(model, settings.shade_only), lr=settings.lr, weight_decay=1e-4)
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
     rng = np.random.default_rng(settings.seed)
@@ -300,7 +290,7 @@ def run(settings: TrainDetectorSettings) -> int:
             frames, targets = batch(data, rows, model.stride, mirror=rng.random(len(rows)) < 0.5,
                                     photometric=photometric, appearance=model.appearance)  # fmt: skip
             if settings.shade_only:
-                model.eval()  # batch norm keeps --init's statistics
+                model.eval().shade.train()  # batch norm outside the shade branch keeps --init's statistics
             loss, parts_of_loss = detector_loss(*model(frames), targets)
             optimiser.zero_grad()
             loss.backward()
