@@ -62,7 +62,7 @@ class TrackerParams:
     nearer: float = 0.92  # a dolphin covers the target when nearer than this share of its distance...
     cover_margin_deg: float = 1.0  # ...and its disc, widened by this, holds the target's centre
     engage_score_share: float = 0.5  # at engagement, a peak weaker than this share of the strongest is no candidate
-    shade_sigma: float = 0.06  # one frame's shade read about a dolphin's mean (0 switches the cue off)
+    shade_sigma: float = 0.04  # the spread a match allows a shade read about its track's mean (0: the cue off)
     shade_min_reads: int = 10  # a track's mean shade counts once it has read this many
     shade_memory: int = 100  # the mean weighs the last reads about this many frames long
 
