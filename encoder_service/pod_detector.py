@@ -9,9 +9,6 @@ Labels come from a pod dataset's stored poses (``swimm dataset --dolphin-pod-siz
 body centre projected by the pinhole camera; a dolphin counts as seen when its centre is in view and no nearer
 one hides it (services.identity), the target also when its own mask still shows pixels of it. Dolphins in view
 but hidden are left out of the heatmap's loss rather than taught as background.
-
-A detector with ``appearance`` also reads each dolphin's shade (the factor on its grey, services.pod_tracker's
-appearance cue) at its centre cell, learnt from datasets that store every dolphin's look (``looks.npy``).
 """
 
 from __future__ import annotations
@@ -60,24 +57,15 @@ def seen_dolphins(points: np.ndarray, target_pixels: np.ndarray) -> tuple[np.nda
 
 
 def heatmap_targets(
-    pixels: np.ndarray,
-    distances: np.ndarray,
-    seen: np.ndarray,
-    ignored: np.ndarray,
-    size: int,
-    stride: int,
-    shades: np.ndarray | None = None,
+    pixels: np.ndarray, distances: np.ndarray, seen: np.ndarray, ignored: np.ndarray, size: int, stride: int
 ) -> dict[str, np.ndarray]:
     """Per-cell training targets for frames of dolphins at ``pixels`` (N, K, 2): the Gaussian peak map, a mask of
-    cells the loss skips, and at each seen dolphin's cell its offset within the cell and its log distance, and
-    with ``shades`` (N, K; NaN where a frame's looks are unknown) its shade."""
+    cells the loss skips, and at each seen dolphin's cell its offset within the cell and its log distance."""
     n, grid = len(pixels), size // stride
     heat = np.zeros((n, grid, grid), np.float32)
     skip = np.zeros((n, grid, grid), bool)
     centre = np.zeros((n, grid, grid), bool)
-    channels = 3 if shades is None else 4
-    regress = np.full((n, channels, grid, grid), np.nan if shades is not None else 0.0, np.float32)
-    regress[:, :3] = 0.0  # offset x, offset y (cells), log distance; then the shade, NaN where none is known
+    regress = np.zeros((n, 3, grid, grid), np.float32)  # offset x, offset y (cells), log distance
     cells = np.arange(grid) + 0.5
     for row, k in zip(*np.nonzero(seen | ignored), strict=True):
         cx, cy = pixels[row, k] / stride
@@ -90,9 +78,7 @@ def heatmap_targets(
         heat[row] = np.maximum(heat[row], peak)
         heat[row, iy, ix] = 1.0
         centre[row, iy, ix] = True
-        regress[row, :3, iy, ix] = (cx - ix, cy - iy, math.log(distances[row, k]))
-        if shades is not None:
-            regress[row, 3, iy, ix] = shades[row, k]
+        regress[row, :, iy, ix] = (cx - ix, cy - iy, math.log(distances[row, k]))
     return {"heat": heat, "skip": skip & (heat < 1.0), "centre": centre, "regress": regress}
 
 
@@ -106,17 +92,17 @@ def _block(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> nn.Sequ
 
 class PodDetector(nn.Module):
     """Frames (N, 3, 64, 64) in [-1, 1] (encoder_service.model.images_to_tensor) -> (heat logits (N, 1, G, G),
-    regression (N, 3, G, G), or (N, 4, G, G) with ``appearance``: the shade last), G = 64 / stride.
+    regression (N, 3, G, G)), G = 64 / stride.
 
     Features at three scales: 8x8 (a dolphin 2 m away spans half the frame) for what and how far, 16x16 for where,
     and at stride 2 also 32x32, so that two dolphins a few pixels apart keep a peak each.
     """
 
-    def __init__(self, width: int = 16, stride: int = 4, appearance: bool = False) -> None:
+    def __init__(self, width: int = 16, stride: int = 4) -> None:
         super().__init__()
         if stride not in (2, 4):
             raise ValueError(f"the detector's stride is 2 or 4 pixels a cell, got {stride}")
-        self.width, self.stride, self.appearance = width, stride, appearance
+        self.width, self.stride = width, stride
         self.stem = _block(3, width, 2)
         self.fine = nn.Sequential(_block(width, 2 * width, 2), _block(2 * width, 2 * width))
         self.coarse = nn.Sequential(
@@ -127,9 +113,6 @@ class PodDetector(nn.Module):
         out = width if stride == 2 else 2 * width
         self.heat = nn.Conv2d(out, 1, 1)
         self.regress = nn.Conv2d(out, 3, 1)
-        # a branch of its own: a shade is read off a dolphin's whole body, where a centre's place and distance are
-        # read off its outline, so it needs its own features on the shared ones
-        self.shade = nn.Sequential(_block(out, out), _block(out, out), nn.Conv2d(out, 1, 1)) if appearance else None
         nn.init.constant_(self.heat.bias, -2.2)  # CenterNet's start: most cells are background
 
     def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -142,10 +125,7 @@ class PodDetector(nn.Module):
         joined = self.join(torch.cat([fine, coarse], dim=1))
         if self.sharpen is not None:
             joined = self.sharpen(torch.cat([stem, F.interpolate(joined, size=stem.shape[-2:], mode="nearest")], 1))
-        regression = self.regress(joined)
-        if self.shade is not None:
-            regression = torch.cat([regression, 1.0 + self.shade(joined)], dim=1)  # about the nominal grey's 1
-        return self.heat(joined), regression
+        return self.heat(joined), self.regress(joined)
 
 
 def focal_loss(logits: torch.Tensor, heat: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
@@ -158,22 +138,15 @@ def focal_loss(logits: torch.Tensor, heat: torch.Tensor, skip: torch.Tensor) -> 
 
 
 def detector_loss(heat_logits, regression, targets: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict]:
-    """Focal heatmap loss plus L1 on offsets and log distances (and shades, where known) at the dolphins' cells."""
+    """Focal heatmap loss plus L1 on offsets and log distances at the dolphins' cells."""
     heat_loss = focal_loss(heat_logits[:, 0], targets["heat"], targets["skip"])
-    centre = targets["centre"]
-    count = centre.sum().clamp(min=1)
-    error = (regression[:, :3] - targets["regress"][:, :3]).abs() * centre[:, None]
+    centre = targets["centre"][:, None].expand_as(regression)
+    count = targets["centre"].sum().clamp(min=1)
+    error = (regression - targets["regress"]).abs() * centre
     offset_loss = error[:, :2].sum() / count
     distance_loss = error[:, 2].sum() / count
     total = heat_loss + offset_loss + 5.0 * distance_loss
-    parts = {"heat": heat_loss.item(), "offset": offset_loss.item(), "log_d": distance_loss.item()}
-    if regression.shape[1] == 4 and targets["regress"].shape[1] == 4:
-        known = centre & torch.isfinite(targets["regress"][:, 3])
-        shade_error = (regression[:, 3] - torch.nan_to_num(targets["regress"][:, 3])).abs() * known
-        shade_loss = shade_error.sum() / known.sum().clamp(min=1)
-        total = total + 5.0 * shade_loss
-        parts["shade"] = shade_loss.item()
-    return total, parts
+    return total, {"heat": heat_loss.item(), "offset": offset_loss.item(), "log_d": distance_loss.item()}
 
 
 def decode(

@@ -57,19 +57,13 @@ def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
     """Images, poses, companions (none for a lone dolphin's dataset), every dolphin's pixels and the target's
     pixel count of every shard of a dataset with masks."""
     meta = pod_dataset_meta(folder)
-    parts: dict[str, list[np.ndarray]] = {
-        "images": [], "poses": [], "companions": [], "masks": [], "target_pixels": [], "shades": []
-    }  # fmt: skip
+    parts: dict[str, list[np.ndarray]] = {"images": [], "poses": [], "companions": [], "masks": [], "target_pixels": []}
     for shard in meta["shards"]:
         stem = folder / shard
         parts["images"].append(np.load(f"{stem}.images.npy"))
         parts["poses"].append(np.load(f"{stem}.poses.npy"))
         alone = np.zeros((len(parts["poses"][-1]), 0, 6), np.float32)
         parts["companions"].append(np.load(f"{stem}.companions.npy") if meta.get("pod") else alone)
-        looks = Path(f"{stem}.looks.npy")  # every dolphin's size and shade (pods written since the shade was read)
-        dolphins = parts["companions"][-1].shape[1] + 1
-        unknown = np.full((len(alone), dolphins), np.nan, np.float32)
-        parts["shades"].append(np.load(looks)[..., 1] if looks.is_file() else unknown)
         target = np.load(f"{stem}.masks.npy")
         parts["target_pixels"].append(target.sum(axis=(1, 2)))
         others = Path(f"{stem}.others.npy")  # a pod's companions' pixels
@@ -85,10 +79,7 @@ def load_pod_dataset(folder: Path) -> dict[str, np.ndarray]:
 
 
 #: How a dolphin that a smaller pod's frames lack is filled in when datasets join: never seen, nowhere.
-MISSING_DOLPHIN = {
-    "seen": False, "ignored": False, "pixels": 0.0, "azimuths": 0.0, "distances": 1.0, "companions": 0.0,
-    "shades": np.nan,
-}  # fmt: skip
+MISSING_DOLPHIN = {"seen": False, "ignored": False, "pixels": 0.0, "azimuths": 0.0, "distances": 1.0, "companions": 0.0}
 
 
 def join_datasets(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
@@ -126,11 +117,9 @@ def batch(
     stride: int,
     mirror: np.ndarray | None = None,
     photometric: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-    appearance: bool = False,
 ) -> tuple:
-    """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors (with ``appearance`` the dolphins'
-    shades too); ``mirror`` flips chosen rows, and ``photometric`` (frames, every dolphin's pixels -> frames)
-    changes their look, never where the dolphins are."""
+    """A batch's frames (N, 3, H, W) floats and its heatmap targets as tensors; ``mirror`` flips chosen rows, and
+    ``photometric`` (frames, every dolphin's pixels -> frames) changes their look, never where the dolphins are."""
     images = data["images"][rows].copy()
     if photometric is not None:
         images = photometric(images, data["masks"][rows])
@@ -139,31 +128,23 @@ def batch(
     if mirror is not None:
         images[mirror] = images[mirror][:, :, ::-1]
         pixels[mirror, :, 0] = size - pixels[mirror, :, 0]
-    shades = data["shades"][rows] if appearance else None
-    targets = heatmap_targets(pixels, data["distances"][rows], data["seen"][rows], data["ignored"][rows], size, stride,
-                              shades)  # fmt: skip
+    targets = heatmap_targets(pixels, data["distances"][rows], data["seen"][rows], data["ignored"][rows], size, stride)
     return images_to_tensor(images), {name: torch.from_numpy(value) for name, value in targets.items()}
 
 
 def validate(model: PodDetector, data: dict[str, np.ndarray], rows: np.ndarray, threshold: float) -> dict[str, float]:
-    """Recall of seen targets and the found ones' azimuth (deg) and distance (m) errors, plus false peaks a frame;
-    with ``appearance``, the shade error of every seen dolphin of known look a peak found."""
+    """Recall of seen targets and the found ones' azimuth (deg) and distance (m) errors, plus false peaks a frame."""
     model.eval()
-    found, theta_errors, d_errors, extra, shade_errors = 0, [], [], [], []
+    found, theta_errors, d_errors, extra = 0, [], [], []
     size = data["images"].shape[1]
     with torch.no_grad():
         for start in range(0, len(rows), 256):
             chunk = rows[start : start + 256]
-            frames, _ = batch(data, chunk, model.stride, appearance=model.appearance)
+            frames, _ = batch(data, chunk, model.stride)
             detections = decode(*model(frames), threshold=threshold, size=size, stride=model.stride)
             for row, frame in zip(chunk, detections, strict=True):
                 seen = np.nonzero(data["seen"][row])[0]
                 extra.append(max(len(frame) - len(seen), 0))
-                if model.appearance and len(frame):
-                    for k in seen[np.isfinite(data["shades"][row, seen])]:
-                        nearest = int(np.argmin(np.abs(frame.azimuth - data["azimuths"][row, k])))
-                        if abs(frame.azimuth[nearest] - data["azimuths"][row, k]) < 2.5:
-                            shade_errors.append(abs(frame.shade[nearest] - data["shades"][row, k]))
                 if not data["seen"][row, 0] or len(frame) == 0:
                     continue
                 azimuth_true = data["azimuths"][row, 0]
@@ -174,15 +155,12 @@ def validate(model: PodDetector, data: dict[str, np.ndarray], rows: np.ndarray, 
                     d_errors.append(abs(frame.distance[nearest] - data["distances"][row, 0]))
     seen_targets = int(data["seen"][rows, 0].sum())
     model.train()
-    scores = {
+    return {
         "target_recall": found / max(seen_targets, 1),
         "theta_mae_deg": float(np.mean(theta_errors)) if theta_errors else float("nan"),
         "d_mae_m": float(np.mean(d_errors)) if d_errors else float("nan"),
         "extra_peaks_per_frame": float(np.mean(extra)),
     }
-    if model.appearance:
-        scores["shade_mae"] = float(np.mean(shade_errors)) if shade_errors else float("nan")
-    return scores
 
 
 @dataclass
@@ -200,12 +178,6 @@ class TrainDetectorSettings(AugmentSettings):
     stride: int = 2  # pixels per heatmap cell: 2 or 4
     threshold: float = THRESHOLD  # a peak's least score to count as a dolphin, saved in the checkpoint
     init: str = ""  # a detector checkpoint to start from (its width and stride); default: fresh weights
-    # also read each dolphin's shade, the tracker's appearance cue (from datasets that store looks; --init may
-    # be a detector without it: its weights are kept and the shade learnt anew)
-    appearance: bool = False
-    # train the shade read alone (with --appearance and --init): every other weight and batch statistic stays
-    # --init's, so the detector finds, places and ranges dolphins exactly as that one does
-    shade_only: bool = False
     # share of training frames whose dolphins stand out from their water more or less than rendered, their size
     # unchanged (encoder_service.augment.contrast): distance read off size, not off how faded it is
     augment_contrast: float = 0.0
@@ -229,8 +201,6 @@ def check(settings: TrainDetectorSettings) -> None:
                         ("--val-frames", settings.val_frames), ("--width", settings.width)):  # fmt: skip
         if value < 1:
             raise ValueError(f"{flag} {value}: must be at least 1")
-    if settings.shade_only and not (settings.appearance and settings.init):
-        raise ValueError("--shade-only trains a shade read onto a detector: give it with --appearance and --init")
     if settings.init:
         saved = read_detector(settings.init, "--init")
         for flag, mine, theirs in (("--width", settings.width, saved["width"]), ("--stride", settings.stride,
@@ -241,36 +211,14 @@ def check(settings: TrainDetectorSettings) -> None:
         raise FileExistsError(f"--out {settings.out} exists: give --overwrite to replace it, or another --out")
 
 
-def start_from(model: PodDetector, saved: PodDetector) -> None:
-    """``model`` given ``saved``'s weights; a shade branch ``saved`` lacks keeps its fresh start."""
-    weights = {name: value for name, value in saved.state_dict().items() if model.shade is not None or
-               not name.startswith("shade.")}  # fmt: skip
-    missing, _ = model.load_state_dict(weights, strict=False)
-    assert all(name.startswith("shade.") for name in missing), missing
-
-
-def learnt(model: PodDetector, shade_only: bool) -> list[torch.nn.Parameter]:
-    """The parameters training moves: all of them, or with ``shade_only`` the shade branch's alone."""
-    if not shade_only:
-        return list(model.parameters())
-    model.requires_grad_(False)
-    model.shade.requires_grad_(True)
-    return list(model.shade.parameters())
-
-
 def run(settings: TrainDetectorSettings) -> int:
     check(settings)
     torch.manual_seed(settings.seed)
     parts = [load_pod_dataset(Path(folder)) for folder in settings.dataset]
     data = join_datasets(parts)
-    if settings.appearance and not np.isfinite(data["shades"]).any():
-        raise ValueError("--appearance: no --dataset stores its dolphins' looks (write pod datasets again with "
-                         "`swimm dataset --dolphin-pod-size N --masks`)")  # fmt: skip
     train_rows, val_rows = split_rows([len(part["images"]) for part in parts], settings.val_frames)
-    model = PodDetector(settings.width, settings.stride, settings.appearance)
-    if settings.init:
-        start_from(model, load_detector(settings.init)[0])
-    optimiser = torch.optim.AdamW(learnt(model, settings.shade_only), lr=settings.lr, weight_decay=1e-4)
+    model = load_detector(settings.init)[0].train() if settings.init else PodDetector(settings.width, settings.stride)
+    optimiser = torch.optim.AdamW(model.parameters(), lr=settings.lr, weight_decay=1e-4)
     batches = len(train_rows) // settings.batch_size
     schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=settings.lr, total_steps=settings.epochs * batches)
     rng = np.random.default_rng(settings.seed)
@@ -288,9 +236,7 @@ def run(settings: TrainDetectorSettings) -> int:
         for step in bar:
             rows = order[step * settings.batch_size : (step + 1) * settings.batch_size]
             frames, targets = batch(data, rows, model.stride, mirror=rng.random(len(rows)) < 0.5,
-                                    photometric=photometric, appearance=model.appearance)  # fmt: skip
-            if settings.shade_only:
-                model.eval().shade.train()  # batch norm outside the shade branch keeps --init's statistics
+                                    photometric=photometric)  # fmt: skip
             loss, parts_of_loss = detector_loss(*model(frames), targets)
             optimiser.zero_grad()
             loss.backward()

@@ -61,15 +61,14 @@ def read_detector(path: str | Path, what: str = "the checkpoint") -> dict[str, A
 def load_detector(path: str | Path) -> tuple[PodDetector, dict[str, Any]]:
     """A pod detector checkpoint's network in eval mode, and the checkpoint's contents (threshold, history)."""
     saved = read_detector(path)
-    model = PodDetector(int(saved["width"]), int(saved["stride"]), bool(saved.get("appearance", False)))
+    model = PodDetector(width=int(saved["width"]), stride=int(saved["stride"]))
     model.load_state_dict(saved["state_dict"])
     return model.eval(), saved
 
 
 def save_detector(model: PodDetector, path: Path, threshold: float, history: list[dict[str, Any]]) -> None:
     torch.save({"format": DETECTOR_FORMAT, "version": DETECTOR_VERSION, "width": model.width, "stride": model.stride,
-                "appearance": model.appearance, "threshold": threshold, "state_dict": model.state_dict(),
-                "history": history}, path)  # fmt: skip
+                "threshold": threshold, "state_dict": model.state_dict(), "history": history}, path)  # fmt: skip
 
 
 class PodEncoder:

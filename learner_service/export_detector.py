@@ -4,8 +4,7 @@ The tracker (services.pod_tracker) keeps identity across frames by a matching no
 splits where it runs, and the caller (`swimm pilot`, :class:`services.pod_tracker.TargetReader`) joins them:
 
     <out stem>.detector.onnx  frame uint8 (N, 64, 64, 3), RGB -> heat (N, G, G), peak scores in (0, 1), and
-                              regression (N, 3, G, G): each cell's sub-cell offset and log distance (N, 4, G, G)
-                              from a detector that reads shades: the shade last
+                              regression (N, 3, G, G): each cell's sub-cell offset and log distance
     <out>                     reading float32 (N, 2): the target's distance (m) and azimuth (deg, + = left) as the
                               tracker reads them, (6, 0) before a dolphin is engaged; action_history -> action,
                               next_history, as a CMVAE policy's file

@@ -21,17 +21,12 @@ TAN_BETA = math.tan(math.radians(BETA_DEG))
 @dataclass(frozen=True)
 class Detections:
     """One frame's dolphins, strongest first: score in (0, 1), azimuth and elevation in degrees (+ = left, above),
-    distance in metres, and the shade each looks (NaN from a detector that reads none)."""
+    distance in metres."""
 
     score: np.ndarray
     azimuth: np.ndarray
     elevation: np.ndarray
     distance: np.ndarray
-    shade: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.shade is None:
-            object.__setattr__(self, "shade", np.full(len(self.score), np.nan))
 
     def __len__(self) -> int:
         return len(self.score)
@@ -63,8 +58,7 @@ def local_maxima(heat: np.ndarray) -> np.ndarray:
 
 def read_peaks(heat: np.ndarray, regression: np.ndarray, threshold: float, size: int, stride: int) -> list[Detections]:
     """Each frame's :class:`Detections` from the detector's heat (N, G, G), scores in (0, 1), and regression
-    (N, 3, G, G), or (N, 4, G, G) with each cell's shade last: the 3x3 local maxima above ``threshold``, placed by
-    their offsets and distances."""
+    (N, 3, G, G): the 3x3 local maxima above ``threshold``, placed by their offsets and distances."""
     peaks = local_maxima(heat) & (heat > threshold)
     frames = []
     for n in range(len(heat)):
@@ -74,6 +68,5 @@ def read_peaks(heat: np.ndarray, regression: np.ndarray, threshold: float, size:
         r = regression[n][:, iy, ix]
         azimuth, elevation = from_pixels((ix + r[0]) * stride, (iy + r[1]) * stride, size)
         distance = np.exp(r[2])
-        shade = r[3] if len(r) > 3 else None
-        frames.append(Detections(heat[n, iy, ix], rover_azimuth(azimuth, distance), elevation, distance, shade))
+        frames.append(Detections(heat[n, iy, ix], rover_azimuth(azimuth, distance), elevation, distance))
     return frames

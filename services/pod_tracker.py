@@ -6,10 +6,6 @@ tracks by the nearest gated match in both, the cheapest pairs first. The target 
 dolphin nearest the image centre started (the engagement rule, docs/physics.md, "Pods"), among the peaks at least
 half as strong as the frame's strongest.
 
-Each track also keeps the mean shade its detections read (a detector with ``appearance``), and a detection
-whose shade lies far from a track's, once that track has read enough of them, does not join it: look-alikes
-that overlap for seconds are told apart by their look when their motion no longer can.
-
 Distance is what tells a companion passing in front from the target: the one in front is nearer. While the target
 has no detection and a nearer dolphin covers where it was, the target is *behind* it: its azimuth is held within
 the disc of the one in front and its distance stays put, so when the two part the target's track
@@ -31,8 +27,8 @@ from services.detections import Detections, read_peaks
 from services.geometry import OPT_D
 from services.identity import DOLPHIN_RADIUS_M
 
-FIELDS = ("alive", "target", "azimuth", "log_d", "rate", "log_d_rate", "misses", "behind", "shade", "shade_reads")
-ALIVE, TARGET, AZIMUTH, LOG_D, RATE, LOG_D_RATE, MISSES, BEHIND, SHADE, SHADE_READS = range(len(FIELDS))
+FIELDS = ("alive", "target", "azimuth", "log_d", "rate", "log_d_rate", "misses", "behind")
+ALIVE, TARGET, AZIMUTH, LOG_D, RATE, LOG_D_RATE, MISSES, BEHIND = range(len(FIELDS))
 MAX_TRACKS = 8
 STATE_SIZE = MAX_TRACKS * len(FIELDS)
 NOT_MATCHED = math.inf
@@ -62,9 +58,6 @@ class TrackerParams:
     nearer: float = 0.92  # a dolphin covers the target when nearer than this share of its distance...
     cover_margin_deg: float = 1.0  # ...and its disc, widened by this, holds the target's centre
     engage_score_share: float = 0.5  # at engagement, a peak weaker than this share of the strongest is no candidate
-    shade_sigma: float = 0.04  # the spread a match allows a shade read about its track's mean (0: the cue off)
-    shade_min_reads: int = 10  # a track's mean shade counts once it has read this many
-    shade_memory: int = 100  # the mean weighs the last reads about this many frames long
 
 
 class PodTracker:
@@ -84,9 +77,9 @@ class PodTracker:
         tracks[alive, AZIMUTH] += tracks[alive, RATE]
         tracks[alive, LOG_D] += tracks[alive, LOG_D_RATE]
         log_d = np.log(np.maximum(frame.distance, 0.1))
-        track_of = {detection: track for track, detection in self._match(tracks, frame.azimuth, log_d, frame.shade)}
+        track_of = {detection: track for track, detection in self._match(tracks, frame.azimuth, log_d)}
         for detection, track in track_of.items():
-            self._correct(tracks[track], frame.azimuth[detection], log_d[detection], frame.shade[detection])
+            self._correct(tracks[track], frame.azimuth[detection], log_d[detection])
         for track in np.nonzero(alive)[0]:
             if track not in track_of.values():
                 self._coast(tracks, track, frame, log_d, track_of)
@@ -113,8 +106,6 @@ class PodTracker:
             return
         cost = _apart(tracks[seen], tracks[target, AZIMUTH], tracks[target, LOG_D],
                       p.reacquire_azimuth_sigma_deg, p.max_log_d_sigma)  # fmt: skip
-        if tracks[target, SHADE_READS] >= p.shade_min_reads:  # the look it had, where the seen ones' are known
-            cost += self._unlike(tracks[seen], tracks[target, SHADE])
         chosen = seen[int(np.argmin(cost))]
         tracks[target] = 0.0
         tracks[chosen, TARGET] = 1.0
@@ -127,28 +118,14 @@ class PodTracker:
         azimuth = np.where(tracks[:, BEHIND] > 0, p.behind_azimuth_sigma_deg, azimuth)
         return azimuth, np.minimum(p.log_d_sigma + p.log_d_sigma_growth * misses, p.max_log_d_sigma)
 
-    def _unlike(self, tracks: np.ndarray, shade: np.ndarray) -> np.ndarray:
-        """Squared normalised gap between tracks' mean shades and detections' reads, broadcast; 0 where either is
-        unknown (a track with too few reads, a detector that reads none)."""
-        p = self.params
-        if p.shade_sigma <= 0:
-            return np.zeros(np.broadcast_shapes(tracks.shape[:-1], np.shape(shade)))
-        gap = ((tracks[..., SHADE] - shade) / p.shade_sigma) ** 2
-        known = (tracks[..., SHADE_READS] >= p.shade_min_reads) & np.isfinite(shade)
-        return np.where(known, gap, 0.0)
-
-    def _match(
-        self, tracks: np.ndarray, azimuth: np.ndarray, log_d: np.ndarray, shade: np.ndarray
-    ) -> list[tuple[int, int]]:
+    def _match(self, tracks: np.ndarray, azimuth: np.ndarray, log_d: np.ndarray) -> list[tuple[int, int]]:
         """Gated (track, detection) pairs, cheapest first, each track and detection at most once."""
         alive = np.nonzero(tracks[:, ALIVE] > 0)[0]
         if len(alive) == 0 or len(azimuth) == 0:
             return []
         sigma_azimuth, sigma_log_d = self._sigmas(tracks[alive])
         cost = _apart(tracks[alive, None], azimuth[None], log_d[None], sigma_azimuth[:, None], sigma_log_d[:, None])
-        looks = self._unlike(tracks[alive, None], shade[None])
-        cost[(cost > self.params.gate) | (looks > self.params.gate)] = NOT_MATCHED
-        cost += looks
+        cost[cost > self.params.gate] = NOT_MATCHED
         # A matching cascade: tracks seen more recently choose first, so a coasting target never steals the
         # detection of a companion seen all along (the one now in front of it).
         cost += PRIORITY_STEP * tracks[alive, MISSES, None]
@@ -160,11 +137,8 @@ class PodTracker:
             cost[:, column] = NOT_MATCHED
         return pairs
 
-    def _correct(self, track: np.ndarray, azimuth: float, log_d: float, shade: float) -> None:
+    def _correct(self, track: np.ndarray, azimuth: float, log_d: float) -> None:
         p = self.params
-        if np.isfinite(shade):
-            track[SHADE] += (shade - track[SHADE]) / min(track[SHADE_READS] + 1, p.shade_memory)
-            track[SHADE_READS] += 1
         residual = azimuth - track[AZIMUTH]
         track[AZIMUTH] += p.azimuth_gain * residual
         track[RATE] += p.rate_gain * residual
@@ -223,8 +197,6 @@ class PodTracker:
             track[ALIVE] = 1.0
             track[TARGET] = float(engage and order == 0)
             track[AZIMUTH], track[LOG_D] = frame.azimuth[detection], log_d[detection]
-            if np.isfinite(frame.shade[detection]):
-                track[SHADE], track[SHADE_READS] = frame.shade[detection], 1.0
 
     def _explained(self, tracks: np.ndarray, frame: Detections, log_d: np.ndarray, detection: int) -> bool:
         """Whether a detection lies within a live track's gate: a second peak on a dolphin already tracked."""

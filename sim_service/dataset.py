@@ -17,8 +17,6 @@ On-disk format (version 1), a directory::
     shard-00000.others.npy     bool    (n, 64, 64): pod datasets with masks, which pixels show any companion
     shard-00000.companions.npy float32 (n, size - 1, 6): pod datasets, each companion's x, y, z, roll, pitch, yaw
                                (the target's pose columns, see POSE_NAMES)
-    shard-00000.looks.npy      float32 (n, size, 2): pod datasets, each dolphin's size and shade factors, the
-                               target first (what tells look-alikes apart)
     ...
 
 Each shard is written through a memory map as it is filled and meta.json
@@ -203,8 +201,7 @@ def _write_shard(
         companion_poses = np.lib.format.open_memmap(
             out / f"{name}.companions.npy", "w+", np.float32, (n, companions, 6)
         )
-        looks = np.lib.format.open_memmap(out / f"{name}.looks.npy", "w+", np.float32, (n, companions + 1, 2))
-        arrays.extend([companion_poses, looks])
+        arrays.append(companion_poses)
     others = masks and companions > 0
     if others:
         other_masks = np.lib.format.open_memmap(out / f"{name}.others.npy", "w+", np.bool_, (n, size, size))
@@ -221,7 +218,6 @@ def _write_shard(
         labels[j], poses[j] = labels_and_pose(telemetry, ranges.vertical)
         if companions:
             companion_poses[j] = _companion_poses(world)
-            looks[j] = world.dolphin_looks()
         if bar is not None:
             bar.update(1)
     for array in arrays:

@@ -339,11 +339,6 @@ class World:
         geoms = np.where(segmentation[..., 1] == mujoco.mjtObj.mjOBJ_GEOM, segmentation[..., 0], -1)
         return self._pooled(np.isin(geoms, self._target_geoms)), self._pooled(np.isin(geoms, self._companion_geoms))
 
-    def dolphin_looks(self) -> np.ndarray:
-        """Every dolphin's (size, shade) factors (pod size, 2), the target first: what tells look-alikes apart."""
-        target = (self.scenery.dolphin_scale, self.scenery.scene.dolphin_shade or 1.0)
-        return np.array([target, *((c.scale, c.shade) for c in self.pod.companions)], dtype=np.float32)
-
     def companion_bodies(self) -> tuple[np.ndarray, np.ndarray]:
         """Each companion's body position (companions, 3) and (w, x, y, z) quaternion (companions, 4), now."""
         return self.data.xpos[self._companion_bodies].copy(), self.data.xquat[self._companion_bodies].copy()

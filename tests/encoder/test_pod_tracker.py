@@ -6,19 +6,7 @@ import numpy as np
 import pytest
 
 from services.detections import Detections, local_maxima, read_peaks
-from services.pod_tracker import (
-    BEHIND,
-    FIELDS,
-    MAX_TRACKS,
-    SHADE,
-    SHADE_READS,
-    STATE_SIZE,
-    TARGET,
-    UNSEEN,
-    PodTracker,
-    TargetReader,
-    TrackerParams,
-)
+from services.pod_tracker import BEHIND, FIELDS, MAX_TRACKS, STATE_SIZE, TARGET, UNSEEN, PodTracker, TargetReader
 
 
 def frame(*dolphins: tuple[float, float]) -> Detections:
@@ -141,23 +129,3 @@ def test_a_target_lost_behind_no_one_is_given_up_for_the_likeliest_seen() -> Non
     _, readings = run(tracker, lost)
     assert readings[tracker.params.reacquire_after - 5] == pytest.approx((6.0, 10.0))  # still waiting for it
     assert readings[-1] == pytest.approx((9.0, 40.0), abs=0.5)
-
-
-def shaded(shade: float, *dolphins: tuple[float, float]) -> Detections:
-    """Detections of dolphins that all read ``shade``."""
-    plain = frame(*dolphins)
-    return Detections(plain.score, plain.azimuth, plain.elevation, plain.distance, np.full(len(plain), shade))
-
-
-def test_a_look_alike_in_the_targets_place_is_told_apart_by_its_shade() -> None:
-    """The target (shade 1.0) is learnt over 20 frames, then hidden behind no one while a paler companion (1.2)
-    swims in where it was; the shade keeps the target's track off it, so when the target shows again beside the
-    companion it is the target that is read. Without the cue (shade_sigma 0) the companion takes the track over."""
-    frames = [shaded(1.0, (0.0, 6.0)) for _ in range(20)]
-    frames += [shaded(1.2, (0.5 * step, 6.3)) for step in range(10)]  # the companion alone, the target unseen
-    frames += [Detections(np.ones(2), np.array([0.0, 6.0]), np.zeros(2), np.array([6.0, 6.3]), np.array([1.0, 1.2]))]
-    state, readings = run(PodTracker(), frames)
-    assert target_track(state)[SHADE] == pytest.approx(1.0) and target_track(state)[SHADE_READS] == 21
-    assert readings[-1] == pytest.approx((6.0, 0.0), abs=0.3)
-    _, blind = run(PodTracker(TrackerParams(shade_sigma=0.0)), frames)
-    assert blind[-1][1] == pytest.approx(6.0, abs=1.0)  # the companion, now at 6 deg
