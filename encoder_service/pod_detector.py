@@ -150,8 +150,14 @@ def detector_loss(heat_logits, regression, targets: dict[str, torch.Tensor]) -> 
 
 
 def decode(
-    heat_logits: torch.Tensor, regression: torch.Tensor, threshold: float, size: int, stride: int
+    heat_logits: torch.Tensor,
+    regression: torch.Tensor,
+    threshold: float,
+    size: int,
+    stride: int,
+    images: np.ndarray | None = None,
 ) -> list[Detections]:
-    """Peaks above ``threshold`` (3x3 local maxima of the sigmoid heat) as each frame's :class:`Detections`."""
+    """Peaks above ``threshold`` (3x3 local maxima of the sigmoid heat) as each frame's :class:`Detections`, with
+    their looks where the frames are given."""
     heat = torch.sigmoid(heat_logits[:, 0]).detach().cpu().numpy()
-    return read_peaks(heat, regression.detach().cpu().numpy(), threshold, size, stride)
+    return read_peaks(heat, regression.detach().cpu().numpy(), threshold, size, stride, images)

@@ -122,8 +122,10 @@ class PodEncoder:
 
     @torch.inference_mode()
     def detect(self, images: np.ndarray) -> list[Detections]:
-        """Every dolphin the detector finds in each frame (no tracking)."""
-        return decode(*self._detect(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride)
+        """Every dolphin the detector finds in each frame, with its look (no tracking)."""
+        return decode(
+            *self._detect(images_to_tensor(images)), self.threshold, images.shape[1], self.model.stride, images
+        )
 
     def encode(self, images: np.ndarray, priors: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         mu, logvar, _ = self.track(images, priors)

@@ -6,6 +6,11 @@ tracks by the nearest gated match in both, the cheapest pairs first. The target 
 dolphin nearest the image centre started (the engagement rule, docs/physics.md, "Pods"), among the peaks at least
 half as strong as the frame's strongest.
 
+Each track also keeps the mean look its detections read (how light the animal shows against the water,
+services.detections.pixel_looks), and a detection whose look lies far from a track's, once that track has read
+enough of them, does not join it: look-alikes that overlap for seconds are told apart by their grey when their
+motion no longer can.
+
 Distance is what tells a companion passing in front from the target: the one in front is nearer. While the target
 has no detection and a nearer dolphin covers where it was, the target is *behind* it: its azimuth is held within
 the disc of the one in front and its distance stays put, so when the two part the target's track
@@ -27,8 +32,8 @@ from services.detections import Detections, read_peaks
 from services.geometry import OPT_D
 from services.identity import DOLPHIN_RADIUS_M
 
-FIELDS = ("alive", "target", "azimuth", "log_d", "rate", "log_d_rate", "misses", "behind")
-ALIVE, TARGET, AZIMUTH, LOG_D, RATE, LOG_D_RATE, MISSES, BEHIND = range(len(FIELDS))
+FIELDS = ("alive", "target", "azimuth", "log_d", "rate", "log_d_rate", "misses", "behind", "look", "look_reads")
+ALIVE, TARGET, AZIMUTH, LOG_D, RATE, LOG_D_RATE, MISSES, BEHIND, LOOK, LOOK_READS = range(len(FIELDS))
 MAX_TRACKS = 8
 STATE_SIZE = MAX_TRACKS * len(FIELDS)
 NOT_MATCHED = math.inf
@@ -58,6 +63,9 @@ class TrackerParams:
     nearer: float = 0.92  # a dolphin covers the target when nearer than this share of its distance...
     cover_margin_deg: float = 1.0  # ...and its disc, widened by this, holds the target's centre
     engage_score_share: float = 0.5  # at engagement, a peak weaker than this share of the strongest is no candidate
+    look_sigma: float = 12.0  # the spread (grey levels) a match allows a look about its track's mean (0: the cue off)
+    look_min_reads: int = 10  # a track's mean look counts once it has read this many
+    look_memory: int = 100  # the mean weighs the last reads about this many frames long
 
 
 class PodTracker:
@@ -77,9 +85,9 @@ class PodTracker:
         tracks[alive, AZIMUTH] += tracks[alive, RATE]
         tracks[alive, LOG_D] += tracks[alive, LOG_D_RATE]
         log_d = np.log(np.maximum(frame.distance, 0.1))
-        track_of = {detection: track for track, detection in self._match(tracks, frame.azimuth, log_d)}
+        track_of = {detection: track for track, detection in self._match(tracks, frame.azimuth, log_d, frame.look)}
         for detection, track in track_of.items():
-            self._correct(tracks[track], frame.azimuth[detection], log_d[detection])
+            self._correct(tracks[track], frame.azimuth[detection], log_d[detection], frame.look[detection])
         for track in np.nonzero(alive)[0]:
             if track not in track_of.values():
                 self._coast(tracks, track, frame, log_d, track_of)
@@ -106,6 +114,8 @@ class PodTracker:
             return
         cost = _apart(tracks[seen], tracks[target, AZIMUTH], tracks[target, LOG_D],
                       p.reacquire_azimuth_sigma_deg, p.max_log_d_sigma)  # fmt: skip
+        if tracks[target, LOOK_READS] >= p.look_min_reads:  # the look it had, where the seen ones' are known
+            cost += self._unlike(tracks[seen], tracks[target, LOOK])
         chosen = seen[int(np.argmin(cost))]
         tracks[target] = 0.0
         tracks[chosen, TARGET] = 1.0
@@ -118,14 +128,28 @@ class PodTracker:
         azimuth = np.where(tracks[:, BEHIND] > 0, p.behind_azimuth_sigma_deg, azimuth)
         return azimuth, np.minimum(p.log_d_sigma + p.log_d_sigma_growth * misses, p.max_log_d_sigma)
 
-    def _match(self, tracks: np.ndarray, azimuth: np.ndarray, log_d: np.ndarray) -> list[tuple[int, int]]:
+    def _unlike(self, tracks: np.ndarray, look: np.ndarray) -> np.ndarray:
+        """Squared normalised gap between tracks' mean looks and detections' looks, broadcast; 0 where either is
+        unknown (a track with too few reads, a detector that reads none)."""
+        p = self.params
+        if p.look_sigma <= 0:
+            return np.zeros(np.broadcast_shapes(tracks.shape[:-1], np.shape(look)))
+        gap = ((tracks[..., LOOK] - look) / p.look_sigma) ** 2
+        known = (tracks[..., LOOK_READS] >= p.look_min_reads) & np.isfinite(look)
+        return np.where(known, gap, 0.0)
+
+    def _match(
+        self, tracks: np.ndarray, azimuth: np.ndarray, log_d: np.ndarray, look: np.ndarray
+    ) -> list[tuple[int, int]]:
         """Gated (track, detection) pairs, cheapest first, each track and detection at most once."""
         alive = np.nonzero(tracks[:, ALIVE] > 0)[0]
         if len(alive) == 0 or len(azimuth) == 0:
             return []
         sigma_azimuth, sigma_log_d = self._sigmas(tracks[alive])
         cost = _apart(tracks[alive, None], azimuth[None], log_d[None], sigma_azimuth[:, None], sigma_log_d[:, None])
-        cost[cost > self.params.gate] = NOT_MATCHED
+        looks = self._unlike(tracks[alive, None], look[None])
+        cost[(cost > self.params.gate) | (looks > self.params.gate)] = NOT_MATCHED
+        cost += looks
         # A matching cascade: tracks seen more recently choose first, so a coasting target never steals the
         # detection of a companion seen all along (the one now in front of it).
         cost += PRIORITY_STEP * tracks[alive, MISSES, None]
@@ -137,8 +161,11 @@ class PodTracker:
             cost[:, column] = NOT_MATCHED
         return pairs
 
-    def _correct(self, track: np.ndarray, azimuth: float, log_d: float) -> None:
+    def _correct(self, track: np.ndarray, azimuth: float, log_d: float, look: float) -> None:
         p = self.params
+        if np.isfinite(look):
+            track[LOOK] += (look - track[LOOK]) / min(track[LOOK_READS] + 1, p.look_memory)
+            track[LOOK_READS] += 1
         residual = azimuth - track[AZIMUTH]
         track[AZIMUTH] += p.azimuth_gain * residual
         track[RATE] += p.rate_gain * residual
@@ -197,6 +224,8 @@ class PodTracker:
             track[ALIVE] = 1.0
             track[TARGET] = float(engage and order == 0)
             track[AZIMUTH], track[LOG_D] = frame.azimuth[detection], log_d[detection]
+            if np.isfinite(frame.look[detection]):
+                track[LOOK], track[LOOK_READS] = frame.look[detection], 1.0
 
     def _explained(self, tracks: np.ndarray, frame: Detections, log_d: np.ndarray, detection: int) -> bool:
         """Whether a detection lies within a live track's gate: a second peak on a dolphin already tracked."""
@@ -233,7 +262,7 @@ class TargetReader:
     def read(self, frame: np.ndarray) -> tuple[float, float]:
         """The target's (distance m, azimuth deg) in one uint8 frame (H, W, 3); :data:`UNSEEN` before engagement."""
         heat, regression = self.detect(frame[None])
-        (detections,) = read_peaks(heat, regression, self.threshold, self.size, self.stride)
+        (detections,) = read_peaks(heat, regression, self.threshold, self.size, self.stride, frame[None])
         self.state, reading = self.tracker.update(self.state, detections, self.engage_deg)
         return reading or UNSEEN
 

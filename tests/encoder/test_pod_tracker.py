@@ -5,8 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.detections import Detections, local_maxima, read_peaks
-from services.pod_tracker import BEHIND, FIELDS, MAX_TRACKS, STATE_SIZE, TARGET, UNSEEN, PodTracker, TargetReader
+from services.detections import Detections, local_maxima, pixel_looks, read_peaks
+from services.pod_tracker import (
+    BEHIND,
+    FIELDS,
+    LOOK,
+    LOOK_READS,
+    MAX_TRACKS,
+    STATE_SIZE,
+    TARGET,
+    UNSEEN,
+    PodTracker,
+    TargetReader,
+    TrackerParams,
+)
 
 
 def frame(*dolphins: tuple[float, float]) -> Detections:
@@ -129,3 +141,41 @@ def test_a_target_lost_behind_no_one_is_given_up_for_the_likeliest_seen() -> Non
     _, readings = run(tracker, lost)
     assert readings[tracker.params.reacquire_after - 5] == pytest.approx((6.0, 10.0))  # still waiting for it
     assert readings[-1] == pytest.approx((9.0, 40.0), abs=0.5)
+
+
+def looking(look: float, *dolphins: tuple[float, float]) -> Detections:
+    """Detections of dolphins that all look ``look`` grey levels lighter than the water."""
+    plain = frame(*dolphins)
+    return Detections(plain.score, plain.azimuth, plain.elevation, plain.distance, np.full(len(plain), look))
+
+
+def test_a_look_alike_in_the_targets_place_is_told_apart_by_its_look() -> None:
+    """The target (40 grey levels above the water) is learnt over 20 frames, then unseen while a paler companion
+    (90) swims in where it was; the look keeps the target's track off it, so when the target shows again beside
+    the companion it is the target that is read. Without the cue (look_sigma 0) the companion takes the track."""
+    frames = [looking(40.0, (0.0, 6.0)) for _ in range(20)]
+    frames += [looking(90.0, (0.5 * step, 6.3)) for step in range(10)]  # the companion alone, the target unseen
+    frames += [Detections(np.ones(2), np.array([0.0, 6.0]), np.zeros(2), np.array([6.0, 6.3]), np.array([40.0, 90.0]))]
+    state, readings = run(PodTracker(), frames)
+    assert target_track(state)[LOOK] == pytest.approx(40.0) and target_track(state)[LOOK_READS] == 21
+    assert readings[-1] == pytest.approx((6.0, 0.0), abs=0.3)
+    _, blind = run(PodTracker(TrackerParams(look_sigma=0.0)), frames)
+    assert blind[-1][1] == pytest.approx(6.0, abs=1.0)  # the companion, now at 6 deg
+
+
+def test_a_look_is_the_animals_grey_above_the_water_even_a_pixel_off() -> None:
+    """pixel_looks: a 3x3 dolphin of grey 130 in water of grey 50 reads 80 at its centre and a pixel off it (the
+    lightest pixels of the window), and a darker one (grey 90) half as much."""
+    image = np.full((64, 64, 3), 50, np.uint8)
+    image[30:33, 10:13] = 130
+    image[40:43, 50:53] = 90
+    looks = pixel_looks(image, np.array([11.0, 12.4, 51.0]), np.array([31.0, 32.0, 41.0]))
+    assert looks == pytest.approx([80.0, 80.0, 40.0])
+    heat = np.zeros((1, 16, 16), np.float32)
+    heat[0, 7, 2] = 0.9
+    regression = np.zeros((1, 3, 16, 16), np.float32)
+    regression[0, :, 7, 2] = (0.75, 0.75, np.log(5.0))  # the peak's centre at pixel (11, 31)
+    (peaks,) = read_peaks(heat, regression, 0.3, 64, 4, image[None])
+    assert peaks.look == pytest.approx([80.0])
+    (unread,) = read_peaks(heat, regression, 0.3, 64, 4)
+    assert np.isnan(unread.look).all()
