@@ -65,7 +65,7 @@ class TrackerParams:
     engage_score_share: float = 0.5  # at engagement, a peak weaker than this share of the strongest is no candidate
     look_sigma: float = 12.0  # the spread (grey levels) a match allows a look about its track's mean (0: the cue off)
     look_min_reads: int = 10  # a track's mean look counts once it has read this many
-    look_memory: int = 100  # the mean weighs the last reads about this many frames long
+    look_memory: int = 1000  # the mean weighs the last reads about this many frames long (20 s)
 
 
 class PodTracker:
