@@ -2,7 +2,10 @@
 as `swimm eval` (no early termination; docs/encoder.md, "Where identity goes in the plain split"). A diagnostic,
 not a result. It ran at commit 4e46d3d for the shade spreads (tries/shade-spread-sweep.jsonl, detector
 runs/det-shade.pt) and, for the nearer-detection gate (tries/nearer-gate-sweep.jsonl), on that tracker with a
-``target_nearer_limit`` field never committed; at HEAD ``--params`` takes TrackerParams' fields as they are:
+``target_nearer_limit`` field never committed. The look cue's sweep (tries/look-sweep.jsonl) ran on the tracker of
+commit b76982d (its ``look_sigma`` and ``look_memory``; the 3x3-mean rows with pixel_looks reading the window's mean);
+``{"look_sigma": 0}`` there and since plays the tracker without the cue. ``--params`` takes TrackerParams' fields as
+they are at HEAD:
 
     MUJOCO_GL=egl LP_NUM_THREADS=0 python docs/eval_report/selection/pods/selection_loop.py \
         --detector encoder_service/models/pod_detector.pt --crossing --params '{"log_d_sigma": 0.2}'
