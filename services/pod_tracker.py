@@ -130,7 +130,7 @@ class PodTracker:
 
     def _unlike(self, tracks: np.ndarray, look: np.ndarray) -> np.ndarray:
         """Squared normalised gap between tracks' mean looks and detections' looks, broadcast; 0 where either is
-        unknown (a track with too few reads, a detector that reads none)."""
+        unknown (a track with too few reads, a detection read without its frame)."""
         p = self.params
         if p.look_sigma <= 0:
             return np.zeros(np.broadcast_shapes(tracks.shape[:-1], np.shape(look)))
